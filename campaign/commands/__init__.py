@@ -1,0 +1,1 @@
+"""One module per ``campaign`` subcommand: HELP, configure(parser), main(args) -> int."""
