@@ -1,0 +1,41 @@
+"""``campaign plot``: the paper's figures from a campaign file (PNG, needs matplotlib)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from campaign.errors import UserError
+
+HELP = "Plot the paper's figures from a campaign file (PNG; needs the plot extra)"
+
+
+def configure(parser):
+    parser.add_argument("files", nargs="+", metavar="FILE", help="campaign HDF5 file(s)")
+    parser.add_argument("--out", metavar="DIR",
+                        help="output directory (default: <FILE stem>_reduced/figures)")
+    parser.add_argument("--boot", type=int, default=200, metavar="B",
+                        help="bootstrap resamples for the fit errors shown in the extrapolation "
+                             "figure (default 200)")
+    parser.add_argument("--min-packings", type=int, default=3, metavar="K",
+                        help="cells with fewer finished packings are left out of the fits")
+    parser.add_argument("--dpi", type=int, default=90, help="resolution of the PNGs (default 90)")
+
+
+def main(args) -> int:
+    from campaign import plots
+    from campaign import reduce as R
+
+    if args.boot < 0 or args.boot == 1:
+        raise UserError(f"--boot must be 0 or at least 2, got {args.boot}")
+    if args.min_packings < 2:
+        raise UserError(f"--min-packings must be at least 2, got {args.min_packings}")
+    plots._plt()  # fail early, before the reduction, when matplotlib is missing
+    red = R.reduce_campaign(args.files, R.Settings(min_packings=args.min_packings,
+                                                   n_boot=args.boot))
+    out = Path(args.out) if args.out else R.default_out_dir(args.files[0]) / "figures"
+    written = plots.make_figures(red, out, dpi=args.dpi)
+    for n in red.notes:
+        print(n, file=sys.stderr)
+    print(f"wrote {len(written)} figures to {out}/", file=sys.stderr)
+    return 0

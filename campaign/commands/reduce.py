@@ -1,0 +1,82 @@
+"""``campaign reduce``: distributions, scaling fits and the finite-size table of a campaign file."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from campaign.errors import UserError
+
+HELP = "Reduce a campaign file: distributions, scaling fits, the finite-size table"
+
+
+def configure(parser):
+    parser.add_argument("files", nargs="+", metavar="FILE",
+                        help="campaign HDF5 file(s); several files are reduced together "
+                             "(a packing done in more than one counts once)")
+    parser.add_argument("--out", metavar="DIR",
+                        help="output directory (default: <FILE stem>_reduced next to FILE)")
+    parser.add_argument("--json", action="store_true",
+                        help="print one JSON object (rows, extrapolated) on stdout; "
+                             "the table and notes go to stderr")
+    parser.add_argument("--boot", type=int, default=1000, metavar="B",
+                        help="bootstrap resamples for the fit errors (default 1000)")
+    parser.add_argument("--seed", type=int, default=None, metavar="S",
+                        help="bootstrap seed (default: a fixed seed)")
+    parser.add_argument("--min-packings", type=int, default=3, metavar="K",
+                        help="cells with fewer finished packings are left out of the fits "
+                             "(default 3)")
+    parser.add_argument("--in-place", action="store_true",
+                        help="also write the /reduced group into FILE itself (refused while "
+                             "tasks are pending or another process has the file open)")
+
+
+def main(args) -> int:
+    from campaign import reduce as R
+
+    if args.boot < 0 or args.boot == 1:
+        raise UserError(f"--boot must be 0 (no errors) or at least 2, got {args.boot}")
+    if args.min_packings < 2:
+        raise UserError(f"--min-packings must be at least 2 (a standard error needs two "
+                        f"packings), got {args.min_packings}")
+    if args.in_place and len(args.files) != 1:
+        raise UserError("--in-place needs exactly one FILE")
+    settings = R.Settings(min_packings=args.min_packings, n_boot=args.boot)
+    if args.seed is not None:
+        settings.boot_seed = args.seed
+    red = R.reduce_campaign(args.files, settings)
+    out = Path(args.out) if args.out else R.default_out_dir(args.files[0])
+    written = R.write_outputs(red, out)
+    text = sys.stderr if args.json else sys.stdout
+    m = red.meta
+    print(f"{m['name'] or Path(args.files[0]).name}: {m['done']} of {m['total']} packings done"
+          + (f", {m['pending']} pending" if m["pending"] else "")
+          + (f", {m['failed']} failed" if m["failed"] else "")
+          + f"; {len(red.rows)} (variant, N_G) rows; bootstrap {m['n_boot']}", file=text)
+    print("", file=text)
+    print(R.table_markdown(red), file=text)
+    for n in red.notes:
+        print(n, file=sys.stderr)
+    if args.in_place:
+        _write_in_place(red, args.files[0])
+        written.append(Path(args.files[0]))
+    print(f"wrote {out}/ ({', '.join(p.name for p in written)})", file=sys.stderr)
+    if args.json:
+        json.dump(red.to_json(), sys.stdout)
+        sys.stdout.write("\n")
+    return 0
+
+
+def _write_in_place(red, path):
+    from campaign import reduce as R
+
+    if red.meta["pending"]:
+        raise UserError(f"{path}: {red.meta['pending']} tasks are still pending (a run may be "
+                        "writing the file); not writing into it. The reduced group is in the "
+                        "output directory's reduced.h5")
+    try:
+        R.write_reduced(red, path, mode="r+")
+    except OSError as exc:  # locked by a writer, read-only, ...
+        raise UserError(f"{path}: could not open for writing ({exc}); the reduced group is in "
+                        "the output directory's reduced.h5") from None

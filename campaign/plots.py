@@ -1,0 +1,363 @@
+"""Figures of a reduced campaign (matplotlib, the ``plot`` extra).
+
+``make_figures(reduction, out_dir)`` writes one PNG per figure of the paper that a
+campaign can produce, plus the goodness-of-fit, width-scaling and extrapolation
+figures. Every function takes a ``Reduction`` (campaign.reduce) and never reads files.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from campaign.errors import UserError
+
+
+def _plt():
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise UserError("plotting needs matplotlib: pip install 'jamming-campaign[plot]'") from None
+    plt.rcParams.update({"figure.dpi": 90, "font.size": 9, "axes.titlesize": 9,
+                         "legend.fontsize": 7, "savefig.bbox": "tight"})
+    return plt
+
+
+def _colors(n, cmap="viridis"):
+    import matplotlib
+
+    cm = matplotlib.colormaps[cmap]
+    return [cm(x) for x in np.linspace(0.0, 0.85, max(n, 1))]
+
+
+def _sci(e):
+    m, x = f"{e:.0e}".split("e")
+    return rf"$10^{{{int(x)}}}$" if m == "1" else rf"${m}\times10^{{{int(x)}}}$"
+
+
+class _Cells:
+    """Index helpers over the reduction's cells for one variant."""
+
+    def __init__(self, red, variant):
+        c = red.cells
+        self.red = red
+        self.v = variant
+        self.idx = np.flatnonzero((c["variant"] == variant) & (c["n_packings"] > 0))
+        self.Ns = sorted({int(n) for n in c["N"][self.idx]})
+        self.Es = sorted({float(e) for e in c["E"][self.idx]})
+
+    def at(self, N=None, E=None):
+        c = self.red.cells
+        m = np.ones(len(self.idx), bool)
+        if N is not None:
+            m &= c["N"][self.idx] == N
+        if E is not None:
+            m &= c["E"][self.idx] == E
+        return self.idx[m]
+
+    def largest_N(self):
+        return self.Ns[-1] if self.Ns else None
+
+    def lowest_E(self):
+        return self.Es[0] if self.Es else None
+
+
+def _dist(red, name, i):
+    d = red.distributions.get(name)
+    if d is None:
+        return None, None
+    e = d["edges"]
+    return 0.5 * (e[1:] + e[:-1]), d["density"][i]
+
+
+def _placeholder(ax, text):
+    ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes, fontsize=8)
+
+
+# --------------------------------------------------------------------------- figures
+def fig_area_distributions(red, cs, plt):
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.5))
+    E0 = cs.lowest_E()
+    for col, N in zip(_colors(len(cs.Ns)), cs.Ns):
+        for i in cs.at(N=N, E=E0):
+            e = red.area_hist["edges"][i]
+            k = red.area_hist["counts"][i]
+            if not np.all(np.isfinite(e)) or k.sum() == 0:
+                continue
+            dens = k / k.sum() / np.diff(e)
+            a1.stairs(dens, e, color=col, label=rf"$N_G={N}$")
+            mu, sd = red.cells["A_G_gauss_mean"][i], red.cells["A_G_gauss_sigma"][i]
+            x = np.linspace(mu - 4 * sd, mu + 4 * sd, 200)
+            a1.plot(x, np.exp(-0.5 * ((x - mu) / sd) ** 2) / (sd * np.sqrt(2 * np.pi)), color=col,
+                    lw=1)
+    a1.set(xlabel=r"$A_G$", ylabel=r"$P(A_G)$",
+           title=rf"$E_G={_sci(E0)[1:-1]}$, best Gaussians" if E0 else "")
+    a1.legend()
+    N = 512 if 512 in cs.Ns else cs.largest_N()
+    for col, E in zip(_colors(len(cs.Es), "plasma"), cs.Es):
+        for i in cs.at(N=N, E=E):
+            e = red.area_hist["edges"][i]
+            k = red.area_hist["counts"][i]
+            if not np.all(np.isfinite(e)) or k.sum() == 0:
+                continue
+            a2.stairs(k / k.sum() / np.diff(e), e, color=col, label=rf"$E_G=${_sci(E)}")
+    a2.set(xlabel=r"$A_G$", ylabel=r"$P(A_G)$", title=rf"$N_G={N}$")
+    a2.legend(ncol=2)
+    return fig
+
+
+def fig_width_scaling(red, cs, plt):
+    fig, ax = plt.subplots(figsize=(4.5, 3.5))
+    c = red.cells
+    for col, E in zip(_colors(len(cs.Es), "plasma"), cs.Es):
+        i = cs.at(E=E)
+        i = i[np.isfinite(c["A_G_gauss_sigma"][i])]
+        if len(i) == 0:
+            continue
+        ax.errorbar(c["N"][i], c["A_G_gauss_sigma"][i], c["A_G_gauss_sigma_err"][i], fmt="o",
+                    ms=3, color=col, label=rf"$E_G=${_sci(E)}")
+        w = next((w for w in red.width_scaling if w["variant"] == cs.v and w["E"] == E), None)
+        if w and np.isfinite(w["gamma"]):
+            n = np.array([min(cs.Ns), max(cs.Ns)], float)
+            ax.plot(n, np.exp(w["log_prefactor"]) * n ** -w["gamma"], color=col, lw=0.8)
+    if cs.Ns:
+        i = cs.at(E=cs.lowest_E())
+        s0 = np.nanmax(c["A_G_gauss_sigma"][i]) if len(i) else np.nan
+        if np.isfinite(s0):
+            n = np.array([min(cs.Ns), max(cs.Ns)], float)
+            ax.plot(n, s0 * (n / n[0]) ** -0.5, "k--", lw=1, label=r"$\propto N_G^{-1/2}$")
+    ax.set(xscale="log", yscale="log", xlabel=r"$N_G$", ylabel=r"width $\sigma(A_G)$")
+    ax.legend(ncol=2)
+    return fig
+
+
+def _fit_for(red, v, N, q, a):
+    return next((f for f in red.fits if f["variant"] == v and f["N_G"] == N
+                 and f["quantity"] == q and f["abscissa"] == a), None)
+
+
+_XLAB = {"E_G": r"$E_G$", "delta_Z": r"$\Delta Z$"}
+_YLAB = {"A_G": r"$\Delta A_G = A_G - A_G^*$", "psi_O": r"$\Delta\Psi_O = \Psi_O - \Psi_O^*$"}
+
+
+def fig_scaling(red, cs, plt, quantity):
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
+    c = red.cells
+    for ax, absc in zip(axes, ("E_G", "delta_Z")):
+        shown = False
+        for col, N in zip(_colors(len(cs.Ns)), cs.Ns):
+            f = _fit_for(red, cs.v, N, quantity, absc)
+            if not f or not f["ok"]:
+                continue
+            i = cs.at(N=N)
+            x = c[f"mean_{absc}"][i]
+            y = c[f"mean_{quantity}"][i] - f["intercept"]
+            ye = c[f"sem_{quantity}"][i]
+            ok = (x > 0) & (y > 0)
+            lab = rf"$N_G={N}$: $\beta={f['exponent']:.3f}$"
+            ax.errorbar(x[ok], y[ok], ye[ok], fmt="o", ms=3, color=col, label=lab)
+            xx = np.geomspace(f["x_min"], f["x_max"], 50)
+            ax.plot(xx, f["coeff"] * xx ** f["exponent"], color=col, lw=0.8)
+            shown = True
+        if not shown:
+            _placeholder(ax, "no fit (too few cells)")
+        else:
+            ax.set(xscale="log", yscale="log")
+            ax.legend()
+        ax.set(xlabel=_XLAB[absc], ylabel=_YLAB[quantity])
+    return fig
+
+
+def fig_residuals(red, cs, plt):
+    fig, axes = plt.subplots(2, 2, figsize=(9, 6), sharey=True)
+    c = red.cells
+    for ax, (q, a) in zip(axes.ravel(), [("A_G", "E_G"), ("A_G", "delta_Z"), ("psi_O", "E_G"),
+                                         ("psi_O", "delta_Z")]):
+        for col, N in zip(_colors(len(cs.Ns)), cs.Ns):
+            k = next((j for j, f in enumerate(red.fits) if f["variant"] == cs.v
+                      and f["N_G"] == N and f["quantity"] == q and f["abscissa"] == a), None)
+            if k is None or not red.fits[k]["ok"]:
+                continue
+            r = red.residuals[k]
+            i = np.flatnonzero(np.isfinite(r))
+            ax.plot(c[f"mean_{a}"][i], r[i], "o-", ms=3, lw=0.6, color=col,
+                    label=rf"$N_G={N}$, $\chi^2/\nu={red.fits[k]['chi2_dof']:.2f}$")
+        ax.axhline(0, color="k", lw=0.6)
+        for s in (-2, 2):
+            ax.axhline(s, color="0.6", lw=0.6, ls=":")
+        ax.set(xscale="log", xlabel=_XLAB[a],
+               ylabel=rf"$({q.replace('psi_O', chr(92) + 'Psi_O')} - \mathrm{{fit}})/\mathrm{{s.e.}}$")
+        ax.set_title(f"{q} against {a}".replace("_", " "))
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend()
+        else:
+            _placeholder(ax, "no fit")
+    return fig
+
+
+def fig_extrapolation(red, cs, plt):
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
+    rows = [r for r in red.rows if r["variant"] == cs.v]
+    ex = red.extrapolated.get(cs.v, {})
+    for ax, keys, lab in ((axes[0], (("A_G_star_E", r"$A_G^*(E_G=0)$"),
+                                     ("A_G_star_Z", r"$A_G^*(\Delta Z=0)$")), r"$A_G^*$"),
+                          (axes[1], (("psi_O_star", r"$\Psi_O^*(E_G=0)$"),
+                                     ("psi_O_star_Z", r"$\Psi_O^*(\Delta Z=0)$")), r"$\Psi_O^*$")):
+        for (k, name), col, m in zip(keys, ("C0", "C3"), ("o", "s")):
+            n = np.array([r["N_G"] for r in rows], float)
+            y = np.array([r[k] for r in rows], float)
+            e = np.array([r[f"{k}_err"] for r in rows], float)
+            ok = np.isfinite(y)
+            ax.errorbar(1 / n[ok], y[ok], np.where(np.isfinite(e[ok]), e[ok], 0), fmt=m, ms=4,
+                        color=col, label=name)
+            if np.isfinite(ex.get(k, np.nan)) and ok.any():
+                xx = np.linspace(0, (1 / n[ok]).max() * 1.05, 20)
+                ax.plot(xx, ex[k] + ex[f"{k}_slope"] * xx, color=col, lw=0.8)
+                ax.errorbar([0], [ex[k]], [ex[f"{k}_err"] if np.isfinite(ex[f"{k}_err"]) else 0],
+                            fmt=m, mfc="none", color=col)
+        ax.set(xlabel=r"$1/N_G$", ylabel=lab)
+        ax.set_xlim(left=-0.0005)
+        ax.legend()
+    return fig
+
+
+def _per_E(red, cs, plt, ax, name, N, transform=None, **kw):
+    shown = False
+    for col, E in zip(_colors(len(cs.Es), "plasma"), cs.Es):
+        for i in cs.at(N=N, E=E):
+            x, y = _dist(red, name, i)
+            if x is None or not np.any(np.isfinite(y)):
+                continue
+            if transform:
+                x, y = transform(x, y)
+            ax.plot(x, y, color=col, lw=0.9, label=rf"$E_G=${_sci(E)}", **kw)
+            shown = True
+    if not shown:
+        _placeholder(ax, f"no {name} histogram in this file")
+    return shown
+
+
+def fig_angles_lengths(red, cs, plt):
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.5))
+    N = 2048 if 2048 in cs.Ns else cs.largest_N()
+    if _per_E(red, cs, plt, a1, "sin_theta", N):
+        s = np.linspace(0, 0.995, 200)
+        a1.plot(s, 2 / np.pi / np.sqrt(1 - s * s), "k--", lw=1,
+                label=r"random: $\frac{2}{\pi}\frac{1}{\sqrt{1-\sin^2\theta}}$")
+        a1.set_yscale("log")
+        a1.legend(ncol=2)
+    a1.set(xlabel=r"$\sin\theta$", ylabel=r"$P(\sin\theta)$", title=rf"$N_G={N}$")
+    if _per_E(red, cs, plt, a2, "contact_length", N):
+        a2.legend(ncol=2)
+    a2.set(xlabel=r"$(1-r)/\sqrt{E_G}$, $r=|\vec r_{g,c}|/\sigma_g$",
+           ylabel=r"$P\left((1-r)/\sqrt{E_G}\right)$", title=rf"$N_G={N}$")
+    return fig
+
+
+def fig_connectivity(red, cs, plt):
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.5))
+    N = cs.largest_N()
+    for ax, name, lab in ((a1, "z_g", "z_g"), (a2, "z_v", "z_v")):
+        if _per_E(red, cs, plt, ax, name, N, marker="o", ms=3):
+            ax.set_yscale("log")
+            ax.legend(ncol=2)
+        ax.set(xlabel=rf"${lab}$", ylabel=rf"$P({lab})$", title=rf"$N_G={N}$")
+    return fig
+
+
+def fig_polygon_areas(red, cs, plt):
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.5))
+    N = 2048 if 2048 in cs.Ns else cs.largest_N()
+    for ax, name, lab, peaks in ((a1, "alpha_e", r"\alpha_e", red.peaks["alpha_e"]),
+                                 (a2, "alpha_v", r"\alpha_v", red.peaks["alpha_v"])):
+        if _per_E(red, cs, plt, ax, name, N):
+            ax.set_yscale("log")
+            for k, p in enumerate(peaks):
+                ax.axvline(p, color="0.4", lw=0.6, ls="--",
+                           label="three-disk peaks" if k == 0 else None)
+            ax.legend(ncol=2)
+        ax.set(xlabel=rf"${lab}$", ylabel=rf"$P({lab})$", title=rf"$N_G={N}$")
+    a2.set_xlim(0, 1.2)
+    return fig
+
+
+def fig_radial(red, cs, plt):
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.5))
+    N = 1024 if 1024 in cs.Ns else cs.largest_N()
+
+    def per_annulus(x, y):  # density per 2 pi r dr
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return x, np.where(x > 0, y / (2 * np.pi * x), np.nan)
+
+    for ax, name, lab in ((a1, "radial_grains", r"P^{g}_{\rm radial}(r)"),
+                          (a2, "radial_contacts", r"P^{c}_{\rm radial}(r)")):
+        if _per_E(red, cs, plt, ax, name, N, transform=per_annulus):
+            ax.legend(ncol=2)
+        ax.set(xlabel=r"$r$" + (r" $= r_{g,g'}/\sigma_g$" if "grains" in name else
+                                r" $= r_{c,c'}/\sigma_g$"), ylabel=rf"${lab}$",
+               title=rf"$N_G={N}$")
+    return fig
+
+
+def fig_fictitious(red, cs, plt):
+    fig, ax = plt.subplots(figsize=(4.5, 3.5))
+    E0 = cs.lowest_E()
+    shown = False
+    for col, N in zip(_colors(len(cs.Ns)), cs.Ns):
+        for i in cs.at(N=N, E=E0):
+            x, y = _dist(red, "fictitious_length", i)
+            if x is None:
+                continue
+            ok = (x > 0) & (y > 0)
+            ax.plot(x[ok], y[ok], color=col, lw=0.9, label=rf"$N_G={N}$")
+            shown = True
+    if shown:
+        xx = np.geomspace(1e-3, 0.3, 20)
+        ax.plot(xx, 0.3 / np.sqrt(xx), "k--", lw=1, label=r"$\propto 1/\sqrt{r-1}$")
+        ax.set(xscale="log", yscale="log")
+        ax.legend()
+    else:
+        _placeholder(ax, "no fictitious_length histogram in this file")
+    ax.set(xlabel=r"$r-1$, $r=|\vec r_{g,g'}|/(\sigma_g+\sigma_{g'})$", ylabel=r"$P(r-1)$",
+           title=rf"$E_G=${_sci(E0)}" if E0 else "")
+    return fig
+
+
+FIGURES = {
+    "area_distributions": fig_area_distributions,
+    "area_width_scaling": fig_width_scaling,
+    "scaling_A_G": lambda red, cs, plt: fig_scaling(red, cs, plt, "A_G"),
+    "scaling_psi_O": lambda red, cs, plt: fig_scaling(red, cs, plt, "psi_O"),
+    "fit_residuals": fig_residuals,
+    "extrapolation": fig_extrapolation,
+    "contact_angles_lengths": fig_angles_lengths,
+    "connectivity": fig_connectivity,
+    "polygon_areas": fig_polygon_areas,
+    "radial": fig_radial,
+    "fictitious_length": fig_fictitious,
+}
+
+
+def make_figures(red, out_dir, *, dpi=90):
+    """Write every figure for every variant; return the list of PNG paths."""
+    plt = _plt()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    variants = sorted({str(v) for v in red.cells["variant"]})
+    written = []
+    for v in variants:
+        cs = _Cells(red, v)
+        suffix = "" if len(variants) == 1 else f"_{v}"
+        for name, fn in FIGURES.items():
+            fig = fn(red, cs, plt)
+            if len(variants) > 1:
+                fig.suptitle(f"variant {v}", fontsize=9)
+            p = out / f"{name}{suffix}.png"
+            fig.savefig(p, dpi=dpi)
+            plt.close(fig)
+            written.append(p)
+    return written

@@ -1,0 +1,692 @@
+"""The reducer: a campaign's HDF5 file(s) -> distributions, scaling fits, the finite-size table.
+
+Reading goes through one place, ``load_finished`` (and ``Finished.histogram_blocks``),
+which knows the store layout of docs/CONTRACTS.md; everything else works on plain
+arrays. Only rows whose status is 1 (done) are used; pending and failed rows are
+counted and reported per cell.
+
+The output layout (``/reduced`` group and the tables) is documented in docs/REDUCED.md.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from campaign import fits
+from campaign.errors import UserError
+
+STATUS_PENDING, STATUS_DONE, STATUS_FAILED = 0, 1, 2
+
+#: (quantity, abscissa) pairs fitted per (variant, N), with their table keys.
+FITS = (
+    ("A_G", "E_G", "A_G_star_E", "beta_E"),
+    ("A_G", "delta_Z", "A_G_star_Z", "beta_Z"),
+    ("psi_O", "E_G", "psi_O_star", "psi_beta_E"),
+    ("psi_O", "delta_Z", "psi_O_star_Z", "psi_beta_Z"),
+)
+#: Keys of a table row (each also with ``<key>_err``); the first five are the paper's.
+TABLE_KEYS = ("A_G_star_E", "beta_E", "A_G_star_Z", "beta_Z", "psi_O_star",
+              "psi_O_star_Z", "psi_beta_E", "psi_beta_Z")
+#: Histograms whose self-averaging is tested (radial pair counts are not per-object variables).
+SELF_AVERAGING_SKIP = ("radial_grains", "radial_contacts")
+DEFAULT_RADII = (1.4, 1.0)
+
+
+@dataclass
+class Settings:
+    min_packings: int = 3       # a cell with fewer finished packings is left out of the fits
+    n_boot: int = 1000          # bootstrap resamples (packings within each cell)
+    boot_seed: int = 20240917   # fixed: the same file gives the same errors
+    area_bins: int = 30         # bins of the per-cell P(A_G) histogram
+    sin_bins: int = 100         # bins of P(sin theta) on [0, 1]
+
+
+# =========================================================================== reading
+def _decode(a):
+    a = np.asarray(a)
+    if a.dtype.kind in ("S", "O"):
+        return np.array([x.decode() if isinstance(x, bytes) else str(x) for x in a.ravel()],
+                        dtype=object).reshape(a.shape)
+    return a
+
+
+def _columns(f, names):
+    """The task table's columns (a group of datasets, or one compound dataset)."""
+    t = f["tasks"]
+    out = {}
+    for n in names:
+        if hasattr(t, "keys"):
+            if n in t:
+                out[n] = t[n][...]
+        elif t.dtype.names and n in t.dtype.names:
+            out[n] = t[n]
+    return out
+
+
+@dataclass
+class Finished:
+    """Finished packings of one or more campaign files (rows with status 1, deduplicated by id)."""
+
+    paths: list
+    attrs: dict
+    variant: np.ndarray          # (n,) str
+    N: np.ndarray                # (n,) int, campaign label (total disks)
+    E: np.ndarray                # (n,) float, target E_G
+    ids: np.ndarray
+    scalars: dict                # name -> (n,) float
+    edges: dict                  # histogram name -> edges
+    tasks: dict                  # every row of every file: variant, N, E, status, error
+    _rows: list = field(default_factory=list, repr=False)  # per file: (file rows, positions)
+
+    def __len__(self):
+        return len(self.N)
+
+    def histogram_blocks(self, name, block=8192):
+        """Yield ``(positions, counts)``: finished-row positions and their int64 counts."""
+        import h5py
+
+        for path, (rows, pos) in zip(self.paths, self._rows):
+            if len(rows) == 0:
+                continue
+            with _open(path, h5py) as f:
+                ds = f[f"histograms/{name}/counts"]
+                lo = int(rows.min())
+                hi = int(rows.max()) + 1
+                for s in range(lo, hi, block):
+                    e = min(s + block, hi)
+                    m = (rows >= s) & (rows < e)
+                    if not m.any():
+                        continue
+                    data = ds[s:e]
+                    yield pos[m], np.asarray(data[rows[m] - s], dtype=np.int64)
+
+
+def _open(path, h5py):
+    try:
+        return h5py.File(path, "r", locking=False)
+    except FileNotFoundError:
+        raise UserError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise UserError(f"{path}: not a readable HDF5 file ({exc})") from None
+
+
+def load_finished(paths) -> Finished:
+    """Read the task tables, scalars and histogram edges of the campaign file(s).
+
+    This is the only function that knows the store layout. A packing that appears
+    done in several files (same task id) is used once.
+    """
+    import h5py
+
+    if isinstance(paths, (str, Path)):
+        paths = [paths]
+    paths = [str(p) for p in paths]
+    seen = set()
+    all_rows = {k: [] for k in ("variant", "N", "E", "status", "error", "id")}
+    fin = {k: [] for k in ("variant", "N", "E", "id")}
+    scal_parts, per_file, edges, attrs = [], [], None, None
+    offset = 0
+    for path in paths:
+        with _open(path, h5py) as f:
+            if "tasks" not in f:
+                raise UserError(f"{path}: not a campaign file (no /tasks table); "
+                                "expected the layout of docs/CONTRACTS.md")
+            try:
+                # status first: a row's data is complete before its status says done
+                cols = _columns(f, ("status", "id", "variant", "N", "E", "error"))
+                for need in ("status", "id", "N", "E"):
+                    if need not in cols:
+                        raise UserError(f"{path}: /tasks has no column {need!r}")
+                status = np.asarray(cols["status"]).astype(np.int64)
+                T = len(status)
+                variant = _decode(cols.get("variant", np.array(["default"] * T, dtype=object)))
+                ids = _decode(cols["id"])
+                err = _decode(cols.get("error", np.array([""] * T, dtype=object)))
+                file_attrs = {k: (v.decode() if isinstance(v, bytes) else v)
+                              for k, v in f.attrs.items()}
+                names = sorted(f["scalars"].keys()) if "scalars" in f else []
+                scal = {n: np.asarray(f[f"scalars/{n}"][...], dtype=float) for n in names}
+                hedges = {}
+                if "histograms" in f:
+                    for n in f["histograms"]:
+                        hedges[n] = np.asarray(f[f"histograms/{n}/edges"][...], dtype=float)
+            except (OSError, KeyError) as exc:
+                raise UserError(f"{path}: could not read the store ({exc}); if a run is "
+                                "writing it, try again in a moment") from None
+        attrs = attrs or file_attrs
+        if edges is None:
+            edges = hedges
+        else:
+            for n in set(edges) & set(hedges):
+                if edges[n].shape != hedges[n].shape or not np.allclose(edges[n], hedges[n],
+                                                                        rtol=1e-12, atol=0):
+                    raise UserError(f"{path}: histogram {n!r} has other bin edges than "
+                                    f"{paths[0]}; files with different bins cannot be summed")
+            edges = {n: edges[n] for n in set(edges) & set(hedges)}
+        keep = np.zeros(T, bool)
+        for r in np.flatnonzero(status == STATUS_DONE):
+            if ids[r] not in seen:
+                seen.add(ids[r])
+                keep[r] = True
+        rows = np.flatnonzero(keep)
+        per_file.append((rows, np.arange(offset, offset + len(rows))))
+        offset += len(rows)
+        for k, v in (("variant", variant), ("N", cols["N"]), ("E", cols["E"]), ("status", status),
+                     ("error", err), ("id", ids)):
+            all_rows[k].append(np.asarray(v))
+        for k, v in (("variant", variant), ("N", cols["N"]), ("E", cols["E"]), ("id", ids)):
+            fin[k].append(np.asarray(v)[rows])
+        scal_parts.append({n: a[rows] for n, a in scal.items()})
+    tasks = {k: np.concatenate(v) for k, v in all_rows.items()}
+    # a task done in one file but pending/failed in another counts as done; a task
+    # pending or failed in several files counts once
+    counted = tasks["status"] == STATUS_DONE
+    for i in np.flatnonzero(~counted):
+        if tasks["id"][i] not in seen:
+            seen.add(tasks["id"][i])
+            counted[i] = True
+    tasks["counted"] = counted
+    names = set.intersection(*(set(p) for p in scal_parts)) if scal_parts else set()
+    scalars = {n: np.concatenate([p[n] for p in scal_parts]) for n in sorted(names)}
+    return Finished(paths=paths, attrs=attrs or {}, variant=np.concatenate(fin["variant"]),
+                    N=np.concatenate(fin["N"]).astype(np.int64),
+                    E=np.concatenate(fin["E"]).astype(float), ids=np.concatenate(fin["id"]),
+                    scalars=scalars, edges=edges or {}, tasks=tasks, _rows=per_file)
+
+
+def species_radii(attrs):
+    """Distinct radii from the spec text stored in the file (default: 1.4 and 1.0)."""
+    try:
+        import yaml
+
+        spec = yaml.safe_load(attrs.get("spec_yaml", "")) or {}
+        sp = spec["system"]["species"]
+        radii = [float(s["radius"]) for s in sp]
+        return tuple(radii) if radii else DEFAULT_RADII
+    except Exception:  # noqa: BLE001 -- an old or foreign spec: fall back to the paper's mixture
+        return DEFAULT_RADII
+
+
+# =========================================================================== reduction
+@dataclass
+class Reduction:
+    cells: dict                  # column -> (C,) arrays
+    distributions: dict          # name -> {"edges", "counts" (C, nb), "density" (C, nb)}
+    self_averaging: dict         # name -> {"ratio_mean" (C, 2), "ratio_std" (C, 2)}
+    area_hist: dict              # {"edges" (C, nb+1), "counts" (C, nb)}
+    fits: list                   # records (dicts), one per (variant, N, quantity, abscissa)
+    residuals: np.ndarray        # (F, C) normalised residuals, NaN where a cell was not used
+    width_scaling: list          # records per (variant, E)
+    rows: list                   # table rows per (variant, N)
+    extrapolated: dict           # variant -> {key: value, key_err: ...}
+    peaks: dict                  # alpha_e, theta, alpha_v
+    notes: list                  # human-readable: what is missing, what was skipped
+    meta: dict
+
+    def to_json(self):
+        def clean(v):
+            if isinstance(v, (float, np.floating)):
+                return None if not np.isfinite(v) else float(v)
+            if isinstance(v, (np.integer,)):
+                return int(v)
+            if isinstance(v, dict):
+                return {k: clean(x) for k, x in v.items()}
+            if isinstance(v, (list, tuple)):
+                return [clean(x) for x in v]
+            return v
+
+        return clean({"rows": self.rows, "extrapolated": self.extrapolated,
+                      "status": {k: self.meta[k] for k in ("done", "pending", "failed", "total")},
+                      "notes": self.notes})
+
+
+def _cell_index(variant, N, E):
+    """Unique (variant, N, E) keys sorted by variant, N, then E; and each row's cell."""
+    vnames, vcode = np.unique(np.asarray(variant, dtype=str), return_inverse=True)
+    order = np.lexsort((E, N, vcode))
+    key = np.stack([vcode[order], N[order]], axis=1)
+    new = np.ones(len(order), bool)
+    new[1:] = (np.any(key[1:] != key[:-1], axis=1)) | (E[order][1:] != E[order][:-1])
+    cell_sorted = np.cumsum(new) - 1
+    cell = np.empty(len(order), np.int64)
+    cell[order] = cell_sorted
+    first = order[new]
+    return cell, vnames[vcode[first]], N[first], E[first]
+
+
+def _group_stats(values, cell, C):
+    """Count, mean, sample std and standard error per cell, ignoring NaN."""
+    ok = np.isfinite(values)
+    c = cell[ok]
+    v = values[ok]
+    n = np.bincount(c, minlength=C).astype(float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.bincount(c, weights=v, minlength=C) / n
+        d = v - mean[c]
+        var = np.bincount(c, weights=d * d, minlength=C) / (n - 1)
+        std = np.sqrt(var)
+        sem = std / np.sqrt(n)
+    return n, mean, std, sem
+
+
+def reduce_campaign(paths, settings: Settings | None = None, *, distributions=True) -> Reduction:
+    """Reduce campaign file(s) (see the module docstring). ``distributions=False`` skips the
+    histogram pass (scalars, fits and the table only)."""
+    s = settings or Settings()
+    t0 = time.perf_counter()
+    fin = load_finished(paths)
+    t_load = time.perf_counter() - t0
+    tasks = fin.tasks
+    if len(tasks["status"]) == 0:
+        raise UserError(f"{fin.paths[0]}: the task table is empty")
+    # cells are defined by every task, finished or not
+    cell_all, cv, cN, cE = _cell_index(tasks["variant"], tasks["N"].astype(np.int64),
+                                       tasks["E"].astype(float))
+    C = len(cv)
+    lookup = {(v, int(n), float(e)): i for i, (v, n, e) in enumerate(zip(cv, cN, cE))}
+    cell = np.array([lookup[(v, int(n), float(e))] for v, n, e in zip(fin.variant, fin.N, fin.E)],
+                    dtype=np.int64)
+    st = tasks["status"]
+    n_done = np.bincount(cell, minlength=C)
+    counted = tasks["counted"]
+    n_failed = np.bincount(cell_all[counted & (st == STATUS_FAILED)], minlength=C)
+    n_pending = np.bincount(cell_all[counted & (st == STATUS_PENDING)], minlength=C)
+    n_tot = n_done + n_failed + n_pending
+    cells = {"variant": cv, "N": cN, "E": cE, "n_packings": n_done, "n_pending": n_pending,
+             "n_failed": n_failed, "n_tasks": n_tot}
+    for name, v in fin.scalars.items():
+        _, mean, std, sem = _group_stats(v, cell, C)
+        cells[f"mean_{name}"] = mean
+        cells[f"std_{name}"] = std
+        cells[f"sem_{name}"] = sem
+    notes = []
+    if len(fin) == 0:
+        notes.append("no finished packings yet: nothing to fit")
+    done_total = int(len(fin))
+    pend_total = int(n_pending.sum())
+    fail_total = int(n_failed.sum())
+    if pend_total or fail_total:
+        notes.append(f"{done_total} packings done, {pend_total} pending, {fail_total} failed: "
+                     "the reduction uses the finished ones only")
+        for i in np.flatnonzero((n_pending + n_failed) > 0):
+            notes.append(f"  {cv[i]} N={cN[i]} E={cE[i]:.3g}: {n_done[i]} done, "
+                         f"{n_pending[i]} pending, {n_failed[i]} failed")
+        errs = tasks["error"][(st == STATUS_FAILED)]
+        if len(errs):
+            first = next((e for e in errs if e), "")
+            if first:
+                notes.append(f"  first failure: {first.splitlines()[-1] if first else ''}")
+
+    # ---- P(A_G): best Gaussian per cell and its histogram
+    A = fin.scalars.get("A_G", np.full(len(fin), np.nan))
+    gm = np.full((C, 4), np.nan)
+    a_edges = np.full((C, s.area_bins + 1), np.nan)
+    a_counts = np.zeros((C, s.area_bins), np.int64)
+    order = np.argsort(cell, kind="stable")
+    bounds = np.searchsorted(cell[order], np.arange(C + 1))
+    for i in range(C):
+        v = A[order[bounds[i]:bounds[i + 1]]]
+        v = v[np.isfinite(v)]
+        if v.size >= 2:
+            gm[i] = fits.gaussian_mle(v)
+            lo, hi = v.min(), v.max()
+            if hi <= lo:
+                hi = lo + abs(lo) * 1e-9 + 1e-300
+            a_edges[i] = np.linspace(lo, hi, s.area_bins + 1)
+            a_counts[i] = np.histogram(v, a_edges[i])[0]
+    cells.update(A_G_gauss_mean=gm[:, 0], A_G_gauss_sigma=gm[:, 1], A_G_gauss_mean_err=gm[:, 2],
+                 A_G_gauss_sigma_err=gm[:, 3])
+    width = []
+    for v in np.unique(cv):
+        for e in np.unique(cE[cv == v]):
+            sel = np.flatnonzero((cv == v) & (cE == e) & (n_done >= s.min_packings))
+            r = fits.fit_width_scaling(cN[sel], gm[sel, 1], gm[sel, 3])
+            width.append({"variant": v, "E": float(e), "gamma": r.value, "gamma_err": r.err,
+                          "log_prefactor": r.slope, "chi2_dof": r.chi2_dof,
+                          "n_sizes": r.n_points, "message": r.message})
+
+    # ---- fits per (variant, N)
+    fit_records, residuals, rows = [], [], []
+    cols = ["E_G", "delta_Z", "A_G", "psi_O"]
+    have = all(c in fin.scalars for c in cols)
+    if not have:
+        notes.append("the file lacks one of the scalars " + ", ".join(cols) + ": no scaling fits")
+    groups = sorted({(v, int(n)) for v, n in zip(cv, cN)})
+    for gi, (v, n) in enumerate(groups):
+        in_group = np.flatnonzero((cv == v) & (cN == n))
+        row = {"variant": v, "N_G": n, "n_packings": int(n_done[in_group].sum()),
+               "n_cells": 0}
+        small = in_group[n_done[in_group] < s.min_packings]
+        usable = in_group[n_done[in_group] >= s.min_packings]
+        if len(small) and have:
+            notes.append(f"{v} N={n}: {len(small)} cell(s) with fewer than {s.min_packings} "
+                         "finished packings left out of the fits (E = "
+                         + ", ".join(f"{cE[i]:.3g} ({n_done[i]})" for i in small) + ")")
+        row["n_cells"] = int(len(usable))
+        boot = None
+        if have and len(usable) >= 4 and s.n_boot > 1:
+            data = [np.column_stack([fin.scalars[c][order[bounds[i]:bounds[i + 1]]] for c in cols])
+                    for i in usable]
+            data = [d[np.all(np.isfinite(d), axis=1)] for d in data]
+            if all(len(d) >= 2 for d in data):
+                boot = fits.bootstrap_cell_means(data, s.n_boot, seed=[s.boot_seed, gi])
+        for quantity, absc, key, bkey in FITS:
+            res = np.full(C, np.nan)
+            rec = {"variant": v, "N_G": n, "quantity": quantity, "abscissa": absc}
+            if not have:
+                f = fits.PowerLawFit(message="scalars missing")
+                ok_cells = np.zeros(0, int)
+            else:
+                x = cells[f"mean_{absc}"][usable]
+                y = cells[f"mean_{quantity}"][usable]
+                ye = cells[f"sem_{quantity}"][usable]
+                ok = np.isfinite(x) & (x > 0) & np.isfinite(y) & np.isfinite(ye) & (ye > 0)
+                ok_cells = usable[ok]
+                bx = by = None
+                if boot is not None:
+                    bx = boot[:, ok, cols.index(absc)]
+                    by = boot[:, ok, cols.index(quantity)]
+                    if np.any(bx <= 0):  # a replica with a non-positive abscissa cannot be fitted
+                        bad = np.any(bx <= 0, axis=1)
+                        bx, by = bx[~bad], by[~bad]
+                f = fits.fit_power_law(x[ok], y[ok], ye[ok], boot_x=bx, boot_y=by)
+                if (~ok).any():
+                    f.message = (f.message + "; " if f.message else "") + (
+                        f"{int((~ok).sum())} cell(s) without a positive mean {absc} or "
+                        f"a spread of {quantity} left out")
+                res[ok_cells] = f.residuals
+            if not f.ok:
+                notes.append(f"{v} N={n}: no fit of {quantity} against {absc}: {f.message}")
+            elif f.at_bound:
+                notes.append(f"{v} N={n}: fit of {quantity} against {absc}: {f.message}")
+            rec.update(intercept=f.intercept, intercept_err=f.intercept_err, coeff=f.coeff,
+                       coeff_err=f.coeff_err, exponent=f.exponent, exponent_err=f.exponent_err,
+                       chi2=f.chi2, dof=f.dof, chi2_dof=f.chi2_dof, n_points=f.n_points,
+                       n_boot=f.n_boot, ok=f.ok, message=f.message,
+                       x_min=float(cells[f"mean_{absc}"][ok_cells].min()) if len(ok_cells) else np.nan,
+                       x_max=float(cells[f"mean_{absc}"][ok_cells].max()) if len(ok_cells) else np.nan)
+            fit_records.append(rec)
+            residuals.append(res)
+            row[key], row[f"{key}_err"] = f.intercept, f.intercept_err
+            row[bkey], row[f"{bkey}_err"] = f.exponent, f.exponent_err
+            row[f"chi2_dof_{quantity}_{absc}"] = f.chi2_dof
+        rows.append(row)
+
+    # ---- extrapolation in 1/N_G
+    extrapolated = {}
+    for v in sorted({r["variant"] for r in rows}):
+        rs = [r for r in rows if r["variant"] == v]
+        out = {}
+        for key in TABLE_KEYS:
+            r = fits.fit_inverse_n([x["N_G"] for x in rs], [x[key] for x in rs],
+                                   [x[f"{key}_err"] for x in rs])
+            out[key], out[f"{key}_err"] = r.value, r.err
+            out[f"{key}_slope"] = r.slope
+            out[f"{key}_chi2_dof"] = r.chi2_dof
+            out[f"{key}_n_sizes"] = r.n_points
+        extrapolated[v] = out
+        if out["A_G_star_E_n_sizes"] < 2:
+            notes.append(f"{v}: fewer than two sizes with fits: no extrapolation in 1/N_G")
+
+    # ---- distributions (one pass over every histogram)
+    dists, selfavg = {}, {}
+    t1 = time.perf_counter()
+    if distributions:
+        for name, edges in sorted(fin.edges.items()):
+            nb = len(edges) - 1
+            centres = 0.5 * (edges[1:] + edges[:-1])
+            counts = np.zeros((C, nb), np.int64)
+            want_m = name not in SELF_AVERAGING_SKIP
+            mom = np.full((len(fin), 2), np.nan) if want_m else None
+            for pos, block in fin.histogram_blocks(name):
+                cb = cell[pos]
+                o = np.argsort(cb, kind="stable")
+                cbs = cb[o]
+                starts = np.flatnonzero(np.r_[True, cbs[1:] != cbs[:-1]])
+                counts[cbs[starts]] += np.add.reduceat(block[o], starts, axis=0)
+                if want_m:
+                    bf = block.astype(float)
+                    tot = bf.sum(axis=1)
+                    with np.errstate(invalid="ignore", divide="ignore"):
+                        mom[pos, 0] = bf @ centres / tot
+                        mom[pos, 1] = bf @ (centres * centres) / tot
+            widths = np.diff(edges)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                density = counts / counts.sum(axis=1, keepdims=True) / widths
+            dists[name] = {"edges": edges, "counts": counts, "density": density}
+            if want_m:
+                tot = counts.sum(axis=1).astype(float)
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    ens = np.stack([counts @ centres / tot, counts @ (centres**2) / tot], axis=1)
+                    ratio = mom / ens[cell]
+                rm = np.full((C, 2), np.nan)
+                rs = np.full((C, 2), np.nan)
+                for k in range(2):
+                    _, rm[:, k], rs[:, k], _ = _group_stats(ratio[:, k], cell, C)
+                selfavg[name] = {"ratio_mean": rm, "ratio_std": rs, "ensemble_moments": ens}
+        if "contact_angle" in dists:
+            se = np.linspace(0.0, 1.0, s.sin_bins + 1)
+            d = dists["contact_angle"]
+            dens = np.full((C, s.sin_bins), np.nan)
+            has = d["counts"].sum(axis=1) > 0
+            if has.any():
+                dens[has] = fits.sin_theta_density(d["counts"][has], d["edges"], se)
+            dists["sin_theta"] = {"edges": se, "density": dens,
+                                  "counts": np.zeros((C, s.sin_bins), np.int64)}
+    t_hist = time.perf_counter() - t1
+
+    alpha_e, theta, alpha_v = fits.three_disk_peaks(species_radii(fin.attrs))
+    meta = {"sources": fin.paths, "done": done_total, "pending": pend_total,
+            "failed": fail_total, "total": int(n_tot.sum()), "n_boot": s.n_boot,
+            "boot_seed": s.boot_seed, "min_packings": s.min_packings,
+            "spec_hash": fin.attrs.get("spec_hash", ""), "name": fin.attrs.get("name", ""),
+            "seconds": {"load": t_load, "histograms": t_hist,
+                        "total": time.perf_counter() - t0}}
+    return Reduction(cells=cells, distributions=dists, self_averaging=selfavg,
+                     area_hist={"edges": a_edges, "counts": a_counts}, fits=fit_records,
+                     residuals=np.array(residuals).reshape(len(fit_records), C),
+                     width_scaling=width, rows=rows, extrapolated=extrapolated,
+                     peaks={"alpha_e": alpha_e, "theta": theta, "alpha_v": alpha_v},
+                     notes=notes, meta=meta)
+
+
+# =========================================================================== tables
+def fmt_err(value, err):
+    """``0.4416(2)``: the value rounded at the error's first significant digit."""
+    if value is None or not np.isfinite(value):
+        return "--"
+    if err is None or not np.isfinite(err) or err <= 0:
+        return f"{value:.4g}"
+    digits = max(0, -int(math.floor(math.log10(err))))
+    e = round(err * 10**digits)
+    if e >= 10:  # 0.096 -> 0.1
+        digits = max(0, digits - 1)
+        e = round(err * 10**digits)
+    if digits == 0:
+        return f"{value:.0f}({e})"
+    return f"{value:.{digits}f}({e})"
+
+
+TABLE_HEADER = ("N_G", "A_G*(E_G=0)", "beta_E", "A_G*(Delta Z=0)", "beta_Z", "Psi_O*")
+TEX_HEADER = (r"$N_G$", r"$A_G^*(E_G=0)$", r"$\beta_E$", r"$A_G^*(\Delta Z=0)$", r"$\beta_Z$",
+              r"$\Psi_O^*$")
+_SHOWN = ("A_G_star_E", "beta_E", "A_G_star_Z", "beta_Z", "psi_O_star")
+
+
+def _table_lines(red: Reduction):
+    """(variant, label, cells) per line: the rows, then the extrapolation."""
+    out = []
+    for v in sorted(red.extrapolated):
+        for r in (r for r in red.rows if r["variant"] == v):
+            out.append((v, str(r["N_G"]), [fmt_err(r[k], r[f"{k}_err"]) for k in _SHOWN]))
+        x = red.extrapolated[v]
+        out.append((v, "inf", [fmt_err(x[k], x[f"{k}_err"]) for k in _SHOWN]))
+    return out
+
+
+def table_markdown(red: Reduction) -> str:
+    lines = []
+    variants = sorted(red.extrapolated)
+    for v in variants:
+        if len(variants) > 1:
+            lines += [f"Variant `{v}`", ""]
+        lines.append("| " + " | ".join(TABLE_HEADER) + " |")
+        lines.append("|" + "---|" * len(TABLE_HEADER))
+        for vv, label, cells in _table_lines(red):
+            if vv == v:
+                lab = "N_G -> inf" if label == "inf" else label
+                lines.append("| " + " | ".join([lab] + cells) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def table_latex(red: Reduction) -> str:
+    lines = []
+    for v in sorted(red.extrapolated):
+        lines += [f"% variant {v}", r"\begin{tabular}{| l || l | l || l | l || l |}", r"\hline",
+                  " & ".join(TEX_HEADER) + r" \\ \hline \hline"]
+        for vv, label, cells in _table_lines(red):
+            if vv == v:
+                lab = r"$\infty$" if label == "inf" else f"${label}$"
+                lines.append(" & ".join([lab] + [f"${c}$" for c in cells]) + r" \\ \hline")
+        lines += [r"\end{tabular}", ""]
+    return "\n".join(lines)
+
+
+def table_csv(red: Reduction) -> str:
+    keys = ["variant", "N_G", "n_packings", "n_cells"]
+    for k in TABLE_KEYS:
+        keys += [k, f"{k}_err"]
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(keys)
+    for r in red.rows:
+        w.writerow([_csv_val(r.get(k)) for k in keys])
+    for v, x in sorted(red.extrapolated.items()):
+        w.writerow([_csv_val(v if k == "variant" else "inf" if k == "N_G" else x.get(k, ""))
+                    for k in keys])
+    return buf.getvalue()
+
+
+def _csv_val(v):
+    if isinstance(v, (float, np.floating)):
+        return "" if not np.isfinite(v) else repr(float(v))
+    return "" if v is None else v
+
+
+def records_csv(records) -> str:
+    if not records:
+        return ""
+    keys = list(records[0].keys())
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(keys)
+    for r in records:
+        w.writerow([_csv_val(r.get(k)) for k in keys])
+    return buf.getvalue()
+
+
+def cells_records(red: Reduction):
+    keys = ["variant", "N", "E", "n_packings", "n_pending", "n_failed"]
+    keys += [k for k in red.cells if k.startswith(("mean_", "sem_"))]
+    keys += ["A_G_gauss_mean", "A_G_gauss_sigma"]
+    recs = []
+    for i in range(len(red.cells["N"])):
+        r = {k: red.cells[k][i] for k in keys if k in red.cells}
+        for name, sa in sorted(red.self_averaging.items()):
+            r[f"selfavg_{name}_m1"] = sa["ratio_mean"][i, 0]
+            r[f"selfavg_{name}_m1_spread"] = sa["ratio_std"][i, 0]
+            r[f"selfavg_{name}_m2"] = sa["ratio_mean"][i, 1]
+            r[f"selfavg_{name}_m2_spread"] = sa["ratio_std"][i, 1]
+        recs.append(r)
+    return recs
+
+
+# =========================================================================== writing
+def _write_columns(group, records_or_columns):
+    import h5py
+
+    cols = records_or_columns
+    if isinstance(cols, list):
+        keys = list(cols[0].keys()) if cols else []
+        cols = {k: [r.get(k) for r in records_or_columns] for k in keys}
+    for k, v in cols.items():
+        a = np.asarray(v)
+        if a.dtype.kind in ("U", "O"):
+            group.create_dataset(k, data=np.array([str(x) for x in a.ravel()], dtype=object)
+                                 .reshape(a.shape), dtype=h5py.string_dtype())
+        elif a.dtype.kind == "b":
+            group.create_dataset(k, data=a.astype(np.int8))
+        else:
+            group.create_dataset(k, data=a.astype(float) if a.dtype.kind == "f" else a)
+
+
+def write_reduced(red: Reduction, h5path, *, mode="w"):
+    """Write the ``/reduced`` group (replacing an older one) into ``h5path``."""
+    import h5py
+
+    from campaign import __version__
+
+    with h5py.File(h5path, mode) as f:
+        if "reduced" in f:
+            del f["reduced"]
+        g = f.create_group("reduced")
+        g.attrs.update(
+            schema="jamming-campaign-reduced/1", package_version=__version__,
+            generated=time.strftime("%Y-%m-%dT%H:%M:%S%z"), sources=json.dumps(red.meta["sources"]),
+            spec_hash=str(red.meta["spec_hash"]), n_done=red.meta["done"],
+            n_pending=red.meta["pending"], n_failed=red.meta["failed"],
+            n_boot=red.meta["n_boot"], boot_seed=red.meta["boot_seed"],
+            min_packings=red.meta["min_packings"], notes=json.dumps(red.notes))
+        _write_columns(g.create_group("cells"), red.cells)
+        sa = g.create_group("self_averaging")
+        for name, d in red.self_averaging.items():
+            _write_columns(sa.create_group(name), d)
+        dg = g.create_group("distributions")
+        for name, d in red.distributions.items():
+            _write_columns(dg.create_group(name), d)
+        _write_columns(dg.create_group("A_G"), red.area_hist)
+        fg = g.create_group("fits")
+        if red.fits:
+            _write_columns(fg, red.fits)
+        fg.create_dataset("residuals", data=red.residuals)
+        if red.width_scaling:
+            _write_columns(g.create_group("width_scaling"), red.width_scaling)
+        if red.rows:
+            _write_columns(g.create_group("table"), red.rows)
+        ex = [{"variant": v, **x} for v, x in sorted(red.extrapolated.items())]
+        if ex:
+            _write_columns(g.create_group("extrapolated"), ex)
+        _write_columns(g.create_group("peaks"), red.peaks)
+
+
+def write_outputs(red: Reduction, out_dir, *, write_h5=True):
+    """Tables (md, csv, tex), per-cell and per-fit CSVs, and the reduced HDF5 file."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = {
+        "table.md": table_markdown(red), "table.csv": table_csv(red), "table.tex": table_latex(red),
+        "cells.csv": records_csv(cells_records(red)), "fits.csv": records_csv(red.fits),
+        "width_scaling.csv": records_csv(red.width_scaling),
+        "summary.json": json.dumps(red.to_json(), indent=1) + "\n",
+    }
+    for name, text in files.items():
+        (out / name).write_text(text)
+    written = [out / n for n in files]
+    if write_h5:
+        write_reduced(red, out / "reduced.h5")
+        written.append(out / "reduced.h5")
+    return written
+
+
+def default_out_dir(path) -> Path:
+    p = Path(path)
+    return p.with_name(p.stem + "_reduced")
