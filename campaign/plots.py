@@ -23,6 +23,7 @@ def _plt():
     except ImportError:
         raise UserError("plotting needs matplotlib: pip install 'jamming-campaign[plot]'") from None
     plt.rcParams.update({"figure.dpi": 90, "font.size": 9, "axes.titlesize": 9,
+                         "figure.constrained_layout.use": True,
                          "legend.fontsize": 7, "savefig.bbox": "tight"})
     return plt
 
@@ -191,7 +192,7 @@ def fig_residuals(red, cs, plt):
             ax.axhline(s, color="0.6", lw=0.6, ls=":")
         ax.set(xscale="log", xlabel=_XLAB[a],
                ylabel=rf"$({q.replace('psi_O', chr(92) + 'Psi_O')} - \mathrm{{fit}})/\mathrm{{s.e.}}$")
-        ax.set_title(f"{q} against {a}".replace("_", " "))
+        ax.set_title({"A_G": r"$A_G$", "psi_O": r"$\Psi_O$"}[q] + " against " + _XLAB[a])
         if ax.get_legend_handles_labels()[0]:
             ax.legend()
         else:
