@@ -1,3 +1,4 @@
 from campaign.cli import main
 
-raise SystemExit(main())
+if __name__ == "__main__":  # guarded: worker processes started with 'spawn' re-import this module
+    raise SystemExit(main())

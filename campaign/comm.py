@@ -1,0 +1,220 @@
+"""Transports between the master and its workers, behind one small interface.
+
+The master loop (campaign.master) only ever calls::
+
+    comm.n_workers                  # workers are numbered 1..n_workers
+    comm.send(worker, payload)      # one task (a dict, see Task.payload)
+    comm.recv(timeout) -> None | (worker, ("result", index, attempt, summary))
+                                    #              | (worker, ("dead", reason))
+    comm.close(abandon=False)       # stop the workers (abandon: do not wait for them)
+    comm.abort(code)                # a master fault: end the whole job now
+
+Implementations:
+
+* ``InlineComm``: the master runs each task itself when it sends it (tests, ``-n 1``).
+* ``LocalComm``: worker processes started with multiprocessing's ``spawn``
+  context (numba and ``fork`` do not mix), one duplex pipe each.
+* ``MPIComm``: rank 0 is the master, ranks 1..K-1 the workers (mpi4py, pickled
+  messages); ``mpi_worker`` is the worker side.
+"""
+
+from __future__ import annotations
+
+import collections
+import os
+import socket
+import sys
+import time
+
+from campaign import worker as _worker
+
+TAG_TASK, TAG_STOP, TAG_RESULT = 1, 2, 3
+
+
+class InlineComm:
+    launcher = "inline"
+
+    def __init__(self, context: dict):
+        self.context = context
+        self.fn = _worker.resolve(context.get("task_function"))
+        self.n_workers = 1
+        self.results = collections.deque()
+        self.hosts = [socket.gethostname()]
+
+    def send(self, worker, payload):
+        summary = _worker.run_task(self.fn, payload, self.context, rank=0)
+        self.results.append((worker, ("result", payload["index"], payload.get("attempt", 1), summary)))
+
+    def recv(self, timeout=None):
+        return self.results.popleft() if self.results else None
+
+    def close(self, abandon=False):
+        self.results.clear()
+
+    def abort(self, code=1):
+        raise SystemExit(code)
+
+
+def _local_main(conn, context, rank):
+    def recv():
+        try:
+            return conn.recv()
+        except (EOFError, OSError):  # the master is gone: stop quietly
+            return None
+
+    def send(msg):
+        try:
+            conn.send(msg)
+        except (BrokenPipeError, OSError):
+            raise SystemExit(0) from None
+
+    _worker.worker_loop(recv, send, context, rank)
+
+
+class LocalComm:
+    """Worker processes on this machine (no MPI)."""
+
+    launcher = "local"
+
+    def __init__(self, context: dict, n_workers: int):
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")
+        self.n_workers = n_workers
+        self.conns, self.procs = {}, {}
+        for w in range(1, n_workers + 1):
+            parent, child = ctx.Pipe(duplex=True)
+            p = ctx.Process(target=_local_main, args=(child, context, w), name=f"campaign-worker-{w}",
+                            daemon=True)
+            p.start()
+            child.close()
+            self.conns[w], self.procs[w] = parent, p
+        self.hosts = [socket.gethostname()]
+        self._by_conn = {c: w for w, c in self.conns.items()}
+
+    def send(self, worker, payload):
+        try:
+            self.conns[worker].send(("task", payload))
+        except (BrokenPipeError, OSError, KeyError):
+            pass  # the worker died; recv reports it
+
+    def recv(self, timeout=None):
+        from multiprocessing.connection import wait
+
+        if not self.conns:
+            if timeout:
+                time.sleep(timeout)
+            return None
+        ready = wait(list(self.conns.values()), timeout)
+        if not ready:
+            return None
+        conn = ready[0]
+        w = self._by_conn[conn]
+        try:
+            return w, conn.recv()
+        except (EOFError, OSError):
+            proc = self.procs[w]
+            proc.join(1.0)
+            del self.conns[w]
+            return w, ("dead", f"worker process {w} (pid {proc.pid}) died (exit code {proc.exitcode})")
+
+    def close(self, abandon=False):
+        for w, conn in list(self.conns.items()):
+            try:
+                conn.send(("stop",))
+            except (BrokenPipeError, OSError):
+                pass
+        deadline = time.monotonic() + (0.0 if abandon else 10.0)
+        for p in self.procs.values():
+            p.join(max(0.0, deadline - time.monotonic()))
+            if p.is_alive():
+                p.terminate()
+                p.join(5.0)
+        for conn in self.conns.values():
+            conn.close()
+        self.conns.clear()
+
+    def abort(self, code=1):
+        self.close(abandon=True)
+        raise SystemExit(code)
+
+
+def mpi_env_detected() -> bool:
+    """True when this process was started by an MPI launcher (mpiexec, srun with PMI)."""
+    keys = ("PMI_RANK", "PMI_SIZE", "PMIX_RANK", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS", "PMI_FD",
+            "HYDRA_CONTROL_FD")
+    return any(k in os.environ for k in keys)
+
+
+class _Backoff:
+    """Poll without burning a core: spin briefly, then sleep longer and longer (at most 2 ms)."""
+
+    def __init__(self):
+        self.n = 0
+
+    def wait(self):
+        self.n += 1
+        if self.n > 50:
+            time.sleep(min(0.002, 1e-5 * (self.n - 50)))
+
+    def reset(self):
+        self.n = 0
+
+
+class MPIComm:
+    """Master side of MPI: rank 0; workers are ranks 1..size-1."""
+
+    launcher = "mpi"
+
+    def __init__(self, comm):
+        from mpi4py import MPI
+
+        self.MPI = MPI
+        self.comm = comm
+        self.n_workers = comm.Get_size() - 1
+        self.hosts = []
+        self._status = MPI.Status()
+
+    def send(self, worker, payload):
+        self.comm.send(payload, dest=worker, tag=TAG_TASK)
+
+    def recv(self, timeout=None):
+        deadline = None if timeout is None else time.monotonic() + timeout
+        backoff = _Backoff()
+        while True:
+            msg = self.comm.improbe(source=self.MPI.ANY_SOURCE, tag=TAG_RESULT, status=self._status)
+            if msg is not None:
+                return self._status.Get_source(), msg.recv()
+            if deadline is not None and time.monotonic() >= deadline:
+                return None
+            backoff.wait()
+
+    def close(self, abandon=False):
+        for w in range(1, self.n_workers + 1):
+            self.comm.send(None, dest=w, tag=TAG_STOP)
+
+    def abort(self, code=1):
+        sys.stderr.flush()
+        self.comm.Abort(code)
+
+
+def mpi_worker(comm, context: dict) -> None:
+    """Worker side of MPI: serve tasks from rank 0 until told to stop."""
+    from mpi4py import MPI
+
+    status = MPI.Status()
+    rank = comm.Get_rank()
+
+    def recv():
+        backoff = _Backoff()
+        while True:
+            msg = comm.improbe(source=0, tag=MPI.ANY_TAG, status=status)
+            if msg is not None:
+                obj = msg.recv()
+                return ("stop",) if status.Get_tag() == TAG_STOP else ("task", obj)
+            backoff.wait()
+
+    def send(msg):
+        comm.send(msg, dest=0, tag=TAG_RESULT)
+
+    _worker.worker_loop(recv, send, context, rank)

@@ -1,0 +1,249 @@
+"""campaign run [SPEC] [--out FILE]: run (or resume) a campaign.
+
+Under ``mpiexec -n K`` rank 0 is the master and ranks 1..K-1 are workers;
+without a launcher the master drives ``--workers`` local processes. Rerunning
+the same spec on the same file resumes it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import socket
+import subprocess
+import sys
+import time
+import traceback
+from pathlib import Path
+
+HELP = "run or resume a campaign (no SPEC: the packaged quickstart)"
+
+
+def configure(parser):
+    parser.add_argument("spec", nargs="?", default=None,
+                        help="campaign spec (YAML); default: the packaged quickstart")
+    parser.add_argument("--out", default=None, help="HDF5 store (default: the spec's 'output')")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="local worker processes when not under mpiexec (default: the cores)")
+    parser.add_argument("--new", action="store_true",
+                        help="overwrite an existing store written by a different spec")
+    parser.add_argument("--retries", type=int, default=None,
+                        help="extra attempts for a failing task (default: the spec's run.retries, else 2)")
+    parser.add_argument("--retry-failed", action="store_true",
+                        help="also rerun tasks recorded as failed by earlier runs")
+    parser.add_argument("--launcher", choices=("auto", "mpi", "local", "inline"), default="auto",
+                        help="auto: MPI under an MPI launcher, else local processes (inline: no workers)")
+    parser.add_argument("--grace", type=float, default=20.0,
+                        help="seconds to wait for running tasks after SIGINT/SIGTERM (default 20)")
+    parser.add_argument("--numba-cache", default=None,
+                        help="numba cache directory (default: $NUMBA_CACHE_DIR, else "
+                             "~/.cache/jamming-campaign/numba)")
+    parser.add_argument("--quiet", action="store_true", help="no progress line")
+    # testing hook: the per-task function ("kernels", "synthetic" or "module:attr")
+    parser.add_argument("--task-function", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--depth", type=int, default=2, help=argparse.SUPPRESS)
+
+
+def _log(msg):
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _git_commit() -> str:
+    here = Path(__file__).resolve().parent
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5)
+        if out.returncode == 0 and out.stdout.strip():
+            return out.stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return "unknown"
+
+
+def _versions(mpi=None) -> dict:
+    from importlib import metadata
+
+    out = {"python": platform.python_version()}
+    for dist in ("numpy", "numba", "h5py", "mpi4py", "mpich", "pyyaml", "scipy"):
+        try:
+            out[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            out[dist] = "not installed"
+    try:
+        import h5py
+
+        out["hdf5"] = h5py.version.hdf5_version
+    except ImportError:
+        pass
+    if mpi is not None:
+        out["mpi_library"] = " ".join(mpi.Get_library_version().split())[:200]
+    return out
+
+
+def provenance(launcher, n_workers, mpi=None) -> dict:
+    from campaign import __version__
+
+    return {"package_version": __version__, "git_commit": _git_commit(), "versions": _versions(mpi),
+            "launcher": launcher, "workers": n_workers, "hosts": [socket.gethostname()],
+            "argv": sys.argv[:], "pid": os.getpid()}
+
+
+def _set_numba_cache(args):
+    if args.numba_cache:
+        os.environ["NUMBA_CACHE_DIR"] = str(Path(args.numba_cache).expanduser().resolve())
+    else:
+        os.environ.setdefault("NUMBA_CACHE_DIR", str(Path.home() / ".cache" / "jamming-campaign" / "numba"))
+    try:
+        Path(os.environ["NUMBA_CACHE_DIR"]).mkdir(parents=True, exist_ok=True)
+    except OSError:
+        pass
+
+
+def main(args) -> int:
+    from campaign.comm import mpi_env_detected
+
+    _set_numba_cache(args)
+    if args.task_function is None:
+        args.task_function = os.environ.get("CAMPAIGN_TASK_FUNCTION") or "kernels"
+    use_mpi = args.launcher == "mpi" or (args.launcher == "auto" and mpi_env_detected())
+    if use_mpi:
+        from mpi4py import MPI
+
+        comm = MPI.COMM_WORLD
+        if comm.Get_size() > 1:
+            if comm.Get_rank() != 0:
+                return _mpi_worker(comm)
+            return _mpi_master(args, comm, MPI)
+    return _run(args, None, None)
+
+
+def _mpi_worker(comm) -> int:
+    from campaign.comm import mpi_worker
+
+    context = comm.bcast(None, root=0)
+    if context is None:  # the master refused to start (bad spec, refused file): it says why
+        return 0
+    comm.gather(socket.gethostname(), root=0)
+    try:
+        mpi_worker(comm, context)
+    except BaseException:  # noqa: BLE001 - a worker-side fault must not hang the job
+        traceback.print_exc()
+        sys.stderr.flush()
+        comm.Abort(1)
+    return 0
+
+
+def _mpi_master(args, comm, MPI) -> int:
+    from campaign.errors import UserError
+
+    state = {"sent": False}
+    try:
+        return _run(args, comm, MPI, state)
+    except UserError:
+        if not state["sent"]:
+            comm.bcast(None, root=0)
+            raise
+        traceback.print_exc()
+        comm.Abort(2)
+    except SystemExit:
+        raise
+    except BaseException:  # noqa: BLE001 - a master fault aborts the whole job instead of hanging it
+        traceback.print_exc()
+        _log("campaign run: internal error on the MPI master; aborting the job")
+        comm.Abort(1)
+    return 1
+
+
+def _run(args, mpi_comm, MPI, state=None) -> int:
+    from campaign.comm import InlineComm, LocalComm, MPIComm
+    from campaign.errors import UserError
+    from campaign.master import Master
+    from campaign.progress import Progress
+    from campaign.spec import load_spec
+    from campaign.store import Store
+    from campaign.tasks import expand
+    from campaign.worker import resolve
+
+    state = state if state is not None else {}
+    spec = load_spec(args.spec)
+    out = Path(args.out or spec.output)
+    retries = spec.retries if args.retries is None else args.retries
+    if retries < 0:
+        raise UserError(f"--retries must be >= 0, got {retries}")
+    if mpi_comm is not None:
+        launcher, n_workers = "mpi", mpi_comm.Get_size() - 1
+    elif args.launcher == "inline":
+        launcher, n_workers = "inline", 1
+    else:
+        n_workers = args.workers if args.workers is not None else (os.cpu_count() or 1)
+        if n_workers < 1:
+            raise UserError(f"--workers must be at least 1, got {n_workers}")
+        launcher = "local"
+    tasks = expand(spec)
+    fn = resolve(args.task_function)
+    context = {"task_function": args.task_function, "system": spec.system.canonical(),
+               "observables": list(spec.observables), "histograms": list(spec.histograms),
+               "bins": {h: list(e) for h, e in spec.bins}, "configurations": spec.configurations}
+    edges = fn.histogram_edges(context)
+    context["edges"] = {h: [float(x) for x in e] for h, e in edges.items()}
+
+    store = Store(out, spec, tasks, edges, new=args.new, provenance=provenance(launcher, n_workers, MPI),
+                  log=_log)
+    comm = None
+    outcome = None
+    try:
+        todo = int(sum(1 for t in tasks if store.status[t.index] == 0 or
+                       (args.retry_failed and store.status[t.index] == 2)))
+        if todo and hasattr(fn, "warm_up") and launcher != "inline":
+            if sys.stderr.isatty() and not args.quiet:
+                _log(f"campaign: compiling the kernels (once; cached in {os.environ.get('NUMBA_CACHE_DIR')})")
+            fn.warm_up(context)
+        if mpi_comm is not None:
+            mpi_comm.bcast(context, root=0)
+            state["sent"] = True
+            hosts = mpi_comm.gather(socket.gethostname(), root=0)
+            store.run["hosts"] = sorted(set(hosts))
+            comm = MPIComm(mpi_comm)
+        elif launcher == "inline":
+            comm = InlineComm(context)
+        else:
+            comm = LocalComm(context, min(n_workers, max(1, todo)))
+        show = not args.quiet
+        progress = Progress(len(tasks), sidecar=Path(str(out) + ".progress.json"),
+                            enabled=None if show else False)
+        if show and todo and not progress.tty:
+            pass  # quiet when not a terminal: only the final summary below
+        master = Master(comm, store, tasks, retries=retries, depth=max(1, args.depth), progress=progress,
+                        grace=args.grace, redo_failed=args.retry_failed, log=_log)
+        t0 = time.monotonic()
+        outcome = master.run()
+        progress.finish()
+        comm.close(abandon=outcome["abandoned"] > 0)
+        comm = None
+        counts = store.counts_by_status()
+        store.close(completed=outcome["done"], failed=outcome["failed"], stopped=outcome["stopped"],
+                    seconds=round(time.monotonic() - t0, 3))
+    except BaseException:
+        if comm is not None:
+            try:
+                comm.close(abandon=True)
+            except Exception:  # noqa: BLE001
+                pass
+        store.abandon()
+        raise
+    msg = (f"campaign: {out}: {counts['done']} done, {counts['failed']} failed, {counts['pending']} pending "
+           f"of {len(tasks)} tasks (this run: {outcome['done']} done, {outcome['failed']} failed)")
+    _log(msg)
+    if counts["failed"]:
+        _log(f"campaign: see the failures with: campaign status {out}")
+    if outcome["stopped"] is not None and counts["pending"]:
+        resume = " ".join(["campaign", "run"] + ([args.spec] if args.spec else []) + ["--out", str(out)])
+        if mpi_comm is not None:
+            resume = "mpiexec -n K " + resume
+        _log(f"campaign: stopped ({outcome['stopped']}); {counts['pending']} task(s) left. Resume with: {resume}")
+        code = {"SIGINT": 130, "SIGTERM": 143}.get(outcome["stopped"], 3)
+        if mpi_comm is not None and outcome["abandoned"]:
+            mpi_comm.Abort(code)  # workers still busy with abandoned tasks: do not wait for them
+        return code
+    return 0

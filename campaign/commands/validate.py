@@ -1,0 +1,32 @@
+"""campaign validate SPEC: check a spec completely, print its task count and estimated cost."""
+
+from __future__ import annotations
+
+HELP = "check a campaign spec; print its task count and estimated cost"
+
+
+def configure(parser):
+    parser.add_argument("spec", nargs="?", default=None, help="campaign spec (YAML); default: the packaged quickstart")
+
+
+def main(args) -> int:
+    from campaign.progress import fmt_duration
+    from campaign.spec import load_spec
+    from campaign.tasks import estimate_seconds, expand, task_cost
+
+    spec = load_spec(args.spec)
+    tasks = expand(spec)
+    seconds = estimate_seconds(tasks)
+    longest = max(task_cost(t) for t in tasks)
+    print(f"{spec.source}: valid")
+    print(f"  name        {spec.name}")
+    print(f"  tasks       {len(tasks)} = {len(spec.variants)} variant(s) x {len(spec.N)} N_G x "
+          f"{len(spec.E)} E_G x {len(spec.seeds)} seed(s)")
+    print(f"  variants    {', '.join(v.name for v in spec.variants)}")
+    print(f"  N_G         {', '.join(str(n) for n in spec.N)}")
+    print(f"  E_G         {', '.join(f'{e:g}' for e in spec.E)}")
+    print(f"  observables {', '.join(spec.observables)}")
+    print(f"  output      {spec.output}")
+    print(f"  estimated cost {seconds / 3600:.3g} core-hours ({fmt_duration(seconds)} on one core; "
+          f"longest task ~{fmt_duration(longest)}; a rough model, see campaign/tasks.py)")
+    return 0

@@ -1,0 +1,162 @@
+"""The master loop: dynamic scheduling, retries, signals, progress.
+
+It talks to a ``comm`` (campaign.comm: inline, local processes or MPI) and a
+``store`` (campaign.store) and knows nothing else about either. Tasks go out
+most expensive first (campaign.tasks.cost), at most ``depth`` per worker at a
+time so that a worker never waits for the master between two short tasks.
+
+* A failed task (an error record from its worker, or a worker that died under
+  it) goes back into the queue until it has had ``1 + retries`` attempts; then
+  it is recorded as failed and the campaign goes on.
+* ``can_dispatch(task) -> bool``: a hook asked before each dispatch; ``False``
+  stops dispatching (e.g. the next task would not fit in the wall time left).
+* First SIGINT/SIGTERM: stop dispatching, collect the running tasks for up to
+  ``grace`` seconds; a second signal (or the end of the grace time) abandons
+  them. Either way the store is flushed and closed, and resuming is a rerun.
+"""
+
+from __future__ import annotations
+
+import heapq
+import signal
+import time
+from collections import deque
+
+from campaign.store import PENDING
+from campaign.tasks import task_cost
+
+
+class Master:
+    def __init__(self, comm, store, tasks, *, retries=2, depth=2, progress=None, can_dispatch=None,
+                 grace=20.0, redo_failed=False, log=None):
+        self.comm, self.store, self.tasks = comm, store, tasks
+        self.retries, self.depth, self.progress = retries, depth, progress
+        self.can_dispatch, self.grace = can_dispatch, grace
+        self.log = log or (lambda msg: None)
+        todo = [t for t in tasks if store.status[t.index] == PENDING
+                or (redo_failed and not store.status[t.index] == 1)]
+        self.queue = [(-task_cost(t), t.index) for t in todo]
+        heapq.heapify(self.queue)
+        self.cost_remaining = sum(task_cost(t) for t in todo)
+        self.attempts = {}
+        self.in_flight = {w: deque() for w in range(1, comm.n_workers + 1)}
+        self.alive = set(self.in_flight)
+        self.stop_reason = None      # why dispatching stopped early (signal name, wall time, ...)
+        self.stop_since = None
+        self.signals = 0
+        self.n_done = self.n_failed = 0
+
+    # ---- signals
+    def _on_signal(self, signum, frame):
+        self.signals += 1
+        name = signal.Signals(signum).name
+        if self.signals == 1:
+            self.stop_reason = name
+            self.stop_since = time.monotonic()
+            running = sum(len(q) for q in self.in_flight.values())
+            self.log(f"\ncampaign: {name}: no new tasks; waiting up to {self.grace:g} s for {running} running "
+                     f"task(s) (send it again to abandon them)")
+        else:
+            self.log(f"\ncampaign: {name} again: abandoning the running tasks")
+
+    def _install_signals(self):
+        old = {}
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                old[sig] = signal.signal(sig, self._on_signal)
+            except ValueError:  # not the main thread
+                pass
+        return old
+
+    # ---- scheduling
+    def _dispatch(self, w):
+        q = self.in_flight[w]
+        while len(q) < self.depth and self.queue and self.stop_reason is None:
+            i = self.queue[0][1]
+            task = self.tasks[i]
+            if self.can_dispatch is not None and not self.can_dispatch(task):
+                self.stop_reason = "wall time"
+                self.log("\ncampaign: the next task would not fit in the time left; no new tasks")
+                return
+            heapq.heappop(self.queue)
+            attempt = self.attempts.get(i, 0) + 1
+            self.attempts[i] = attempt
+            payload = task.payload()
+            payload["attempt"] = attempt
+            q.append(i)
+            self.comm.send(w, payload)
+
+    def _outcome(self, i, attempt, summary):
+        cost = task_cost(self.tasks[i])
+        if summary["ok"] or attempt > self.retries:
+            self.store.record(i, summary, attempt)
+            self.cost_remaining -= cost
+            if summary["ok"]:
+                self.n_done += 1
+            else:
+                self.n_failed += 1
+            return 1, cost
+        heapq.heappush(self.queue, (-cost, i))  # retry later
+        return 0, 0.0
+
+    def _running(self):
+        return sum(len(q) for q in self.in_flight.values())
+
+    def _tick(self, finished=0, cost=0.0, force=False):
+        self.store.maybe_flush()
+        if self.progress is not None:
+            c = self.store.counts_by_status()
+            running = self._running()
+            self.progress.update(done=c["done"], failed=c["failed"], running=running,
+                                 remaining=max(0, c["pending"] - running), cost_remaining=self.cost_remaining,
+                                 finished_now=finished, cost_now=cost, force=force)
+
+    def run(self) -> dict:
+        old = self._install_signals()
+        try:
+            for w in sorted(self.alive):
+                self._dispatch(w)
+            while self._running():
+                if self.signals >= 2 or (self.stop_since is not None
+                                         and time.monotonic() - self.stop_since > self.grace):
+                    break
+                got = self.comm.recv(timeout=0.25)
+                if got is None:
+                    self._tick()
+                    continue
+                w, msg = got
+                finished, cost = 0, 0.0
+                if msg[0] == "result":
+                    _, i, attempt, summary = msg
+                    try:
+                        self.in_flight[w].remove(i)
+                    except ValueError:
+                        continue  # not ours (cannot happen with these comms); ignore
+                    finished, cost = self._outcome(i, attempt, summary)
+                    if w in self.alive:
+                        self._dispatch(w)
+                elif msg[0] == "dead":
+                    self.alive.discard(w)
+                    lost = list(self.in_flight[w])
+                    self.in_flight[w].clear()
+                    for i in lost:
+                        err = {"message": msg[1], "traceback": ""}
+                        summary = {"id": self.tasks[i].id, "ok": False, "scalars": {}, "histograms": {},
+                                   "configuration": None, "wall": float("nan"), "rank": w, "host": "",
+                                   "error": err}
+                        f, c = self._outcome(i, self.attempts[i], summary)
+                        finished, cost = finished + f, cost + c
+                    if not self.alive:
+                        self.stop_reason = self.stop_reason or "no worker left"
+                        self.log(f"\ncampaign: {msg[1]}; no worker left")
+                        break
+                    for v in sorted(self.alive):
+                        self._dispatch(v)
+                self._tick(finished, cost)
+            abandoned = self._running()
+            self._tick(force=True)
+            return {"done": self.n_done, "failed": self.n_failed, "abandoned": abandoned,
+                    "stopped": self.stop_reason, "remaining": len(self.queue) + abandoned}
+        finally:
+            for sig, handler in old.items():
+                signal.signal(sig, handler)

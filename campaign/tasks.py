@@ -1,0 +1,96 @@
+"""Tasks: identity, seeds, canonical order and cost.
+
+A task is one packing: (variant, N, E, seed index). Its **id** is the blake2b
+hash (16 bytes, 32 hex characters) of the canonical JSON of
+``{system, effective protocol, N, E, seed}``: the description of the packing,
+not of its place in a spec. The variant's *name* is not part of it (renaming a
+variant keeps its packings); observables, bins and storage options are not
+either (they change what is kept of a packing, not the packing; the store's
+spec hash already refuses a different spec on an existing file).
+
+Its **seed entropy** is ``[campaign seed, w0, w1, w2, w3]`` where the ``w`` are
+32-bit words of the blake2b hash of ``{system, N, E, seed}``; ``kernels.jam``
+feeds it to ``numpy.random.SeedSequence``. The protocol is left out on purpose:
+every variant of one (N, E, seed) starts from the same initial positions, so
+variants are compared packing by packing.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass
+
+from campaign.spec import Spec, canonical_json
+
+
+@dataclass(frozen=True)
+class Task:
+    index: int              # row in the store (canonical order)
+    id: str                 # 32 hex characters
+    variant: str
+    N: int
+    E: float
+    seed: int               # seed index
+    entropy: tuple[int, ...]
+    protocol: tuple[tuple[str, object], ...]
+
+    def payload(self) -> dict:
+        """What a worker needs (small and picklable)."""
+        return {"index": self.index, "id": self.id, "variant": self.variant, "N": self.N, "E": self.E,
+                "seed": self.seed, "entropy": list(self.entropy), "protocol": dict(self.protocol)}
+
+
+def task_id(system: dict, protocol: dict, N: int, E: float, seed: int) -> str:
+    text = canonical_json({"system": system, "protocol": protocol, "N": N, "E": E, "seed": seed})
+    return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
+
+
+def seed_entropy(campaign_seed: int, system: dict, N: int, E: float, seed: int) -> tuple[int, ...]:
+    text = canonical_json({"system": system, "N": N, "E": E, "seed": seed})
+    digest = hashlib.blake2b(text.encode(), digest_size=16).digest()
+    words = [int.from_bytes(digest[i:i + 4], "little") for i in range(0, 16, 4)]
+    return (int(campaign_seed), *words)
+
+
+def expand(spec: Spec) -> list[Task]:
+    """Every task of the spec in canonical order: variant (default first), N, E, seed index."""
+    system = spec.system.canonical()
+    out = []
+    for v in spec.variants:
+        proto = dict(v.protocol)
+        for N in spec.N:
+            for E in spec.E:
+                for s in spec.seeds:
+                    out.append(Task(index=len(out), id=task_id(system, proto, N, E, s), variant=v.name,
+                                    N=N, E=E, seed=s, entropy=seed_entropy(spec.seed, system, N, E, s),
+                                    protocol=v.protocol))
+    return out
+
+
+# Cost model: seconds of one packing ~ C * N^1.5 * (1 + log10(E_ref / E) / 4) * (1e-6 / tol)^0.1.
+# N^1.5: FIRE steps grow like sqrt(N) at fixed tolerance, each step costs O(N);
+# lower energies need more grow/shrink steps of the O'Hern search (about one more
+# halving of Delta per decade). Only the ordering (most expensive first) and the
+# order of magnitude of `campaign validate`'s estimate rely on it.
+COST_C = 2.0e-4
+E_REF = 1e-3
+
+
+def cost(N: int, E: float, protocol=None) -> float:
+    tol = dict(protocol or {}).get("force_tolerance", 1e-6)
+    return COST_C * N ** 1.5 * (1.0 + max(0.0, math.log10(E_REF / E)) / 4.0) * (1e-6 / tol) ** 0.1
+
+
+def task_cost(t: Task) -> float:
+    return cost(t.N, t.E, t.protocol)
+
+
+def estimate_seconds(tasks) -> float:
+    """Estimated CPU seconds for the given tasks (one core per task)."""
+    return math.fsum(task_cost(t) for t in tasks)
+
+
+def dispatch_order(tasks) -> list[Task]:
+    """Most expensive first; ties in canonical order (deterministic)."""
+    return sorted(tasks, key=lambda t: (-task_cost(t), t.index))

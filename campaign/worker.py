@@ -1,0 +1,226 @@
+"""One task in, one summary out; and the loop a worker process runs.
+
+The per-task work is a *task function* chosen by name in the run context:
+
+* ``"kernels"`` (the default): ``kernels.jam`` then ``kernels.analyze``.
+* ``"synthetic"``: a cheap deterministic stand-in (scalars and histograms drawn
+  from the task's seed), used by the engine's tests and benchmarks so they do
+  not depend on numba. Environment variables make it misbehave on purpose:
+  ``CAMPAIGN_SYNTHETIC_DELAY`` (seconds per task, times N/64 if it ends in
+  ``*N``), ``CAMPAIGN_SYNTHETIC_FAIL`` (tasks that always raise),
+  ``CAMPAIGN_SYNTHETIC_FLAKY`` (tasks that raise on their first attempt only),
+  ``CAMPAIGN_SYNTHETIC_CRASH`` (tasks that kill their worker process). Each is a
+  comma-separated list of ``seed:K`` (seed index K), ``N:K`` or task-id prefixes.
+* ``"package.module:attribute"``: any object with ``run(payload, context)``
+  and ``histogram_edges(context)`` (and optionally ``warm_up(context)``).
+
+Workers never raise: ``run_task`` returns the contract's summary dict with
+``ok=False`` and an error record (message, traceback) when anything fails.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import signal
+import socket
+import sys
+import time
+import traceback
+
+import numpy as np
+
+JAM_STATUS = {"converged": 0, "max_search": 1, "max_steps": 2}
+_HOST = socket.gethostname()
+
+
+# --------------------------------------------------------------------------- task functions
+
+class KernelTask:
+    """The real work: ``kernels.jam`` then ``kernels.analyze`` (docs/CONTRACTS.md)."""
+
+    def histogram_edges(self, context) -> dict:
+        try:
+            from kernels.analysis import DEFAULT_BINS
+        except ImportError as exc:
+            from campaign.errors import UserError
+            raise UserError(f"the analysis kernels are not available in this installation ({exc})") from None
+        bins = context.get("bins") or {}
+        out = {}
+        for h in context["histograms"]:
+            edges = bins.get(h, DEFAULT_BINS.get(h))
+            if edges is None:
+                raise RuntimeError(f"kernels.analysis.DEFAULT_BINS has no entry for histogram {h!r}")
+            out[h] = np.asarray(edges, dtype=np.float64)
+        return out
+
+    def warm_up(self, context) -> None:
+        """Compile (or load from the numba cache) every kernel a task will use."""
+        payload = {"N": 16, "E": 1e-3, "entropy": [0], "protocol": context.get("protocol_warmup", {})}
+        self.run(payload, context)
+
+    def run(self, payload, context):
+        import kernels
+
+        system = context["system"]
+        species = tuple((f, r) for _, f, r in system["species"])
+        exponent = system["potential"]["exponent"]
+        t0 = time.perf_counter()
+        p = kernels.jam(payload["N"], payload["E"], list(payload["entropy"]), box=tuple(system["box"]),
+                        species=species, exponent=exponent, **payload["protocol"])
+        t1 = time.perf_counter()
+        obs = [o for o in context["observables"]]
+        bins = {h: np.asarray(e, dtype=np.float64) for h, e in (context.get("edges") or {}).items()}
+        a = kernels.analyze(p.positions, p.radii, p.box, observables=obs, bins=bins or None,
+                            exponent=exponent, species=p.species)
+        t2 = time.perf_counter()
+        scalars = {k: float(v) for k, v in a.scalars.items()}
+        scalars.update(force_residual=float(p.force_residual), iterations=float(p.iterations),
+                       force_evaluations=float(p.force_evaluations),
+                       jam_status=float(JAM_STATUS.get(str(p.status), 9)),
+                       sigma_max=float(np.max(p.radii)), jam_seconds=t1 - t0, analyze_seconds=t2 - t1)
+        for name in ("energy_nonrattler", "pressure", "phi"):
+            if name not in scalars and hasattr(p, name):
+                scalars[name] = float(getattr(p, name))
+        hists = {h: a.histograms[h] for h in context["histograms"]}
+        config = None
+        if context.get("configurations"):
+            config = {"positions": np.asarray(p.positions, np.float64), "radii": np.asarray(p.radii, np.float64),
+                      "box": np.asarray(p.box, np.float64), "species": np.asarray(p.species, np.int32)}
+        return scalars, hists, config
+
+
+def _matches(spec: str, payload) -> bool:
+    for item in filter(None, (s.strip() for s in spec.split(","))):
+        if item.startswith("seed:") and payload["seed"] == int(item[5:]):
+            return True
+        if item.startswith("N:") and payload["N"] == int(item[2:]):
+            return True
+        if ":" not in item and payload["id"].startswith(item):
+            return True
+    return False
+
+
+class SyntheticTask:
+    """A deterministic stand-in for the kernels: a pure function of the task payload."""
+
+    SCALARS = ("N", "N_G", "N_R", "E_G", "phi", "pressure", "A_G", "A_V", "N_C", "N_V", "N_F",
+               "z_g_mean", "z_iso", "delta_Z", "psi_O", "psi_DO", "identities_ok", "force_residual",
+               "iterations", "force_evaluations", "jam_status", "sigma_max")
+
+    def histogram_edges(self, context) -> dict:
+        bins = context.get("bins") or {}
+        out = {}
+        for h in context["histograms"]:
+            if h in bins:
+                out[h] = np.asarray(bins[h], np.float64)
+            elif h in ("z_g", "z_v"):
+                out[h] = np.arange(0, 17, dtype=np.float64) - 0.5
+            else:
+                out[h] = np.linspace(0.0, 1.0, 11)
+        return out
+
+    def run(self, payload, context):
+        env = os.environ
+        attempt = payload.get("attempt", 1)
+        delay = env.get("CAMPAIGN_SYNTHETIC_DELAY", "")
+        if delay:
+            seconds = float(delay[:-2]) * payload["N"] / 64 if delay.endswith("*N") else float(delay)
+            time.sleep(seconds)
+        if _matches(env.get("CAMPAIGN_SYNTHETIC_CRASH", ""), payload):
+            os._exit(3)
+        if _matches(env.get("CAMPAIGN_SYNTHETIC_FAIL", ""), payload):
+            raise RuntimeError(f"synthetic failure of task {payload['id']} (seed {payload['seed']})")
+        if attempt == 1 and _matches(env.get("CAMPAIGN_SYNTHETIC_FLAKY", ""), payload):
+            raise RuntimeError(f"synthetic first-attempt failure of task {payload['id']}")
+        rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(list(payload["entropy"]))))
+        N, E = payload["N"], payload["E"]
+        tol = float(payload["protocol"].get("force_tolerance", 1e-6))
+        window = float(payload["protocol"].get("window", 0.1))
+        u = rng.random(len(self.SCALARS))
+        scalars = {name: float(x) for name, x in zip(self.SCALARS, u)}
+        scalars.update(N=float(N), E_G=E * (1 + window * u[3]), force_residual=tol * u[17], identities_ok=1.0)
+        hists = {}
+        for h, edges in (context.get("edges") or {}).items():
+            k = len(edges) - 1
+            hists[h] = rng.multinomial(N, np.full(k, 1.0 / k)).astype(np.int64)
+        config = None
+        if context.get("configurations"):
+            pos = rng.random((N, 2))
+            config = {"positions": pos, "radii": np.where(np.arange(N) < N // 2, 1.4, 1.0) * 0.01,
+                      "box": np.array([1.0, 1.0]), "species": (np.arange(N) >= N // 2).astype(np.int32)}
+        return scalars, hists, config
+
+
+def resolve(name: str):
+    """The task function object for a name from the run context."""
+    if name in ("kernels", None, ""):
+        return KernelTask()
+    if name == "synthetic":
+        return SyntheticTask()
+    module, _, attr = name.partition(":")
+    obj = getattr(importlib.import_module(module), attr)
+    return obj() if isinstance(obj, type) else obj
+
+
+# --------------------------------------------------------------------------- one task
+
+def run_task(fn, payload: dict, context: dict, rank: int = 0) -> dict:
+    """Run one task; never raises. Returns the summary dict of docs/CONTRACTS.md."""
+    t0 = time.perf_counter()
+    summary = {"id": payload["id"], "ok": False, "scalars": {}, "histograms": {}, "configuration": None,
+               "wall": 0.0, "rank": rank, "host": _HOST, "error": None}
+    try:
+        scalars, hists, config = fn.run(payload, context)
+        edges = context.get("edges") or {}
+        if set(hists) != set(edges):
+            raise RuntimeError(f"the task returned histograms {sorted(hists)}, expected {sorted(edges)}")
+        for h, counts in hists.items():
+            counts = np.asarray(counts)
+            if counts.shape != (len(edges[h]) - 1,):
+                raise RuntimeError(f"histogram {h!r} has shape {counts.shape}, expected ({len(edges[h]) - 1},) "
+                                   "from its bin edges")
+            hists[h] = counts.astype(np.int64, copy=False)
+        summary.update(ok=True, scalars={k: float(v) for k, v in scalars.items()}, histograms=hists,
+                       configuration=config)
+    except Exception as exc:  # noqa: BLE001 - a worker reports, it never raises
+        summary.update(ok=False, scalars={}, histograms={}, configuration=None,
+                       error={"message": f"{type(exc).__name__}: {exc}"[:2000],
+                              "traceback": traceback.format_exc()[-20000:]})
+    summary["wall"] = time.perf_counter() - t0
+    return summary
+
+
+# --------------------------------------------------------------------------- worker loop
+
+def worker_loop(recv, send, context: dict, rank: int) -> None:
+    """Serve tasks until told to stop.
+
+    ``recv()`` returns ``("task", payload)`` or ``("stop",)``; ``send(msg)``
+    sends ``("result", index, attempt, summary)``. Signals meant for the whole
+    job (Ctrl-C, SIGTERM from a scheduler) are the master's business: a worker
+    ignores them and finishes its task; the master decides when to stop.
+    """
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            signal.signal(sig, signal.SIG_IGN)
+        except (ValueError, OSError):
+            pass
+    try:
+        fn = resolve(context.get("task_function"))
+    except Exception:  # noqa: BLE001 - report on the first task instead of dying silently
+        err = traceback.format_exc()
+        fn = None
+    while True:
+        msg = recv()
+        if msg is None or msg[0] == "stop":
+            return
+        payload = msg[1]
+        if fn is None:
+            summary = {"id": payload["id"], "ok": False, "scalars": {}, "histograms": {},
+                       "configuration": None, "wall": 0.0, "rank": rank, "host": _HOST,
+                       "error": {"message": "cannot load the task function", "traceback": err}}
+        else:
+            summary = run_task(fn, payload, context, rank)
+        send(("result", payload["index"], payload.get("attempt", 1), summary))
+
