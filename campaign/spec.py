@@ -251,10 +251,14 @@ class _Checker:
 def _range(lo, hi, lo_open, hi_open):
     parts = []
     if lo is not None:
-        parts.append(f"{'>' if lo_open else '>='} {lo:g}")
+        parts.append(f"{'>' if lo_open else '>='} {_num(lo)}")
     if hi is not None:
-        parts.append(f"{'<' if hi_open else '<='} {hi:g}")
+        parts.append(f"{'<' if hi_open else '<='} {_num(hi)}")
     return (" " + " and ".join(parts)) if parts else ""
+
+
+def _num(x) -> str:
+    return str(x) if isinstance(x, int) else f"{x:g}"
 
 
 def _show(value) -> str:
