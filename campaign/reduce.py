@@ -402,7 +402,8 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                     f.message = (f.message + "; " if f.message else "") + (
                         f"{int((~ok).sum())} cell(s) without a positive mean {absc} or "
                         f"a spread of {quantity} left out")
-                res[ok_cells] = f.residuals
+                if f.residuals.size == len(ok_cells):
+                    res[ok_cells] = f.residuals
             if not f.ok:
                 notes.append(f"{v} N={n}: no fit of {quantity} against {absc}: {f.message}")
             elif f.at_bound:

@@ -130,7 +130,7 @@ def scalars_for(c: SyntheticCampaign, variant, N, E, rng):
     T = len(N)
     N = N.astype(float)
     E_G = E * (1.0 + 0.1 * rng.random(T))
-    vshift = np.array([0.001 * c.variants.index(x) for x in variant])
+    vshift = np.array([0.01 * c.variants.index(x) for x in variant])
     A_G = t.A_star(N) + vshift + t.c_A * E_G**t.beta_A + rng.normal(0, 1, T) * t.sigma_A / np.sqrt(N)
     psi = t.P_star(N) + t.c_P * E_G**t.beta_P + rng.normal(0, 1, T) * t.sigma_P / np.sqrt(N)
     dZ = t.c_Z * E_G**0.25 * (1 + t.sigma_Z * rng.normal(0, 1, T))

@@ -1,0 +1,234 @@
+"""The reducer on synthetic campaign files (layout of docs/CONTRACTS.md)."""
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from campaign import cli
+from campaign import reduce as R
+from synthetic_store import SyntheticCampaign, split_store, write_store
+
+FAST = R.Settings(n_boot=150)
+
+
+@pytest.fixture(scope="module")
+def full(tmp_path_factory):
+    path = tmp_path_factory.mktemp("full") / "c.h5"
+    camp = SyntheticCampaign(N=(64, 128, 256, 512), seeds=16)
+    data = write_store(path, camp)
+    return path, camp, data, R.reduce_campaign(path, FAST)
+
+
+def test_cell_statistics_match_a_direct_computation(full):
+    path, camp, data, red = full
+    c = red.cells
+    assert len(c["N"]) == len(camp.N) * len(camp.E)
+    for i in range(len(c["N"])):
+        m = (data["N_label"] == c["N"][i]) & (data["E_target"] == c["E"][i])
+        assert c["n_packings"][i] == m.sum() == camp.seeds
+        for name in ("A_G", "psi_O", "E_G", "delta_Z", "phi"):
+            v = data[name][m]
+            assert c[f"mean_{name}"][i] == pytest.approx(v.mean(), rel=1e-12)
+            assert c[f"sem_{name}"][i] == pytest.approx(v.std(ddof=1) / np.sqrt(v.size), rel=1e-9)
+
+
+def test_histograms_are_the_sums_over_each_cell(full):
+    path, camp, data, red = full
+    with h5py.File(path, "r") as f:
+        for name in ("contact_angle", "z_v", "radial_contacts"):
+            counts = f[f"histograms/{name}/counts"][...]
+            edges = f[f"histograms/{name}/edges"][...]
+            d = red.distributions[name]
+            np.testing.assert_array_equal(d["edges"], edges)
+            for i in range(len(red.cells["N"])):
+                m = (data["N_label"] == red.cells["N"][i]) & (data["E_target"] == red.cells["E"][i])
+                np.testing.assert_array_equal(d["counts"][i], counts[m].sum(axis=0))
+                assert np.sum(d["density"][i] * np.diff(edges)) == pytest.approx(1.0)
+
+
+def test_fits_and_extrapolation_recover_the_synthetic_truth(full):
+    path, camp, data, red = full
+    t = camp.truth
+    assert [r["N_G"] for r in red.rows] == list(camp.N)
+    for r in red.rows:
+        assert abs(r["A_G_star_E"] - t.A_star(r["N_G"])) < 4 * r["A_G_star_E_err"]
+        assert abs(r["beta_E"] - t.beta_A) < 4 * r["beta_E_err"]
+        assert abs(r["psi_O_star"] - t.P_star(r["N_G"])) < 4 * r["psi_O_star_err"]
+        # delta_Z ~ E^(1/4) in the synthetic data, so A_G - A* ~ delta_Z^(0.28/0.25)
+        assert abs(r["beta_Z"] - t.beta_A / 0.25) < 4 * r["beta_Z_err"] + 0.02
+    x = red.extrapolated["default"]
+    assert abs(x["A_G_star_E"] - t.A_inf) < 4 * x["A_G_star_E_err"]
+    assert abs(x["psi_O_star"] - t.P_inf) < 4 * x["psi_O_star_err"]
+    assert x["A_G_star_E_err"] < 2e-3
+
+
+def test_width_of_P_AG_scales_as_inverse_square_root(full):
+    path, camp, data, red = full
+    gam = np.array([w["gamma"] for w in red.width_scaling])
+    err = np.array([w["gamma_err"] for w in red.width_scaling])
+    assert len(gam) == len(camp.E)
+    pull = (gam - 0.5) / err
+    assert np.all(np.abs(pull) < 4)
+    assert abs(np.mean(gam) - 0.5) < 4 * np.sqrt(np.mean(err**2) / len(gam))
+
+
+def test_self_averaging_ratios_are_one_for_identically_drawn_packings(full):
+    path, camp, data, red = full
+    for name in ("alpha_e", "z_g", "contact_angle"):
+        sa = red.self_averaging[name]
+        n = red.cells["n_packings"][:, None]
+        # mean of per-packing ratios is 1 up to its standard error (and a small Jensen bias)
+        assert np.all(np.abs(sa["ratio_mean"] - 1) < 4 * sa["ratio_std"] / np.sqrt(n) + 0.01)
+        assert np.all(sa["ratio_std"] > 0)
+    assert "radial_grains" not in red.self_averaging
+
+
+def test_many_small_files_give_the_same_reduction_as_one(full, tmp_path):
+    path, camp, data, red = full
+    parts = [tmp_path / f"part{k}.h5" for k in range(3)]
+    split_store(path, parts)
+    red3 = R.reduce_campaign(parts, FAST)
+    for name, d in red.distributions.items():
+        np.testing.assert_array_equal(red3.distributions[name]["counts"], d["counts"])
+    for k in ("n_packings", "mean_A_G", "sem_A_G", "mean_E_G"):
+        np.testing.assert_allclose(red3.cells[k], red.cells[k], rtol=1e-12)
+    # the same file twice: every packing counts once
+    red2 = R.reduce_campaign([path, parts[0]], FAST)
+    np.testing.assert_array_equal(red2.cells["n_packings"], red.cells["n_packings"])
+    np.testing.assert_array_equal(red2.distributions["z_g"]["counts"],
+                                  red.distributions["z_g"]["counts"])
+
+
+def test_partly_finished_file_reduces_what_is_done_and_says_what_is_missing(tmp_path):
+    camp = SyntheticCampaign(N=(64, 128), seeds=6)
+    T = camp.n_tasks
+    status = np.ones(T, np.int8)
+    status[:4] = 0            # N=64, highest... first cell: 4 of 6 pending -> 2 done
+    status[10] = 2            # one failure
+    status[T // 2:T // 2 + 9] = 0
+    data = write_store(tmp_path / "p.h5", camp, status=status)
+    red = R.reduce_campaign(tmp_path / "p.h5", FAST)
+    assert red.meta["done"] == int((status == 1).sum())
+    assert red.meta["pending"] == int((status == 0).sum())
+    assert red.meta["failed"] == 1
+    c = red.cells
+    for i in range(len(c["N"])):
+        m = (data["N_label"] == c["N"][i]) & (data["E_target"] == c["E"][i])
+        assert c["n_packings"][i] == int((status[m] == 1).sum())
+        assert c["n_pending"][i] == int((status[m] == 0).sum())
+        done = m & (status == 1)
+        if done.sum() >= 2:
+            assert c["mean_A_G"][i] == pytest.approx(data["A_G"][done].mean(), rel=1e-12)
+    text = "\n".join(red.notes)
+    assert "pending" in text and "failed" in text and "synthetic failure" in text
+    assert "fewer than 3" in text  # the cell with 2 packings is left out of the fits, and said so
+    assert all(r["n_cells"] <= len(camp.E) for r in red.rows)
+    small = np.flatnonzero(c["n_packings"] < 3)
+    assert len(small) >= 1
+    assert np.all(np.isnan(red.residuals[:, small]))
+
+
+def test_a_file_with_nothing_finished(tmp_path):
+    camp = SyntheticCampaign(N=(64,), E=(1e-3, 1e-6), seeds=3)
+    write_store(tmp_path / "z.h5", camp, status=np.zeros(camp.n_tasks, np.int8))
+    red = R.reduce_campaign(tmp_path / "z.h5", FAST)
+    assert red.meta["done"] == 0 and red.meta["pending"] == camp.n_tasks
+    assert any("no finished packings" in n for n in red.notes)
+    assert np.isnan(red.rows[0]["A_G_star_E"])
+
+
+def test_cli_reduce_json_and_output_files(full, tmp_path, capsys):
+    path, camp, data, red = full
+    out = tmp_path / "out"
+    rc = cli.main(["reduce", str(path), "--out", str(out), "--json", "--boot", "50"])
+    assert rc == 0
+    cap = capsys.readouterr()
+    obj = json.loads(cap.out)
+    assert "N_G" in cap.err and "A_G*(E_G=0)" in cap.err  # the table goes to the terminal
+    keys = ("A_G_star_E", "beta_E", "A_G_star_Z", "beta_Z", "psi_O_star")
+    assert len(obj["rows"]) == len(camp.N)
+    for r in obj["rows"]:
+        assert r["variant"] == "default"
+        for k in keys:
+            assert isinstance(r[k], float) and isinstance(r[f"{k}_err"], float)
+    for k in keys:
+        assert isinstance(obj["extrapolated"]["default"][k], float)
+        assert isinstance(obj["extrapolated"]["default"][f"{k}_err"], float)
+    for name in ("table.md", "table.csv", "table.tex", "cells.csv", "fits.csv", "reduced.h5"):
+        assert (out / name).stat().st_size > 0
+    md = (out / "table.md").read_text()
+    assert md.count("\n| ") == len(camp.N) + 1  # header + one per N... and the extrapolation
+    assert "N_G -> inf" in md
+    assert r"\begin{tabular}" in (out / "table.tex").read_text()
+    with h5py.File(out / "reduced.h5", "r") as f:
+        g = f["reduced"]
+        for name in ("cells", "fits", "table", "extrapolated", "distributions", "peaks",
+                     "self_averaging", "width_scaling"):
+            assert name in g
+        assert g["cells/N"].shape == (len(camp.N) * len(camp.E),)
+        assert g["fits/residuals"].shape == (4 * len(camp.N), len(camp.N) * len(camp.E))
+        np.testing.assert_array_equal(g["distributions/z_g/counts"][...],
+                                      red.distributions["z_g"]["counts"])
+
+
+def test_cli_reduce_prints_the_table_without_json(full, tmp_path, capsys):
+    path, *_ = full
+    assert cli.main(["reduce", str(path), "--out", str(tmp_path), "--boot", "0"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("| 64 |") == 1 and "Psi_O*" in out
+
+
+def test_in_place_writes_the_group_and_refuses_while_pending(tmp_path, capsys):
+    camp = SyntheticCampaign(N=(64,), E=(1e-3, 1e-6, 1e-9, 1e-12), seeds=4)
+    write_store(tmp_path / "a.h5", camp)
+    assert cli.main(["reduce", str(tmp_path / "a.h5"), "--in-place", "--boot", "20"]) == 0
+    with h5py.File(tmp_path / "a.h5", "r") as f:
+        assert "reduced/table/A_G_star_E" in f and "tasks/status" in f
+    st = np.ones(camp.n_tasks, np.int8)
+    st[0] = 0
+    write_store(tmp_path / "b.h5", camp, status=st)
+    assert cli.main(["reduce", str(tmp_path / "b.h5"), "--in-place", "--boot", "20"]) == 2
+    assert "pending" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("content", [None, b"not an hdf5 file", "empty-h5"])
+def test_cli_reduce_bad_files_are_user_errors(tmp_path, capsys, content):
+    p = tmp_path / "bad.h5"
+    if content == "empty-h5":
+        h5py.File(p, "w").close()
+    elif content is not None:
+        p.write_bytes(content)
+    assert cli.main(["reduce", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert "bad.h5" in err and "Traceback" not in err
+
+
+def test_cli_reduce_bad_options(full, capsys):
+    path, *_ = full
+    assert cli.main(["reduce", str(path), "--boot", "1"]) == 2
+    assert cli.main(["reduce", str(path), "--min-packings", "1"]) == 2
+
+
+@pytest.mark.parametrize("value, err, text", [
+    (0.44163, 0.00021, "0.4416(2)"), (1.0012, 0.0023, "1.001(2)"), (0.284, 0.03, "0.28(3)"),
+    (0.2849, 0.0031, "0.285(3)"), (0.446, 0.00096, "0.446(1)"), (12.3, 2.0, "12(2)"),
+    (0.5, float("nan"), "0.5"), (float("nan"), 0.1, "--"),
+])
+def test_value_error_format(value, err, text):
+    assert R.fmt_err(value, err) == text
+
+
+def test_variants_are_separate_rows(tmp_path):
+    camp = SyntheticCampaign(N=(64, 128), seeds=5, variants=("default", "loose"))
+    write_store(tmp_path / "v.h5", camp)
+    red = R.reduce_campaign(tmp_path / "v.h5", FAST)
+    assert sorted({r["variant"] for r in red.rows}) == ["default", "loose"]
+    assert set(red.extrapolated) == {"default", "loose"}
+    # the synthetic "loose" variant is shifted by +0.01 in A_G
+    d = {(r["variant"], r["N_G"]): (r["A_G_star_E"], r["A_G_star_E_err"]) for r in red.rows}
+    for n in camp.N:
+        (a, ea), (b, eb) = d[("loose", n)], d[("default", n)]
+        assert abs(a - b - 0.01) < 4 * np.hypot(ea, eb)
+    assert "Variant `loose`" in R.table_markdown(red)
