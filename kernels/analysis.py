@@ -1,0 +1,340 @@
+"""Contact-network analysis of one configuration: ``analyze()`` and ``Analysis``.
+
+``analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0,
+species=None)`` measures everything ``PHYSICS.md`` defines on one packing (any
+configuration, including ones made by other programs) and checks every exact
+identity of the contact network, reporting the result as flags, never raising on a
+packing that fails them. Observables are chosen by name (``OBSERVABLES``); an
+unrequested one is not computed. The scalars and identity checks are always
+computed. Histograms are raw counts on fixed edges (``DEFAULT_BINS`` unless the
+caller gives ``bins``), so they add up across packings.
+
+The numerical work is in the jitted cores of ``kernels.network``,
+``kernels.triangulate`` and ``kernels.observables``; this module checks inputs and
+assembles the result.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from kernels.network import (
+    _contact_bonds_core,
+    _faces_core,
+    _grain_pass_core,
+    _pair_energy_core,
+    _rattlers_core,
+    _rotation_core,
+)
+from kernels.observables import (
+    HISTOGRAMS,
+    OBSERVABLES,
+    _contact_points_core,
+    _histogram_core,
+    _radial_core,
+    check_edges,
+    is_uniform,
+)
+from kernels.space import _as_box, _as_positions
+from kernels.triangulate import _triangulate_faces_core
+
+
+def _integer_edges(top):
+    return np.arange(-0.5, top + 1.0, 1.0)
+
+
+#: Default bin edges per histogram (a campaign may give its own).
+DEFAULT_BINS = {
+    "contact_angle": np.linspace(0.0, np.pi, 181),
+    "contact_length": np.linspace(0.0, 8.0, 161),
+    "z_g": _integer_edges(20),
+    "z_v": _integer_edges(40),
+    "alpha_e": np.linspace(0.0, 0.5, 201),
+    "alpha_v": np.linspace(0.0, 4.0, 401),
+    "fictitious_length": np.linspace(0.0, 3.0, 301),
+    "radial_grains": np.linspace(0.0, 8.0, 401),
+    "radial_contacts": np.linspace(0.0, 8.0, 401),
+}
+for _e in DEFAULT_BINS.values():
+    _e.setflags(write=False)
+
+#: Keys of ``Analysis.scalars`` every caller may rely on (docs/CONTRACTS.md).
+SCALAR_KEYS = (
+    "N", "N_G", "N_R", "E_G", "phi", "pressure", "A_G", "A_V", "N_C", "N_V", "N_F",
+    "z_g_mean", "z_iso", "delta_Z", "psi_O", "psi_DO", "identities_ok",
+)
+
+#: Identity and degeneracy flags of ``Analysis.identities``.
+IDENTITY_KEYS = (
+    "network_nonempty",     # at least one grain survives rattler removal
+    "area_tiling",          # A_G + A_V = Lx Ly
+    "euler",                # N_C = 2 N_G + 2 N_V (torus, chi = 0)
+    "fictitious_count",     # N_C - 3 N_V = 2 N_G - N_V (= number of fictitious contacts)
+    "triangle_count",       # N_T = N_C - 2 N_V = 2 N_G
+    "duality",              # 1/<z_g> + 1/<z_v> = 1/2
+    "bounds",               # 3 <= z_g, <z_g> <= 6, N_V <= 2 N_G
+    "void_sides",           # every z_v >= 3
+    "contractible_faces",   # no face winds around the torus
+    "no_collinear_contacts",  # no relative angle at 0 or pi
+    "semicircle",           # every relative angle < pi
+)
+
+#: Relative rounding allowance for the area identity (relative to the box area).
+AREA_RTOL = 1e-9
+#: Relative rounding allowance for the duality identity (relative to 1/2).
+DUALITY_RTOL = 1e-12
+
+
+@dataclass(frozen=True)
+class Analysis:
+    """Result of ``analyze``.
+
+    ``scalars``: name -> int/float (``SCALAR_KEYS`` and more); ``identities``: name ->
+    bool (``IDENTITY_KEYS``); ``histograms``: name -> int64 counts of the requested
+    observables; ``bin_edges``: the edges they were counted on. ``contacts`` is the
+    (m, 2) int64 array of all contacts ``i < j`` (sorted), ``rattler`` the (n,) mask
+    of removed disks, ``z_g`` the (n,) contact count inside the network (0 for
+    rattlers), ``z_v`` the side count of each void, ``observables`` the names computed.
+    """
+
+    scalars: dict
+    identities: dict
+    histograms: dict
+    bin_edges: dict
+    contacts: np.ndarray
+    rattler: np.ndarray
+    z_g: np.ndarray
+    z_v: np.ndarray
+    observables: tuple = field(default=())
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.scalars["identities_ok"])
+
+
+def _check_observables(observables):
+    if observables is None:
+        return tuple(OBSERVABLES)
+    if isinstance(observables, str):
+        observables = (observables,)
+    names = []
+    for name in observables:
+        if name not in OBSERVABLES:
+            raise ValueError(
+                f"observables: unknown name {name!r}; expected some of {', '.join(OBSERVABLES)}"
+            )
+        if name not in names:
+            names.append(name)
+    if "scalars" not in names:
+        names.insert(0, "scalars")
+    return tuple(names)
+
+
+def _check_bins(bins, wanted):
+    bins = {} if bins is None else dict(bins)
+    for name in bins:
+        if name not in HISTOGRAMS:
+            raise ValueError(f"bins: unknown histogram {name!r}; expected some of {', '.join(HISTOGRAMS)}")
+    out = {}
+    for name in wanted:
+        edges = check_edges(name, bins.get(name, DEFAULT_BINS[name]))
+        if name in ("radial_grains", "radial_contacts") and edges[-1] <= 0:
+            raise ValueError(f"bins[{name!r}]: expected a positive largest edge, got {edges[-1]}")
+        out[name] = edges
+    return out
+
+
+def _check_inputs(positions, radii, box, exponent, species):
+    pos = _as_positions(positions)
+    n = pos.shape[0]
+    if n < 2:
+        raise ValueError(f"positions: expected at least 2 disks, got {n}")
+    rad = np.asarray(radii, dtype=np.float64)
+    if rad.shape != (n,):
+        raise ValueError(f"radii: expected shape ({n},) to match positions, got {rad.shape}")
+    if not (np.all(np.isfinite(rad)) and np.all(rad > 0)):
+        raise ValueError("radii: expected finite positive values, got zero, negative, NaN or inf")
+    b = _as_box(box)
+    if 4.0 * rad.max() >= b.min():
+        raise ValueError(
+            f"radii: the largest diameter ({2 * rad.max():g}) must be below half the smaller box side "
+            f"({b.min() / 2:g}) for contacts to be unique under the minimum image"
+        )
+    a = float(exponent)
+    if not (np.isfinite(a) and a > 1.0):
+        raise ValueError(f"exponent: expected a finite number > 1, got {exponent!r}")
+    if species is not None:
+        sp = np.asarray(species)
+        if sp.shape != (n,) or not np.issubdtype(sp.dtype, np.integer):
+            raise ValueError(f"species: expected ({n},) integer labels, got shape {sp.shape} dtype {sp.dtype}")
+    return pos, np.ascontiguousarray(rad), b, a
+
+
+def analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0, species=None,
+            angle_tolerance=1e-9, max_void_sides=4096) -> Analysis:
+    """Analyse the contact network of one configuration.
+
+    Parameters
+    ----------
+    positions : (n, 2) centres (need not be wrapped into the box)
+    radii : (n,) positive radii
+    box : (Lx, Ly) periodic box sides
+    observables : names from ``OBSERVABLES`` (None: all); scalars are always computed
+    bins : mapping histogram name -> increasing edges (missing: ``DEFAULT_BINS``)
+    exponent : alpha of the pair potential (1/alpha)(1 - r/s)^alpha, for E_G and pressure
+    species : optional (n,) integer labels (checked; not needed by the analysis)
+    angle_tolerance : relative angles within ``angle_tolerance * pi`` of 0 or pi are
+        flagged as collinear contacts
+    max_void_sides : voids with more sides are not triangulated (and flagged)
+    """
+    pos, rad, b, alpha = _check_inputs(positions, radii, box, exponent, species)
+    names = _check_observables(observables)
+    wanted = [h for name in names for h in OBSERVABLES[name]]
+    edges = _check_bins(bins, wanted)
+    tol = float(angle_tolerance)
+    if not (np.isfinite(tol) and 0.0 <= tol < 0.5):
+        raise ValueError(f"angle_tolerance: expected a number in [0, 0.5), got {angle_tolerance!r}")
+
+    n = pos.shape[0]
+    Lx, Ly = float(b[0]), float(b[1])
+    box_area = Lx * Ly
+
+    # --- contacts, energy, rattlers, rotation system, grain polygons, faces
+    bi, bj, dx, dy = _contact_bonds_core(pos, rad, b)
+    energy, virial = _pair_energy_core(rad, bi, bj, dx, dy, alpha)
+    rattler = _rattlers_core(n, bi, bj)
+    offsets, src, dst, hdx, hdy, ang, twin, frac = _rotation_core(n, bi, bj, dx, dy, rattler, rad)
+    theta, edge_area = _grain_pass_core(offsets, hdx, hdy, ang, frac)
+    face_of, fptr, fhe, sides, sx, sy, varea = _faces_core(offsets, src, dst, hdx, hdy, twin, frac)
+
+    z_g = np.diff(offsets)
+    N_G = int(n - rattler.sum())
+    N_C = int(src.shape[0])
+    N_V = int(sides.shape[0])
+    A_G = float(edge_area.sum())
+    A_V = float(varea.sum())
+    E_G = energy / n
+    contractible = np.hypot(sx, sy) < 0.25 * min(Lx, Ly)
+    n_tri3 = int(np.count_nonzero(sides == 3))
+    N_F = N_C - 3 * N_V
+    N_T = N_C - 2 * N_V
+
+    histograms = {}
+    # --- fictitious contacts (per-void Delaunay)
+    if "fictitious" in names:
+        face_ok = contractible & (sides >= 3)
+        fa, fb, flen, fface, triangles, done = _triangulate_faces_core(
+            fptr, fhe, src, dst, hdx, hdy, rad, face_ok, int(max_void_sides))
+        n_fict = int(fa.shape[0])
+        n_tri = int(triangles.sum())
+    else:
+        flen = None
+        n_fict = N_F
+        n_tri = N_T
+
+    nan = float("nan")
+    z_mean = N_C / N_G if N_G else nan
+    z_v_mean = N_C / N_V if N_V else nan
+    z_iso = 4.0 - 2.0 / N_G if N_G else nan
+    two_pi = 2.0 * np.pi
+    angle_eps = tol * np.pi
+    near_zero = (theta <= angle_eps) | (theta >= two_pi - angle_eps)
+    near_pi = np.abs(theta - np.pi) <= angle_eps
+
+    flags = {}
+    flags["network_nonempty"] = N_G > 0
+    flags["area_tiling"] = bool(abs(A_G + A_V - box_area) <= AREA_RTOL * box_area)
+    flags["euler"] = N_C == 2 * N_G + 2 * N_V
+    flags["fictitious_count"] = (N_C - 3 * N_V == 2 * N_G - N_V) and n_fict == N_F
+    flags["triangle_count"] = N_T == 2 * N_G and n_tri == N_T
+    if N_G and N_V:
+        flags["duality"] = bool(abs(1.0 / z_mean + 1.0 / z_v_mean - 0.5) <= DUALITY_RTOL * 0.5)
+    else:
+        flags["duality"] = False
+    flags["bounds"] = bool(N_G > 0 and np.all(z_g[~rattler] >= 3) and N_C <= 6 * N_G and N_V <= 2 * N_G)
+    flags["void_sides"] = bool(np.all(sides >= 3))
+    flags["contractible_faces"] = bool(np.all(contractible))
+    flags["no_collinear_contacts"] = not bool(np.any(near_zero | near_pi))
+    flags["semicircle"] = bool(np.all(theta < np.pi - angle_eps))
+    identities_ok = all(flags.values())
+
+    sigma_max = float(rad.max())
+    scalars = {
+        "N": int(n),
+        "N_G": N_G,
+        "N_R": int(n - N_G),
+        "E_G": float(E_G),
+        "E_G_nonrattler": float(energy / N_G) if N_G else nan,
+        "phi": float(np.pi * np.sum(rad * rad) / box_area),
+        "pressure": float(virial / (2.0 * box_area)),
+        "A_G": A_G,
+        "A_V": A_V,
+        "A_G_fraction": A_G / box_area,
+        "N_C": N_C,
+        "N_V": N_V,
+        "N_F": int(N_F),
+        "N_T": int(N_T),
+        "z_g_mean": float(z_mean),
+        "z_v_mean": float(z_v_mean),
+        "z_iso": float(z_iso),
+        "delta_Z": float(z_mean - z_iso),
+        "psi_O": n_tri3 / N_V if N_V else nan,
+        "psi_DO": N_F / N_V if N_V else nan,
+        "sigma_max": sigma_max,
+        "contacts_total": int(bi.shape[0]),
+        "identities_ok": bool(identities_ok),
+    }
+
+    # --- histograms
+    def count(name, values):
+        e = edges[name]
+        c = np.zeros(e.shape[0] - 1, dtype=np.int64)
+        _histogram_core(np.ascontiguousarray(values, dtype=np.float64), e, is_uniform(e), c)
+        histograms[name] = c
+
+    if "contact_angles" in names:
+        count("contact_angle", theta)
+    if "contact_lengths" in names:
+        rg = rad[src]
+        length = frac * np.hypot(hdx, hdy)
+        if E_G > 0:
+            count("contact_length", (1.0 - length / rg) / np.sqrt(E_G))
+        else:
+            count("contact_length", np.empty(0))
+    if "connectivity" in names:
+        count("z_g", z_g[~rattler])
+        count("z_v", sides)
+    if "edge_triangles" in names:
+        count("alpha_e", edge_area / rad[src] ** 2)
+    if "void_areas" in names:
+        count("alpha_v", varea / sigma_max**2)
+    if "fictitious" in names:
+        count("fictitious_length", flen - 1.0)
+    if "radial_grains" in names:
+        e = edges["radial_grains"]
+        c = np.zeros(e.shape[0] - 1, dtype=np.int64)
+        keep = ~rattler
+        _radial_core(np.ascontiguousarray(pos[keep]), np.ascontiguousarray(rad[keep]),
+                     np.zeros(N_G), b, e, is_uniform(e), c)
+        histograms["radial_grains"] = c
+    if "radial_contacts" in names:
+        e = edges["radial_contacts"]
+        c = np.zeros(e.shape[0] - 1, dtype=np.int64)
+        pts, ra, rb = _contact_points_core(src, dst, twin, hdx, hdy, frac, pos, rad)
+        _radial_core(pts, ra, rb, b, e, is_uniform(e), c)
+        histograms["radial_contacts"] = c
+
+    contacts = np.stack([bi, bj], axis=1) if bi.size else np.empty((0, 2), dtype=np.int64)
+    return Analysis(
+        scalars=scalars,
+        identities=flags,
+        histograms=histograms,
+        bin_edges={k: edges[k].copy() for k in histograms},
+        contacts=contacts,
+        rattler=rattler,
+        z_g=z_g,
+        z_v=sides,
+        observables=names,
+    )

@@ -1,0 +1,281 @@
+"""Fixed-bin histograms and radial distributions of a contact network (numba).
+
+Histograms are raw counts on caller-given bin edges, so they add up across packings.
+Binning follows ``numpy.histogram``: bin ``k`` is ``[e_k, e_{k+1})``, the last bin
+also holds ``e_last``; values outside ``[e_0, e_last]`` and NaN are not counted.
+Uniform edges take a fast path (direct index, corrected against the edges, so the
+result is the same as the general binary search).
+
+Radial distributions are raw counts of ordered pairs at normalised distance ``r``
+(the ``2 pi r`` normalisation and the density are left to the reducer). Distances
+are minimum-image, so bins beyond half the box side are incomplete.
+
+Jitted cores: ``_histogram_core(values, edges, uniform, counts)`` and
+``_radial_core(points, scale1, scale2, box, edges, uniform, counts)`` (both add into
+``counts``).
+"""
+
+import numpy as np
+from numba import njit
+
+from kernels.space import minimum_image
+
+#: observable name -> histograms it produces (docs/CONTRACTS.md)
+OBSERVABLES = {
+    "scalars": (),
+    "contact_angles": ("contact_angle",),
+    "contact_lengths": ("contact_length",),
+    "connectivity": ("z_g", "z_v"),
+    "edge_triangles": ("alpha_e",),
+    "void_areas": ("alpha_v",),
+    "fictitious": ("fictitious_length",),
+    "radial_grains": ("radial_grains",),
+    "radial_contacts": ("radial_contacts",),
+}
+
+HISTOGRAMS = tuple(h for hs in OBSERVABLES.values() for h in hs)
+
+
+@njit(cache=True, inline="always")
+def _bin_index(x, edges, nb, uniform, inv_w):
+    """Bin of ``x`` (numpy.histogram convention) or -1 when outside or NaN.
+
+    ``inv_w = nb / (edges[nb] - edges[0])``. With ``uniform`` the index is computed
+    directly and then corrected against the edges themselves, so both paths agree.
+    """
+    if uniform:
+        f = (x - edges[0]) * inv_w
+        if not (f >= -1.0 and f < nb + 1.0):  # far outside, or NaN
+            return -1
+        k = min(max(int(f), 0), nb - 1)
+        # one-step correction against the edges (uniform edges lie within a small
+        # fraction of a bin of e0 + k w, see is_uniform), written without branches
+        k -= x < edges[k]
+        k += x >= edges[k + 1]
+        if k < 0:
+            return -1
+        if k == nb:
+            return nb - 1 if x == edges[nb] else -1
+        return k
+    if not (x >= edges[0] and x <= edges[nb]):
+        return -1
+    if x == edges[nb]:
+        return nb - 1
+    lo = 0
+    hi = nb  # edges[lo] <= x < edges[hi]
+    while hi - lo > 1:
+        mid = (lo + hi) >> 1
+        if x >= edges[mid]:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+@njit(cache=True)
+def _histogram_core(values, edges, uniform, counts):
+    """Add the counts of ``values`` on ``edges`` into ``counts`` (int64, len(edges) - 1)."""
+    nb = edges.shape[0] - 1
+    inv_w = nb / (edges[nb] - edges[0])
+    for t in range(values.shape[0]):
+        k = _bin_index(values[t], edges, nb, uniform, inv_w)
+        if k >= 0:
+            counts[k] += 1
+
+
+@njit(cache=True)
+def _radial_core(points, scale1, scale2, box, edges, uniform, counts):
+    """Ordered-pair counts of normalised distances between distinct points.
+
+    Every point ``p`` stands for one or two centres with length scales
+    ``scale1[p]`` and ``scale2[p]`` (0: no second centre). For each unordered pair
+    ``{p, q}`` at minimum-image distance ``d``, every centre of ``p`` counts
+    ``d / scale`` and so does every centre of ``q``. Grains: one centre per grain
+    (its radius). Contacts: one centre per side of the contact (the radii of its
+    two grains). Values outside the edges are not counted.
+    """
+    nb = edges.shape[0] - 1
+    inv_w = nb / (edges[nb] - edges[0])
+    rmax = edges[nb]
+    npt = points.shape[0]
+    if npt < 2 or rmax <= 0.0:
+        return
+    Lx = box[0]
+    Ly = box[1]
+    smax = 0.0
+    for p in range(npt):
+        if scale1[p] > smax:
+            smax = scale1[p]
+        if scale2[p] > smax:
+            smax = scale2[p]
+    reach = rmax * smax
+    reach2 = reach * reach
+    # cells about a third of the reach wide, at most ~2 per point per side
+    cap = 2 * int(np.sqrt(npt)) + 1
+    nx = min(max(int(Lx / (reach / 3.0)), 1), cap)
+    ny = min(max(int(Ly / (reach / 3.0)), 1), cap)
+    hx = Lx / nx
+    hy = Ly / ny
+    cell_of = np.empty(npt, dtype=np.int64)
+    wx = np.empty(npt)
+    wy = np.empty(npt)
+    for p in range(npt):
+        x = points[p, 0] - Lx * np.floor(points[p, 0] / Lx)
+        y = points[p, 1] - Ly * np.floor(points[p, 1] / Ly)
+        wx[p] = x
+        wy[p] = y
+        cx = min(max(int(x / hx), 0), nx - 1)
+        cy = min(max(int(y / hy), 0), ny - 1)
+        cell_of[p] = cx * ny + cy
+    start = np.zeros(nx * ny + 1, dtype=np.int64)
+    for p in range(npt):
+        start[cell_of[p] + 1] += 1
+    for c in range(nx * ny):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    mx = np.empty(npt)
+    my = np.empty(npt)
+    m1 = np.empty(npt)
+    m2 = np.empty(npt)
+    for p in range(npt):
+        c = cell_of[p]
+        s = fill[c]
+        mx[s] = wx[p]
+        my[s] = wy[p]
+        m1[s] = 1.0 / scale1[p]
+        m2[s] = 1.0 / scale2[p] if scale2[p] > 0.0 else 0.0
+        fill[c] += 1
+    # Neighbour cells within the reach. When they would wrap onto themselves along
+    # a side, every cell of that side is visited once and the minimum image is
+    # taken per pair; otherwise the periodic shift is applied per cell.
+    sx = int(np.ceil(reach / hx))
+    sy = int(np.ceil(reach / hy))
+    full_x = 2 * sx + 1 >= nx
+    full_y = 2 * sy + 1 >= ny
+    ax0 = 0 if full_x else -sx
+    ax1 = nx if full_x else sx + 1
+    ay0 = 0 if full_y else -sy
+    ay1 = ny if full_y else sy + 1
+    for ic in range(nx * ny):
+        ix = ic // ny
+        iy = ic - ix * ny
+        for a in range(ax0, ax1):
+            shx = 0.0
+            if full_x:
+                gx = a
+                gapx = 0.0
+            else:
+                gx = ix + a
+                if gx < 0:
+                    gx += nx
+                    shx = -Lx
+                elif gx >= nx:
+                    gx -= nx
+                    shx = Lx
+                gapx = (abs(a) - 1) * hx if abs(a) > 1 else 0.0
+            for b in range(ay0, ay1):
+                shy = 0.0
+                if full_y:
+                    gy = b
+                    gapy = 0.0
+                else:
+                    gy = iy + b
+                    if gy < 0:
+                        gy += ny
+                        shy = -Ly
+                    elif gy >= ny:
+                        gy -= ny
+                        shy = Ly
+                    gapy = (abs(b) - 1) * hy if abs(b) > 1 else 0.0
+                if gapx * gapx + gapy * gapy >= reach2:
+                    continue
+                g = gx * ny + gy
+                if g < ic:
+                    continue  # each unordered pair of cells once
+                for s in range(start[ic], start[ic + 1]):
+                    xs = mx[s] - shx
+                    ys = my[s] - shy
+                    t0 = start[g]
+                    if g == ic:
+                        t0 = s + 1
+                    for t in range(t0, start[g + 1]):
+                        dx = mx[t] - xs
+                        dy = my[t] - ys
+                        if full_x:
+                            dx = minimum_image(dx, Lx)
+                        if full_y:
+                            dy = minimum_image(dy, Ly)
+                        d2 = dx * dx + dy * dy
+                        if d2 > reach2:
+                            continue
+                        d = np.sqrt(d2)
+                        k = _bin_index(d * m1[s], edges, nb, uniform, inv_w)
+                        if k >= 0:
+                            counts[k] += 1
+                        k = _bin_index(d * m1[t], edges, nb, uniform, inv_w)
+                        if k >= 0:
+                            counts[k] += 1
+                        if m2[s] > 0.0:
+                            k = _bin_index(d * m2[s], edges, nb, uniform, inv_w)
+                            if k >= 0:
+                                counts[k] += 1
+                        if m2[t] > 0.0:
+                            k = _bin_index(d * m2[t], edges, nb, uniform, inv_w)
+                            if k >= 0:
+                                counts[k] += 1
+
+
+@njit(cache=True)
+def _contact_points_core(src, dst, twin, hdx, hdy, frac, positions, radii):
+    """Unique contact points (one per contact) with the radii of their two grains.
+
+    The contact of half-edge ``p`` is stored once, for the lower of ``p`` and its twin.
+    Returns ``(points (m, 2), radius_a, radius_b)``.
+    """
+    nh = src.shape[0]
+    pts = np.empty((nh // 2, 2))
+    ra = np.empty(nh // 2)
+    rb = np.empty(nh // 2)
+    t = 0
+    for p in range(nh):
+        if p < twin[p]:
+            g = src[p]
+            pts[t, 0] = positions[g, 0] + frac[p] * hdx[p]
+            pts[t, 1] = positions[g, 1] + frac[p] * hdy[p]
+            ra[t] = radii[g]
+            rb[t] = radii[dst[p]]
+            t += 1
+    return pts, ra, rb
+
+
+def is_uniform(edges):
+    """True when every edge lies within 1e-6 of a bin width of an evenly spaced grid.
+
+    The uniform fast path of the binning corrects its direct index by at most one
+    bin, which this guarantees.
+    """
+    nb = edges.shape[0] - 1
+    ideal = np.linspace(edges[0], edges[-1], nb + 1)
+    w = (edges[-1] - edges[0]) / nb
+    return bool(np.all(np.abs(edges - ideal) <= 1e-6 * w))
+
+
+def check_edges(name, edges):
+    """Bin edges as a float64 array; ValueError naming the histogram when unusable."""
+    arr = np.asarray(edges, dtype=np.float64)
+    if arr.ndim != 1 or arr.shape[0] < 2:
+        raise ValueError(f"bins[{name!r}]: expected a 1-D array of at least 2 edges, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"bins[{name!r}]: expected finite edges, got NaN or inf")
+    if not np.all(np.diff(arr) > 0):
+        raise ValueError(f"bins[{name!r}]: expected strictly increasing edges")
+    return np.ascontiguousarray(arr)
+
+
+def histogram(values, edges):
+    """Counts of ``values`` on ``edges`` (int64), numpy.histogram convention."""
+    e = check_edges("values", edges)
+    v = np.ascontiguousarray(np.asarray(values, dtype=np.float64).ravel())
+    counts = np.zeros(e.shape[0] - 1, dtype=np.int64)
+    _histogram_core(v, e, is_uniform(e), counts)
+    return counts
