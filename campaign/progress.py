@@ -62,7 +62,7 @@ class Progress:
             self.stream.write("\r" + progress_text(self.state) + "\x1b[K")
             self.stream.flush()
         self.last_line = now
-        if self.sidecar is not None and (force or now - self.last_file >= 2.0):
+        if self.sidecar is not None and (force or now - self.last_file >= 1.0):
             self.write_sidecar()
             self.last_file = now
 

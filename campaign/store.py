@@ -225,7 +225,7 @@ class Store:
                     self.flush(force=True)
         if self.journal.torn:
             self.log(f"campaign: cut a torn record ({self.journal.torn} bytes) off the end of {self.journal.path}")
-        self.run = dict(provenance, start=_now(), end=None)
+        self.run = dict(provenance, start=_now(), end=None, run_id=os.urandom(8).hex())
         self._merge_run(self.run)
         self.journal.append({"type": "run", "run": self.run})
         self._write_root_attrs()
@@ -404,7 +404,7 @@ class Store:
 
     def _merge_run(self, run):
         for k, r in enumerate(self.runs):
-            if r.get("start") == run.get("start") and r.get("pid") == run.get("pid"):
+            if r.get("run_id") == run.get("run_id"):
                 self.runs[k] = run
                 return
         self.runs.append(run)

@@ -1,0 +1,106 @@
+"""Real runs under mpiexec (rank 0 master, the others workers), compared with the other launchers."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.mpi
+
+ROOT = Path(__file__).resolve().parents[1]
+MPIEXEC = Path(sys.executable).parent / "mpiexec"
+SPEC = """\
+name: mpi
+seed: 77
+grid: {N_G: [16, 32], E_G: [1.0e-3, 1.0e-6, 1.0e-9], seeds: 4}
+variants: [{name: loose, force_tolerance: 1.0e-3}]
+observables: [scalars, connectivity, fictitious]
+run: {retries: 1}
+"""
+RUN_DEPENDENT = ("tasks/wall", "tasks/rank", "tasks/host")
+
+if not MPIEXEC.exists():
+    pytest.skip(f"no mpiexec next to {sys.executable}", allow_module_level=True)
+
+
+def _env(**extra):
+    env = dict(os.environ, CAMPAIGN_TASK_FUNCTION="synthetic", PYTHONPATH=str(ROOT))
+    env.update(extra)
+    return env
+
+
+def _campaign(args, n=None, env=None, timeout=60):
+    cmd = [sys.executable, "-m", "campaign", *args]
+    if n is not None:
+        cmd = [str(MPIEXEC), "-n", str(n)] + cmd
+    return subprocess.run(cmd, env=env or _env(), capture_output=True, text=True, timeout=timeout)
+
+
+def _datasets(path):
+    out = {}
+    with h5py.File(path, "r") as f:
+        f.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+        attrs = {k: f.attrs[k] for k in ("schema", "name", "spec_hash", "spec_yaml")}
+        runs = f.attrs["runs"]
+    return out, attrs, runs
+
+
+def _same(a, b):
+    assert set(a) == set(b)
+    for k in a:
+        if k not in RUN_DEPENDENT:
+            assert a[k].dtype == b[k].dtype and np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == "f"), k
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("mpi")
+    spec = tmp / "s.yaml"
+    spec.write_text(SPEC)
+    out = {}
+    for label, n, extra in (("inline", None, ["--launcher", "inline"]), ("local2", None, ["--workers", "2"]),
+                            ("mpi2", 2, []), ("mpi3", 3, [])):
+        path = tmp / f"{label}.h5"
+        r = _campaign(["run", str(spec), "--out", str(path), *extra], n=n,
+                      env=_env(CAMPAIGN_SYNTHETIC_FAIL="seed:3", CAMPAIGN_SYNTHETIC_FLAKY="seed:1"))
+        assert r.returncode == 0, r.stderr
+        out[label] = (path, r)
+    return tmp, spec, out
+
+
+def test_mpi_runs_complete_with_rank0_as_master(runs):
+    _, _, out = runs
+    for label, workers in (("mpi2", {1}), ("mpi3", {1, 2})):
+        data, attrs, run_attr = _datasets(out[label][0])
+        st = data["tasks/status"]
+        assert (st == 1).sum() == 36 and (st == 2).sum() == 12  # seed 3 always fails
+        assert set(data["tasks/rank"][st == 1]) == workers
+        assert '"launcher": "mpi"' in run_attr and "MPICH" in run_attr
+
+
+@pytest.mark.parametrize("label", ["local2", "mpi2", "mpi3"])
+def test_results_identical_whatever_the_launcher(runs, label):
+    _, _, out = runs
+    ref, ref_attrs, _ = _datasets(out["inline"][0])
+    got, attrs, _ = _datasets(out[label][0])
+    _same(ref, got)
+    assert attrs == ref_attrs
+
+
+def test_bad_spec_under_mpi_exits_2_without_hanging(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: x\nseed: 1\ngrid: {N_G: [], E_G: [1.0e-3], seeds: 1}\n")
+    r = _campaign(["run", str(bad), "--out", str(tmp_path / "o.h5")], n=3, timeout=30)
+    assert r.returncode == 2 and "grid.N_G: empty" in r.stderr
+
+
+def test_master_fault_aborts_the_job(tmp_path, runs):
+    _, spec, _ = runs
+    r = _campaign(["run", str(spec), "--out", str(tmp_path / "o.h5"), "--task-function", "no_such_module:fn"],
+                  n=3, timeout=30)
+    assert r.returncode != 0
+    assert "aborting the job" in r.stderr and "no_such_module" in r.stderr
