@@ -226,7 +226,8 @@ def fig_extrapolation(red, cs, plt):
     return fig
 
 
-def _per_E(red, cs, plt, ax, name, N, transform=None, **kw):
+def _per_E(red, cs, plt, ax, name, N, transform=None, positive=False, **kw):
+    """One curve per energy at size N; ``positive``: hide empty bins (log axes)."""
     shown = False
     for col, E in zip(_colors(len(cs.Es), "plasma"), cs.Es):
         for i in cs.at(N=N, E=E):
@@ -235,6 +236,8 @@ def _per_E(red, cs, plt, ax, name, N, transform=None, **kw):
                 continue
             if transform:
                 x, y = transform(x, y)
+            if positive:
+                y = np.where(y > 0, y, np.nan)
             ax.plot(x, y, color=col, lw=0.9, label=rf"$E_G=${_sci(E)}", **kw)
             shown = True
     if not shown:
@@ -245,7 +248,7 @@ def _per_E(red, cs, plt, ax, name, N, transform=None, **kw):
 def fig_angles_lengths(red, cs, plt):
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.5))
     N = 2048 if 2048 in cs.Ns else cs.largest_N()
-    if _per_E(red, cs, plt, a1, "sin_theta", N):
+    if _per_E(red, cs, plt, a1, "sin_theta", N, positive=True):
         s = np.linspace(0, 0.995, 200)
         a1.plot(s, 2 / np.pi / np.sqrt(1 - s * s), "k--", lw=1,
                 label=r"random: $\frac{2}{\pi}\frac{1}{\sqrt{1-\sin^2\theta}}$")
@@ -263,8 +266,13 @@ def fig_connectivity(red, cs, plt):
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.5))
     N = cs.largest_N()
     for ax, name, lab in ((a1, "z_g", "z_g"), (a2, "z_v", "z_v")):
-        if _per_E(red, cs, plt, ax, name, N, marker="o", ms=3):
+        if _per_E(red, cs, plt, ax, name, N, positive=True, marker="o", ms=3):
             ax.set_yscale("log")
+            d = red.distributions[name]
+            used = np.flatnonzero(d["counts"][cs.at(N=N)].sum(axis=0) > 0)
+            if len(used):
+                c = 0.5 * (d["edges"][1:] + d["edges"][:-1])
+                ax.set_xlim(c[used[0]] - 1, c[used[-1]] + 1)
             ax.legend(ncol=2)
         ax.set(xlabel=rf"${lab}$", ylabel=rf"$P({lab})$", title=rf"$N_G={N}$")
     return fig
@@ -275,7 +283,7 @@ def fig_polygon_areas(red, cs, plt):
     N = 2048 if 2048 in cs.Ns else cs.largest_N()
     for ax, name, lab, peaks in ((a1, "alpha_e", r"\alpha_e", red.peaks["alpha_e"]),
                                  (a2, "alpha_v", r"\alpha_v", red.peaks["alpha_v"])):
-        if _per_E(red, cs, plt, ax, name, N):
+        if _per_E(red, cs, plt, ax, name, N, positive=True):
             ax.set_yscale("log")
             for k, p in enumerate(peaks):
                 ax.axvline(p, color="0.4", lw=0.6, ls="--",
@@ -307,18 +315,24 @@ def fig_radial(red, cs, plt):
 def fig_fictitious(red, cs, plt):
     fig, ax = plt.subplots(figsize=(4.5, 3.5))
     E0 = cs.lowest_E()
-    shown = False
+    shown = None
     for col, N in zip(_colors(len(cs.Ns)), cs.Ns):
         for i in cs.at(N=N, E=E0):
             x, y = _dist(red, "fictitious_length", i)
             if x is None:
                 continue
             ok = (x > 0) & (y > 0)
+            if not ok.any():
+                continue
             ax.plot(x[ok], y[ok], color=col, lw=0.9, label=rf"$N_G={N}$")
-            shown = True
-    if shown:
-        xx = np.geomspace(1e-3, 0.3, 20)
-        ax.plot(xx, 0.3 / np.sqrt(xx), "k--", lw=1, label=r"$\propto 1/\sqrt{r-1}$")
+            shown = (x[ok], y[ok])
+    if shown is not None:
+        x, y = shown  # reference line through the data's first decade
+        lo = x[0]
+        near = x < 10 * lo
+        amp = np.median(y[near] * np.sqrt(x[near]))
+        xx = np.geomspace(lo, 10 * lo, 10)
+        ax.plot(xx, 0.5 * amp / np.sqrt(xx), "k--", lw=1, label=r"$\propto 1/\sqrt{r-1}$")
         ax.set(xscale="log", yscale="log")
         ax.legend()
     else:
