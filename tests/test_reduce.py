@@ -232,3 +232,45 @@ def test_variants_are_separate_rows(tmp_path):
         (a, ea), (b, eb) = d[("loose", n)], d[("default", n)]
         assert abs(a - b - 0.01) < 4 * np.hypot(ea, eb)
     assert "Variant `loose`" in R.table_markdown(red)
+
+
+ENGINE_SPEC = """\
+name: reduce-integration
+seed: 7
+system:
+  box: [1.0, 1.0]
+  species: [{name: A, fraction: 0.5, radius: 1.4}, {name: B, fraction: 0.5, radius: 1.0}]
+  potential: {exponent: 2.0}
+grid:
+  N_G: [16, 32]
+  E_G: [1.0e-3, 1.0e-6, 1.0e-9, 1.0e-12]
+  seeds: 3
+protocol: {window: 0.1, force_tolerance: 1.0e-6}
+observables: [scalars, connectivity, edge_triangles]
+store: {configurations: false}
+output: out.h5
+"""
+
+
+def test_reduce_reads_a_file_written_by_the_engine(tmp_path, capsys):
+    """The engine's own store (with its cheap stand-in task function), read back."""
+    spec = tmp_path / "s.yaml"
+    spec.write_text(ENGINE_SPEC)
+    out = tmp_path / "e.h5"
+    rc = cli.main(["run", str(spec), "--out", str(out), "--launcher", "inline",
+                   "--task-function", "synthetic", "--quiet"])
+    assert rc == 0, capsys.readouterr().err
+    red = R.reduce_campaign(out, FAST)
+    with h5py.File(out, "r") as f:
+        status = f["tasks/status"][...]
+        N = f["tasks/N"][...]
+        E = f["tasks/E"][...]
+        A = f["scalars/A_G"][...]
+        zg = f["histograms/z_g/counts"][...]
+    assert red.meta["done"] == int((status == 1).sum()) == 24
+    for i in range(len(red.cells["N"])):
+        m = (N == red.cells["N"][i]) & (E == red.cells["E"][i]) & (status == 1)
+        assert red.cells["n_packings"][i] == m.sum() == 3
+        assert red.cells["mean_A_G"][i] == pytest.approx(A[m].mean(), rel=1e-12)
+        np.testing.assert_array_equal(red.distributions["z_g"]["counts"][i], zg[m].sum(axis=0))
+    assert set(red.distributions) >= {"z_g", "z_v", "alpha_e"}
