@@ -1,0 +1,125 @@
+"""Crash safety: SIGKILL the master at random moments, rerun, and get an uninterrupted run's file.
+
+Each round starts a real `campaign run` process (synthetic tasks with small
+delays, alternately inline and with two local worker processes), kills it with
+SIGKILL after a random time (from interpreter start-up to the end of the run),
+and checks the journal: nothing finished is ever lost and no task is recorded
+twice. A last run completes the campaign; every dataset must then equal an
+uninterrupted run's (run-dependent columns aside: wall time, rank, host).
+"""
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from campaign.store import read_journal
+
+ROOT = Path(__file__).resolve().parents[1]
+SPEC = """\
+name: kill
+seed: 99
+grid: {N_G: [16, 32, 48], E_G: [1.0e-3, 1.0e-6], seeds: 6}
+variants: [{name: loose, force_tolerance: 1.0e-3}]
+observables: [scalars, connectivity, void_areas]
+store: {configurations: true}
+"""
+SKIP_DATASETS = ("tasks/wall", "tasks/rank", "tasks/host")
+SKIP_ATTRS = ("runs", "start_time", "end_time", "hosts", "versions", "git_commit")
+
+
+def _env():
+    return dict(os.environ, CAMPAIGN_TASK_FUNCTION="synthetic", PYTHONPATH=str(ROOT),
+                CAMPAIGN_SYNTHETIC_DELAY="0.005*N", CAMPAIGN_SYNTHETIC_FAIL="seed:4")
+
+
+def _cmd(spec, out, inline):
+    return [sys.executable, "-m", "campaign", "run", str(spec), "--out", str(out), "--quiet"] + (
+        ["--launcher", "inline"] if inline else ["--workers", "2"])
+
+
+def _contents(path):
+    data, attrs = {}, {}
+    with h5py.File(path, "r") as f:
+        def visit(name, obj):
+            if isinstance(obj, h5py.Dataset):
+                data[name] = obj[()]
+            attrs.update({f"{name}@{k}": v for k, v in obj.attrs.items() if k not in ("rank", "host")})
+        f.visititems(visit)
+        attrs.update({k: v for k, v in f.attrs.items() if k not in SKIP_ATTRS})
+    return data, attrs
+
+
+def _journal_tasks(path):
+    p = Path(str(path) + ".journal")
+    if not p.exists():
+        return []
+    recs, _ = read_journal(p.read_bytes())
+    return [m["index"] for m, _ in recs if m.get("type") == "task"]
+
+
+def _kill_rounds(tmp_path, rounds, seed):
+    spec = tmp_path / "s.yaml"
+    spec.write_text(SPEC)
+    ref = tmp_path / "ref.h5"
+    t0 = time.monotonic()
+    r = subprocess.run(_cmd(spec, ref, inline=True), env=_env(), capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    span = time.monotonic() - t0
+    out = tmp_path / "k.h5"
+    rng = random.Random(seed)
+    finished = set()
+    killed_mid_run = 0
+    for k in range(rounds):
+        p = subprocess.Popen(_cmd(spec, out, inline=k % 2 == 0), env=_env(), stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL, start_new_session=True)
+        time.sleep(rng.uniform(0.0, 1.2 * span))
+        done_before = p.poll() is not None
+        try:
+            os.killpg(p.pid, signal.SIGKILL)  # the master and its workers, whatever they are doing
+        except ProcessLookupError:
+            pass
+        p.wait(timeout=30)
+        indices = _journal_tasks(out)
+        assert len(indices) == len(set(indices)), "a finished task was recorded twice"
+        assert finished <= set(indices), "a finished task was lost"
+        killed_mid_run += (not done_before) and len(set(indices)) > len(finished)
+        finished = set(indices)
+        if len(finished) == 72:  # finished: start over to keep killing runs mid-way
+            for suffix in ("", ".journal", ".progress.json"):
+                Path(str(out) + suffix).unlink(missing_ok=True)
+            finished = set()
+    r = subprocess.run(_cmd(spec, out, inline=False), env=_env(), capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    indices = _journal_tasks(out)
+    assert len(indices) == len(set(indices)) == 72
+    a, a_attrs = _contents(ref)
+    b, b_attrs = _contents(out)
+    assert set(a) == set(b) and a_attrs.keys() == b_attrs.keys()
+    for name in a:
+        if name not in SKIP_DATASETS:
+            x, y = a[name], b[name]
+            assert x.dtype == y.dtype and np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), name
+    for k in a_attrs:
+        assert np.array_equal(a_attrs[k], b_attrs[k]), k
+    with h5py.File(out, "r") as f:
+        st = f["tasks/status"][:]
+        assert (st == 1).sum() == 60 and (st == 2).sum() == 12
+    return killed_mid_run
+
+
+def test_sigkill_at_random_moments_then_resume(tmp_path):
+    killed = _kill_rounds(tmp_path, rounds=20, seed=20261121)
+    assert killed >= 3  # the kills did land in the middle of runs that were making progress
+
+
+@pytest.mark.slow
+def test_sigkill_many_more_times(tmp_path):
+    _kill_rounds(tmp_path, rounds=100, seed=7)
