@@ -219,7 +219,8 @@ def species_radii(attrs):
 @dataclass
 class Reduction:
     cells: dict                  # column -> (C,) arrays
-    distributions: dict          # name -> {"edges", "counts" (C, nb), "density" (C, nb)}
+    distributions: dict          # name -> {"edges", "counts" (C, nb), "density" (C, nb)};
+    #                              sin_theta (derived from contact_angle) has no counts
     self_averaging: dict         # name -> {"ratio_mean" (C, 2), "ratio_std" (C, 2)}
     area_hist: dict              # {"edges" (C, nb+1), "counts" (C, nb)}
     fits: list                   # records (dicts), one per (variant, N, quantity, abscissa)
@@ -480,8 +481,7 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
             has = d["counts"].sum(axis=1) > 0
             if has.any():
                 dens[has] = fits.sin_theta_density(d["counts"][has], d["edges"], se)
-            dists["sin_theta"] = {"edges": se, "density": dens,
-                                  "counts": np.zeros((C, s.sin_bins), np.int64)}
+            dists["sin_theta"] = {"edges": se, "density": dens}
     t_hist = time.perf_counter() - t1
 
     alpha_e, theta, alpha_v = fits.three_disk_peaks(species_radii(fin.attrs))
