@@ -276,3 +276,48 @@ def test_reduce_reads_a_file_written_by_the_engine(tmp_path, capsys):
         assert red.cells["mean_A_G"][i] == pytest.approx(A[m].mean(), rel=1e-12)
         np.testing.assert_array_equal(red.distributions["z_g"]["counts"][i], zg[m].sum(axis=0))
     assert set(red.distributions) >= {"z_g", "z_v", "alpha_e"}
+
+
+def test_reduce_while_a_run_is_writing(tmp_path, capsys):
+    """A real run writes the file meanwhile: reduce uses what is done and says what is missing."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    spec = tmp_path / "s.yaml"
+    spec.write_text(ENGINE_SPEC)
+    out = tmp_path / "live.h5"
+    env = dict(os.environ, CAMPAIGN_SYNTHETIC_DELAY="0.15")
+    proc = subprocess.Popen([sys.executable, "-m", "campaign", "run", str(spec), "--out", str(out),
+                             "--launcher", "inline", "--task-function", "synthetic", "--quiet"],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        red = None
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            time.sleep(0.2)
+            if not out.exists():
+                continue
+            try:
+                red = R.reduce_campaign(out, FAST)
+            except R.UserError:  # caught mid-flush: the message says to try again
+                continue
+            if red.meta["done"] >= 4:
+                break
+        assert red is not None and proc.poll() is None, "the run ended before it could be observed"
+        assert 4 <= red.meta["done"] < 24 and red.meta["pending"] == 24 - red.meta["done"]
+        assert any("pending" in n for n in red.notes)
+        assert red.cells["n_packings"].sum() == red.meta["done"]
+        # the one-writer rule: no in-place write while the run holds the file
+        assert cli.main(["reduce", str(out), "--in-place", "--boot", "0",
+                         "--out", str(tmp_path / "r1")]) == 2
+        assert "pending" in capsys.readouterr().err
+    finally:
+        _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err.decode()
+    red = R.reduce_campaign(out, FAST)
+    assert red.meta["done"] == 24 and red.meta["pending"] == 0
+    assert not any("pending" in n for n in red.notes)
+    assert cli.main(["reduce", str(out), "--in-place", "--boot", "0",
+                     "--out", str(tmp_path / "r2")]) == 0

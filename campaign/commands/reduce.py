@@ -69,14 +69,36 @@ def main(args) -> int:
 
 
 def _write_in_place(red, path):
+    """Write /reduced into the campaign file, as its one writer.
+
+    A run holds an exclusive lock on ``<FILE>.journal`` while it writes FILE; taking
+    the same lock (without waiting) keeps a run from starting meanwhile and refuses
+    while one is going on.
+    """
+    import fcntl
+    import os
+
     from campaign import reduce as R
 
     if red.meta["pending"]:
         raise UserError(f"{path}: {red.meta['pending']} tasks are still pending (a run may be "
                         "writing the file); not writing into it. The reduced group is in the "
                         "output directory's reduced.h5")
+    journal = Path(str(path) + ".journal")
+    fd = None
     try:
-        R.write_reduced(red, path, mode="r+")
-    except OSError as exc:  # locked by a writer, read-only, ...
-        raise UserError(f"{path}: could not open for writing ({exc}); the reduced group is in "
-                        "the output directory's reduced.h5") from None
+        if journal.exists():
+            fd = os.open(journal, os.O_RDONLY)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                raise UserError(f"{path}: a run is writing it ({journal} is locked); the reduced "
+                                "group is in the output directory's reduced.h5") from None
+        try:
+            R.write_reduced(red, path, mode="r+")
+        except OSError as exc:  # read-only, locked by HDF5, ...
+            raise UserError(f"{path}: could not open for writing ({exc}); the reduced group is "
+                            "in the output directory's reduced.h5") from None
+    finally:
+        if fd is not None:
+            os.close(fd)
