@@ -321,3 +321,24 @@ def test_reduce_while_a_run_is_writing(tmp_path, capsys):
     assert not any("pending" in n for n in red.notes)
     assert cli.main(["reduce", str(out), "--in-place", "--boot", "0",
                      "--out", str(tmp_path / "r2")]) == 0
+
+
+def test_in_place_refuses_while_the_journal_is_locked(tmp_path, capsys):
+    import fcntl
+    import os
+
+    camp = SyntheticCampaign(N=(64,), E=(1e-3, 1e-6, 1e-9, 1e-12), seeds=3)
+    path = tmp_path / "j.h5"
+    write_store(path, camp)
+    journal = tmp_path / "j.h5.journal"
+    journal.write_bytes(b"")
+    fd = os.open(journal, os.O_RDWR)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # what a running master holds
+        assert cli.main(["reduce", str(path), "--in-place", "--boot", "0"]) == 2
+        assert "locked" in capsys.readouterr().err
+    finally:
+        os.close(fd)
+    assert cli.main(["reduce", str(path), "--in-place", "--boot", "0"]) == 0
+    with h5py.File(path, "r") as f:
+        assert "reduced" in f
