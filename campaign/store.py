@@ -40,7 +40,7 @@ PENDING, DONE, FAILED = 0, 1, 2
 HOST_LEN, ERROR_LEN, VARIANT_LEN = 64, 512, 64
 TASK_FIELDS = ("id", "variant", "N", "E", "seed", "status", "attempts", "wall", "rank", "host", "error")
 FLUSH_SECONDS = 0.5
-FLUSH_ROWS = 256
+FLUSH_ROWS = 4096  # at most this many rows between two flushes (else every FLUSH_SECONDS)
 
 
 # --------------------------------------------------------------------------- journal
@@ -268,6 +268,7 @@ class Store:
     def _init_mirror(self):
         T = self.T
         self.status = np.zeros(T, np.int8)
+        self.n_status = [T, 0, 0]  # pending, done, failed
         self.attempts = np.zeros(T, np.int32)
         self.wall = np.full(T, np.nan)
         self.rank = np.full(T, -1, np.int32)
@@ -287,6 +288,7 @@ class Store:
         with h5py.File(self.path, "r", locking=False) as f:
             for name in ("status", "attempts", "wall", "rank", "host", "error"):
                 getattr(self, name)[:] = f[f"tasks/{name}"][:]
+            self.n_status = [int(np.sum(self.status == k)) for k in (PENDING, DONE, FAILED)]
             for name in f["scalars"]:
                 self.scalars[name] = f[f"scalars/{name}"][:]
             for h in self.edges:
@@ -336,9 +338,12 @@ class Store:
         meta = {"type": "task", "index": index, "id": t.id, "status": status, "attempts": int(attempts),
                 "wall": float(summary.get("wall", float("nan"))), "rank": int(summary.get("rank", -1)),
                 "host": str(summary.get("host", "")), "message": err.get("message", ""),
-                "traceback": err.get("traceback", ""), "scalars": summary.get("scalars", {}) if status == DONE else {}}
+                "traceback": err.get("traceback", "")}
         arrays = {}
         if status == DONE:
+            sc = summary.get("scalars", {})
+            meta["scalar_names"] = ",".join(sc)
+            arrays["s"] = np.fromiter(sc.values(), np.float64, len(sc))
             for h in self.edges:
                 arrays["h/" + h] = np.asarray(summary["histograms"][h], np.int64)
             cfg = summary.get("configuration")
@@ -373,13 +378,19 @@ class Store:
         if not (0 <= i < self.T) or self.tasks[i].id != meta["id"]:
             raise UserError(f"{str(self.journal.path)!r} does not match the spec (task {i})")
         status = int(meta["status"])
+        self.n_status[int(self.status[i])] -= 1
+        self.n_status[status] += 1
         self.status[i] = status
         self.attempts[i] = meta["attempts"]
         self.wall[i] = meta["wall"]
         self.rank[i] = meta["rank"]
         self.host[i] = _fixed(meta["host"], HOST_LEN)
         self.error[i] = _fixed(meta["message"], ERROR_LEN) if status == FAILED else b""
-        sc = meta["scalars"]
+        if "scalar_names" in meta:
+            names = meta["scalar_names"].split(",") if meta["scalar_names"] else []
+            sc = dict(zip(names, arrays["s"].tolist()))
+        else:
+            sc = meta.get("scalars", {})
         for name in sc:
             if name not in self.scalars:
                 self.scalars[name] = np.full(self.T, np.nan)
@@ -503,8 +514,7 @@ class Store:
             self.journal.close()
 
     def counts_by_status(self):
-        return {"done": int(np.sum(self.status == DONE)), "failed": int(np.sum(self.status == FAILED)),
-                "pending": int(np.sum(self.status == PENDING))}
+        return {"pending": self.n_status[PENDING], "done": self.n_status[DONE], "failed": self.n_status[FAILED]}
 
 
 def _now() -> str:
