@@ -104,3 +104,42 @@ def test_master_fault_aborts_the_job(tmp_path, runs):
                   n=3, timeout=30)
     assert r.returncode != 0
     assert "aborting the job" in r.stderr and "no_such_module" in r.stderr
+
+
+# ---------------------------------------------------------------------------- the real kernels
+
+def _kernels_available():
+    try:
+        import kernels
+
+        return kernels.jam is not None and kernels.analyze is not None
+    except Exception:  # noqa: BLE001 - not built yet
+        return False
+
+
+@pytest.mark.skipif(not _kernels_available(), reason="kernels.jam / kernels.analyze not available")
+def test_ci_campaign_with_the_kernels_is_identical_for_1_2_3_workers(tmp_path):
+    """campaigns/ci.yaml end to end: in-process, 2 local workers and 3 MPI workers give the same file."""
+    spec = ROOT / "campaigns" / "ci.yaml"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env.pop("CAMPAIGN_TASK_FUNCTION", None)
+    files = {}
+    for label, n, extra in (("w1", None, ["--launcher", "inline"]), ("w2", None, ["--workers", "2"]),
+                            ("w3", 4, [])):
+        path = tmp_path / f"{label}.h5"
+        r = _campaign(["run", str(spec), "--out", str(path)] + extra, n=n, env=env, timeout=600)
+        assert r.returncode == 0, r.stderr
+        files[label] = path
+    ref, ref_attrs, _ = _datasets(files["w1"])
+    st = ref["tasks/status"]
+    assert (st == 1).all(), "every ci packing must succeed"
+    assert (ref["scalars/identities_ok"] == 1).all() and (ref["scalars/jam_status"] == 0).all()
+    assert (ref["scalars/force_residual"] <= 1e-3).all()
+    assert len([k for k in ref if k.startswith("configurations/")]) == 4 * 16  # asked for in ci.yaml
+    timing = [k for k in ref if k.startswith("scalars/") and k.endswith("_seconds")]
+    for label in ("w2", "w3"):
+        got, attrs, _ = _datasets(files[label])
+        assert attrs == ref_attrs
+        for k in timing:  # wall-clock timings are the only scalars allowed to differ
+            got[k] = ref[k]
+        _same(ref, got)
