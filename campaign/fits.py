@@ -47,14 +47,17 @@ def fit_power_law_batch(x, y, yerr, bounds=BETA_BOUNDS):
     """Fit ``y = a + c x**beta`` to each row of ``x``, ``y`` (shape (B, K)).
 
     ``yerr`` (K,) or (B, K) are the standard errors used as weights 1/yerr^2.
-    Returns arrays ``a, c, beta, chi2`` of shape (B,). ``x`` must be > 0.
+    Returns arrays ``a, c, beta, chi2`` of shape (B,). ``x`` must be >= 0.
     """
     x = np.atleast_2d(np.asarray(x, float))
     y = np.atleast_2d(np.asarray(y, float))
     w = 1.0 / np.asarray(yerr, float) ** 2
-    # Work with x / x_ref (geometric mean of each row) for conditioning.
-    lx = np.log(x)
-    lref = lx.mean(axis=-1, keepdims=True)
+    # Work with x / x_ref (geometric mean of the positive x of each row) for conditioning.
+    # x = 0 is allowed (e.g. isostatic packings, Delta Z = 0): there x^beta = 0 for beta > 0.
+    pos = x > 0
+    with np.errstate(divide="ignore"):
+        lx = np.where(pos, np.log(np.where(pos, x, 1.0)), -np.inf)
+    lref = (np.where(pos, lx, 0.0).sum(axis=-1) / np.maximum(pos.sum(axis=-1), 1))[:, None]
     lu = lx - lref
 
     def profile(beta):  # beta (B,) or (G, B)
@@ -124,6 +127,8 @@ def fit_power_law(x, y, yerr, *, boot_x=None, boot_y=None, bounds=BETA_BOUNDS) -
     y = np.asarray(y, float)
     yerr = np.asarray(yerr, float)
     K = x.size
+    if np.any(x < 0):
+        raise ValueError(f"fit_power_law: x must be >= 0, got min {x.min()}")
     if K < 4:
         return PowerLawFit(n_points=K, message=f"needs at least 4 cells, has {K}")
     a, c, beta, chi2 = (v[0] for v in fit_power_law_batch(x[None], y[None], yerr, bounds))

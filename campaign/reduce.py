@@ -389,19 +389,22 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                 x = cells[f"mean_{absc}"][usable]
                 y = cells[f"mean_{quantity}"][usable]
                 ye = cells[f"sem_{quantity}"][usable]
-                ok = np.isfinite(x) & (x > 0) & np.isfinite(y) & np.isfinite(ye) & (ye > 0)
+                # x = 0 is a legitimate abscissa (an isostatic cell: Delta Z = 0 exactly)
+                ok = np.isfinite(x) & (x >= 0) & np.isfinite(y) & np.isfinite(ye) & (ye > 0)
                 ok_cells = usable[ok]
-                bx = by = None
-                if boot is not None:
-                    bx = boot[:, ok, cols.index(absc)]
-                    by = boot[:, ok, cols.index(quantity)]
-                    if np.any(bx <= 0):  # a replica with a non-positive abscissa cannot be fitted
-                        bad = np.any(bx <= 0, axis=1)
-                        bx, by = bx[~bad], by[~bad]
-                f = fits.fit_power_law(x[ok], y[ok], ye[ok], boot_x=bx, boot_y=by)
+                n_pos = int(np.count_nonzero(x[ok] > 0))
+                if n_pos < 3:  # the exponent needs three positive abscissae
+                    f = fits.PowerLawFit(n_points=int(ok.sum()), message=(
+                        f"needs at least 3 cells with a positive mean {absc}, has {n_pos}"))
+                else:
+                    bx = by = None
+                    if boot is not None:
+                        bx = boot[:, ok, cols.index(absc)]
+                        by = boot[:, ok, cols.index(quantity)]
+                    f = fits.fit_power_law(x[ok], y[ok], ye[ok], boot_x=bx, boot_y=by)
                 if (~ok).any():
                     f.message = (f.message + "; " if f.message else "") + (
-                        f"{int((~ok).sum())} cell(s) without a positive mean {absc} or "
+                        f"{int((~ok).sum())} cell(s) with a negative mean {absc} or without "
                         f"a spread of {quantity} left out")
                 if f.residuals.size == len(ok_cells):
                     res[ok_cells] = f.residuals

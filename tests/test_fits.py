@@ -197,3 +197,14 @@ def test_sin_theta_maps_both_branches_to_one_value():
     centre = np.sin(0.5 * (te[40] + te[41]))
     mass_bins = np.flatnonzero(d1 > 0)
     assert se[mass_bins[0]] <= centre <= se[mass_bins[-1] + 1]
+
+
+def test_zero_abscissa_is_a_point_at_the_intercept():
+    """Isostatic cells have Delta Z = 0 exactly; they pin the intercept (x^beta = 0)."""
+    x = np.r_[0.0, np.logspace(-3, 0, 8)]
+    y = 0.4453 + 0.15 * x**1.0
+    f = fits.fit_power_law(x, y, np.full(x.size, 1e-4))
+    assert f.exponent == pytest.approx(1.0, rel=1e-7)
+    assert f.intercept == pytest.approx(0.4453, abs=1e-10)
+    with pytest.raises(ValueError, match=">= 0"):
+        fits.fit_power_law(-x[::-1], y, np.full(x.size, 1e-4))
