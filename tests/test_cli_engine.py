@@ -164,3 +164,44 @@ def test_progress_line_on_a_terminal():
     text = s.getvalue()
     assert text.startswith("\r") and "done 3  failed 1  running 2  remaining 4" in text
     assert "packings/h" in text and "ETA" in text
+
+
+class WarmProbe:
+    """A task function that logs who warms up and when (see the test below)."""
+
+    def __init__(self):
+        from campaign.worker import SyntheticTask
+
+        self.inner = SyntheticTask()
+
+    def histogram_edges(self, context):
+        return self.inner.histogram_edges(context)
+
+    def warm_up(self, context):
+        with open(os.environ["WARM_LOG"], "a") as f:
+            f.write(f"{os.getpid()} {time.monotonic()}\n")
+        time.sleep(0.3)  # a "compilation" that takes a while
+
+    def run(self, payload, context):
+        return self.inner.run(payload, context)
+
+
+@pytest.mark.parametrize("launcher", ["local", "mpi"])
+def test_kernels_are_compiled_once_by_the_master_before_any_worker_starts(tmp_path, launcher):
+    mpiexec = Path(sys.executable).parent / "mpiexec"
+    if launcher == "mpi" and not mpiexec.exists():
+        pytest.skip("no mpiexec")
+    log, out = tmp_path / "warm.log", tmp_path / "o.h5"
+    cmd = [sys.executable, "-m", "campaign", "run", str(_spec(tmp_path)), "--out", str(out),
+           "--task-function", "test_cli_engine:WarmProbe"]
+    cmd = [str(mpiexec), "-n", "3"] + cmd if launcher == "mpi" else cmd + ["--workers", "2"]
+    env = _env(WARM_LOG=str(log), PYTHONPATH=f"{ROOT}{os.pathsep}{ROOT / 'tests'}")
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    with h5py.File(out, "r") as f:
+        master = json.loads(f.attrs["runs"])[-1]["pid"]
+    entries = [(int(p), float(t)) for p, t in (line.split() for line in log.read_text().splitlines())]
+    assert entries[0][0] == master  # the master warms the cache first ...
+    workers = entries[1:]
+    assert len(workers) == 2 and master not in {p for p, _ in workers}
+    assert all(t >= entries[0][1] + 0.3 for _, t in workers)  # ... and the workers only load it afterwards
