@@ -304,4 +304,6 @@ def sin_theta_density(theta_counts, theta_edges, s_edges):
     low = F(t1)                      # branch theta in (0, pi/2)
     high = F(np.pi - t1)             # branch theta in (pi/2, pi), decreasing in s
     mass = np.diff(low, axis=-1) - np.diff(high, axis=-1)
+    # masses are fractions of the total: differences of the CDF below 1e-12 are round-off
+    mass = np.where(np.abs(mass) < 1e-12, 0.0, mass)
     return mass / np.diff(s)
