@@ -1,0 +1,62 @@
+"""campaign slurm: write an sbatch script (and optionally a dependency chain) for a campaign."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from campaign.errors import UserError
+
+HELP = "write a SLURM batch script for a campaign (and print or submit a chain of resuming jobs)"
+
+
+def configure(p):
+    p.add_argument("spec", metavar="SPEC", help="campaign spec (YAML)")
+    p.add_argument("--nodes", type=int, default=1, help="nodes (default 1)")
+    p.add_argument("--ntasks-per-node", type=int, default=32, help="MPI ranks per node (default 32)")
+    p.add_argument("--time", default="24:00:00", help="wall time per job, [D-]HH:MM:SS (default 24:00:00)")
+    p.add_argument("--partition", help="SLURM partition")
+    p.add_argument("--account", help="SLURM account")
+    p.add_argument("--launcher", choices=("srun", "mpiexec"), default="srun",
+                   help="start the ranks with srun (default) or the MPI library's mpiexec")
+    p.add_argument("--warn", type=int, metavar="SECONDS",
+                   help="ask SLURM for USR1 this long before the limit (default: a tenth of --time, 30 to 300 s)")
+    p.add_argument("--results", metavar="FILE", help="the campaign's HDF5 file (default: the spec's output)")
+    p.add_argument("--out", metavar="FILE", help="write the script here instead of standard output")
+    p.add_argument("--chain", type=int, metavar="M",
+                   help="also print (or with --submit, submit) M jobs chained with --dependency=afterany")
+    p.add_argument("--submit", action="store_true", help="submit the chain with sbatch instead of printing it")
+
+
+def main(args) -> int:
+    from campaign.slurm import SlurmOptions, chain_commands, render_script
+    from campaign.spec import load_spec
+    from campaign.tasks import estimate_seconds, expand
+
+    spec = load_spec(args.spec)
+    results = Path(args.results or spec.output or f"results/{spec.name}.h5")
+    options = SlurmOptions(nodes=args.nodes, ntasks_per_node=args.ntasks_per_node, time=args.time,
+                           partition=args.partition, account=args.account, launcher=args.launcher,
+                           warn_seconds=args.warn)
+    text = render_script(name=spec.name, spec=Path(args.spec), out=results, tasks=spec.n_tasks,
+                         core_hours=estimate_seconds(expand(spec)) / 3600.0, options=options)
+    if (args.chain or args.submit) and not args.out:
+        raise UserError("--chain and --submit need --out FILE: the jobs submit the script file")
+    if args.out:
+        Path(args.out).write_text(text)
+        Path(args.out).chmod(0o755)
+        print(f"wrote {args.out}", file=sys.stderr)
+    else:
+        sys.stdout.write(text)
+    if args.chain or args.submit:
+        snippet = chain_commands(Path(args.out).resolve(), args.chain or 1)
+        if not args.submit:
+            sys.stdout.write(snippet)
+            return 0
+        if shutil.which("sbatch") is None:
+            raise UserError("--submit needs SLURM's sbatch on PATH; without it, drop --submit "
+                            "and run the printed commands on the cluster's login node")
+        return subprocess.run(["bash", "-c", snippet]).returncode
+    return 0

@@ -1,0 +1,115 @@
+"""SLURM submission scripts and dependency chains for a campaign.
+
+``render_script`` fills the packaged template ``campaign/templates/campaign.sbatch`` from a
+spec and the user's options; ``chain_commands`` gives the ``sbatch`` lines of a chain of jobs,
+each resuming the same file after the previous one ends (``--dependency=afterany``).
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+from campaign.errors import UserError
+
+LAUNCHERS = {
+    "srun": "srun --kill-on-bad-exit=1 --cpu-bind=cores",
+    "mpiexec": 'mpiexec -n "$SLURM_NTASKS"',
+}
+
+_TIME = re.compile(r"^(?:(\d+)-)?(\d+):([0-5]\d):([0-5]\d)$")
+
+
+def parse_time(text: str) -> int:
+    """``[D-]HH:MM:SS`` -> seconds; raises UserError on anything else."""
+    match = _TIME.match(str(text).strip())
+    if not match:
+        raise UserError(f"a wall time must look like HH:MM:SS or D-HH:MM:SS; got {text!r}")
+    days, hours, minutes, seconds = (int(g) if g else 0 for g in match.groups())
+    total = ((days * 24 + hours) * 60 + minutes) * 60 + seconds
+    if total <= 0:
+        raise UserError(f"a wall time must be positive; got {text!r}")
+    return total
+
+
+@dataclass(frozen=True)
+class SlurmOptions:
+    nodes: int = 1
+    ntasks_per_node: int = 32
+    time: str = "24:00:00"
+    partition: str | None = None
+    account: str | None = None
+    launcher: str = "srun"
+    warn_seconds: int | None = None  # SLURM's USR1 warning before the limit
+    margin_seconds: int | None = None  # the master's safety margin before the limit
+
+    def checked(self) -> "SlurmOptions":
+        if self.nodes < 1:
+            raise UserError(f"--nodes must be at least 1; got {self.nodes}")
+        if self.ntasks_per_node < 1:
+            raise UserError(f"--ntasks-per-node must be at least 1; got {self.ntasks_per_node}")
+        if self.nodes * self.ntasks_per_node < 2:
+            raise UserError("a campaign needs at least 2 MPI ranks (one master, one worker); "
+                            f"got --nodes {self.nodes} x --ntasks-per-node {self.ntasks_per_node}")
+        if self.launcher not in LAUNCHERS:
+            raise UserError(f"--launcher must be one of {sorted(LAUNCHERS)}; got {self.launcher!r}")
+        for flag, value in (("--partition", self.partition), ("--account", self.account)):
+            if value is not None and not re.fullmatch(r"[A-Za-z0-9_.,:+-]+", value):
+                raise UserError(f"{flag} must be a plain SLURM name; got {value!r}")
+        parse_time(self.time)
+        return self
+
+    @property
+    def seconds(self) -> int:
+        return parse_time(self.time)
+
+    @property
+    def warn(self) -> int:
+        # Enough for in-flight tasks to be collected and the file flushed; at most a tenth of the job.
+        return self.warn_seconds if self.warn_seconds is not None else min(300, max(30, self.seconds // 10))
+
+    @property
+    def margin(self) -> int:
+        return self.margin_seconds if self.margin_seconds is not None else self.warn
+
+
+def _template() -> str:
+    return resources.files("campaign").joinpath("templates/campaign.sbatch").read_text()
+
+
+def render_script(*, name: str, spec: Path, out: Path, tasks: int, core_hours: float,
+                  options: SlurmOptions) -> str:
+    """The sbatch script text. Paths are made absolute: jobs start in other directories."""
+    options = options.checked()
+    optional = "".join(f"#SBATCH --{key}={value}\n" for key, value in
+                       (("partition", options.partition), ("account", options.account)) if value)
+    return _template().format(
+        name=name,
+        job_name=re.sub(r"[^A-Za-z0-9_.-]", "_", name)[:64] or "campaign",
+        tasks=tasks,
+        core_hours=f"{core_hours:.3g}",
+        nodes=options.nodes,
+        ntasks_per_node=options.ntasks_per_node,
+        time=options.time,
+        optional_lines=optional,
+        warn_seconds=options.warn,
+        margin_seconds=options.margin,
+        spec=shlex.quote(str(Path(spec).resolve())),
+        out=shlex.quote(str(Path(out).resolve())),
+        launch=LAUNCHERS[options.launcher],
+    )
+
+
+def chain_commands(script: Path, length: int) -> str:
+    """A POSIX shell snippet submitting ``length`` jobs, each after the previous one ends."""
+    if length < 1:
+        raise UserError(f"--chain must be at least 1; got {length}")
+    script_q = shlex.quote(str(script))
+    lines = ["set -e", f"job=$(sbatch --parsable {script_q})", 'echo "submitted $job"']
+    for _ in range(length - 1):
+        lines += [f'job=$(sbatch --parsable --dependency=afterany:"${{job%%;*}}" {script_q})',
+                  'echo "submitted $job"']
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,124 @@
+"""SLURM scripts: golden files, shell syntax, chains, option errors.
+
+The golden scripts are the examples users read in slurm/examples/. After an intended change to
+the template, regenerate them with ``UPDATE_GOLDEN=1 python -m pytest tests/test_slurm.py``
+and review the diff.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from campaign.cli import main as cli_main
+from campaign.errors import UserError
+from campaign.slurm import SlurmOptions, chain_commands, parse_time
+
+REPO = Path(__file__).resolve().parents[1]
+EXAMPLES = REPO / "slurm" / "examples"
+PAPER = REPO / "campaigns" / "paper.yaml"
+
+GOLDEN = {
+    "paper-srun.sbatch": ["--nodes", "4", "--ntasks-per-node", "32", "--time", "24:00:00",
+                          "--partition", "compute", "--account", "jamming"],
+    "paper-mpiexec.sbatch": ["--nodes", "2", "--ntasks-per-node", "16", "--time", "2-00:00:00",
+                             "--launcher", "mpiexec", "--warn", "600"],
+    "paper-short.sbatch": ["--nodes", "1", "--ntasks-per-node", "8", "--time", "00:30:00"],
+}
+
+
+def _render(args, tmp_path, name="x.sbatch"):
+    out = tmp_path / name
+    rc = cli_main(["slurm", str(PAPER.relative_to(REPO)), *args, "--out", str(out),
+                   "--results", "results/paper.h5"])
+    assert rc == 0
+    return out.read_text()
+
+
+@pytest.mark.parametrize("name", sorted(GOLDEN))
+def test_golden_scripts(name, tmp_path, monkeypatch):
+    monkeypatch.chdir(REPO)  # the script holds absolute paths: make them the repository's
+    text = _render(GOLDEN[name], tmp_path).replace(str(REPO), "<REPO>")
+    golden = EXAMPLES / name
+    if os.environ.get("UPDATE_GOLDEN"):
+        golden.write_text(text)
+    assert text == golden.read_text()
+
+
+@pytest.mark.parametrize("name", sorted(GOLDEN))
+def test_golden_scripts_are_valid_bash(name):
+    subprocess.run(["bash", "-n", str(EXAMPLES / name)], check=True)
+
+
+def test_script_reflects_options(tmp_path, monkeypatch):
+    monkeypatch.chdir(REPO)
+    text = _render(["--nodes", "3", "--ntasks-per-node", "5", "--time", "1-02:03:04", "--warn", "77"], tmp_path)
+    assert "#SBATCH --nodes=3\n" in text and "#SBATCH --ntasks-per-node=5\n" in text
+    assert "#SBATCH --time=1-02:03:04\n" in text and "#SBATCH --signal=USR1@77\n" in text
+    assert "--partition" not in text and "--account" not in text
+    assert "--time-limit 1-02:03:04 --margin 77" in text
+    assert f"SPEC={PAPER}" in text and f"OUT={REPO / 'results' / 'paper.h5'}" in text
+
+
+@pytest.mark.parametrize("text,seconds", [("00:00:01", 1), ("01:02:03", 3723), ("2-00:00:00", 172800),
+                                          ("100:00:00", 360000)])
+def test_parse_time(text, seconds):
+    assert parse_time(text) == seconds
+
+
+@pytest.mark.parametrize("text", ["", "1:00", "00:60:00", "00:00:00", "1h", "-1:00:00", "a-01:00:00"])
+def test_parse_time_refuses(text):
+    with pytest.raises(UserError):
+        parse_time(text)
+
+
+@pytest.mark.parametrize("kwargs", [{"nodes": 0}, {"ntasks_per_node": 0}, {"nodes": 1, "ntasks_per_node": 1},
+                                    {"launcher": "aprun"}, {"partition": "a b"}, {"account": "x;rm"},
+                                    {"time": "soon"}])
+def test_bad_options_refused(kwargs):
+    with pytest.raises(UserError):
+        SlurmOptions(**kwargs).checked()
+
+
+def test_bad_option_exits_2(tmp_path, capsys):
+    assert cli_main(["slurm", str(PAPER), "--time", "forever"]) == 2
+    assert "HH:MM:SS" in capsys.readouterr().err
+    assert cli_main(["slurm", str(PAPER), "--chain", "3"]) == 2  # a chain needs a script file
+
+
+def test_chain_submits_with_afterany_dependencies(tmp_path):
+    """Run the printed chain against a stand-in sbatch that records its arguments."""
+    bindir = tmp_path / "bin"
+    bindir.mkdir()
+    log = tmp_path / "sbatch.log"
+    fake = bindir / "sbatch"
+    fake.write_text('#!/bin/bash\necho "$@" >> "%s"\nn=$(wc -l < "%s")\necho "$((1000 + n));cluster"\n'
+                    % (log, log))
+    fake.chmod(0o755)
+    script = tmp_path / "job.sbatch"
+    script.write_text("#!/bin/bash\n")
+    env = {**os.environ, "PATH": f"{bindir}:{os.environ['PATH']}"}
+    out = subprocess.run(["bash", "-c", chain_commands(script, 4)], env=env, capture_output=True,
+                         text=True, check=True).stdout
+    calls = log.read_text().splitlines()
+    assert calls[0] == f"--parsable {script}"
+    assert calls[1:] == [f"--parsable --dependency=afterany:{1000 + k} {script}" for k in (1, 2, 3)]
+    assert out.split() == ["submitted", "1001;cluster", "submitted", "1002;cluster",
+                           "submitted", "1003;cluster", "submitted", "1004;cluster"]
+
+
+def test_submit_without_sbatch_is_a_user_error(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("PATH", str(tmp_path))  # no sbatch here
+    assert shutil.which("sbatch") is None
+    rc = cli_main(["slurm", str(PAPER), "--out", str(tmp_path / "j.sbatch"), "--chain", "2", "--submit"])
+    assert rc == 2
+    assert "sbatch" in capsys.readouterr().err
+
+
+def test_packaged_template_is_installed():
+    from importlib import resources
+    assert "{launch}" in resources.files("campaign").joinpath("templates/campaign.sbatch").read_text()
