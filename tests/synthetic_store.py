@@ -57,16 +57,17 @@ class Truth:
         return self.P_inf + self.p_N / np.asarray(N, float)
 
 
+# The same bins as kernels.analysis.DEFAULT_BINS (about 2100 per packing).
 DEFAULT_EDGES = {
     "contact_angle": np.linspace(0.0, np.pi, 181),
-    "contact_length": np.linspace(0.0, 5.0, 101),
-    "z_g": np.arange(-0.5, 13.0, 1.0),
-    "z_v": np.arange(-0.5, 31.0, 1.0),
+    "contact_length": np.linspace(0.0, 8.0, 161),
+    "z_g": np.arange(-0.5, 21.0, 1.0),
+    "z_v": np.arange(-0.5, 41.0, 1.0),
     "alpha_e": np.linspace(0.0, 0.5, 201),
-    "alpha_v": np.linspace(0.0, 2.0, 201),
-    "fictitious_length": np.linspace(0.0, 2.0, 101),
-    "radial_grains": np.linspace(0.0, 15.0, 301),
-    "radial_contacts": np.linspace(0.0, 15.0, 301),
+    "alpha_v": np.linspace(0.0, 4.0, 401),
+    "fictitious_length": np.linspace(0.0, 3.0, 301),
+    "radial_grains": np.linspace(0.0, 8.0, 401),
+    "radial_contacts": np.linspace(0.0, 8.0, 401),
 }
 
 
