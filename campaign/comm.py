@@ -6,6 +6,8 @@ The master loop (campaign.master) only ever calls::
     comm.send(worker, payload)      # one task (a dict, see Task.payload)
     comm.recv(timeout) -> None | (worker, ("result", index, attempt, summary))
                                     #              | (worker, ("dead", reason))
+    comm.wait_ready() -> set         # block until every worker has loaded its task function;
+                                    # returns the workers that died meanwhile
     comm.close(abandon=False)       # stop the workers (abandon: do not wait for them)
     comm.abort(code)                # a master fault: end the whole job now
 
@@ -40,6 +42,9 @@ class InlineComm:
         self.n_workers = 1
         self.results = collections.deque()
         self.hosts = [socket.gethostname()]
+
+    def wait_ready(self):
+        return set()
 
     def send(self, worker, payload):
         summary = _worker.run_task(self.fn, payload, self.context, rank=0)
@@ -91,6 +96,18 @@ class LocalComm:
             self.conns[w], self.procs[w] = parent, p
         self.hosts = [socket.gethostname()]
         self._by_conn = {c: w for w, c in self.conns.items()}
+
+    def wait_ready(self):
+        waiting, dead = set(self.conns), set()
+        while waiting:
+            got = self.recv(timeout=None)
+            if got is None:
+                continue
+            w, msg = got
+            waiting.discard(w)
+            if msg[0] == "dead":
+                dead.add(w)
+        return dead
 
     def send(self, worker, payload):
         try:
@@ -174,6 +191,11 @@ class MPIComm:
         self.n_workers = comm.Get_size() - 1
         self.hosts = []
         self._status = MPI.Status()
+
+    def wait_ready(self):
+        for _ in range(self.n_workers):
+            self.recv(timeout=None)
+        return set()
 
     def send(self, worker, payload):
         self.comm.send(payload, dest=worker, tag=TAG_TASK)

@@ -40,7 +40,7 @@ class Master:
         self.cost_remaining = sum(task_cost(t) for t in todo)
         self.attempts = {}
         self.in_flight = {w: deque() for w in range(1, comm.n_workers + 1)}
-        self.alive = set(self.in_flight)
+        self.alive = set(self.in_flight) - set(getattr(comm, "dead", ()))
         self.stop_reason = None      # why dispatching stopped early (signal name, wall time, ...)
         self.stop_since = None
         self.signals = 0

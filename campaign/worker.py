@@ -197,7 +197,8 @@ def worker_loop(recv, send, context: dict, rank: int) -> None:
     """Serve tasks until told to stop.
 
     ``recv()`` returns ``("task", payload)`` or ``("stop",)``; ``send(msg)``
-    sends ``("result", index, attempt, summary)``. Signals meant for the whole
+    sends ``("ready", rank)`` once the task function is loaded (and its kernels
+    warmed up), then ``("result", index, attempt, summary)`` per task. Signals meant for the whole
     job (Ctrl-C, SIGTERM from a scheduler) are the master's business: a worker
     ignores them and finishes its task; the master decides when to stop.
     """
@@ -216,6 +217,7 @@ def worker_loop(recv, send, context: dict, rank: int) -> None:
             fn.warm_up(context)
         except Exception:  # noqa: BLE001 - a real problem shows up again in the first task
             pass
+    send(("ready", rank))
     while True:
         msg = recv()
         if msg is None or msg[0] == "stop":

@@ -195,6 +195,7 @@ def test_local_processes_give_the_inline_result(tmp_path):
     spec, tasks, ctx, store = _setup(tmp_path, "local.h5")
     comm = LocalComm(ctx, 2)
     try:
+        assert comm.wait_ready() == set()
         out = Master(comm, store, tasks).run()
     finally:
         comm.close()

@@ -209,6 +209,7 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
             comm = InlineComm(context)
         else:
             comm = LocalComm(context, min(n_workers, max(1, todo)))
+        comm.dead = comm.wait_ready()  # workers have loaded (not compiled: see warm_up above) the kernels
         show = not args.quiet
         progress = Progress(len(tasks), sidecar=Path(str(out) + ".progress.json"),
                             enabled=None if show else False)
