@@ -24,7 +24,7 @@ Checked wrapper: ``candidate_pairs(positions, radii, box, skin)``.
 import numpy as np
 from numba import njit
 
-from kernels.space import _as_box, _as_positions, minimum_image
+from kernels.space import _as_box, _as_positions
 
 
 @njit(cache=True)
@@ -59,6 +59,8 @@ def _candidate_pairs_core(positions, radii, box, skin):
     n = positions.shape[0]
     Lx = box[0]
     Ly = box[1]
+    iLx = 1.0 / Lx
+    iLy = 1.0 / Ly
     rmax = 0.0
     for i in range(n):
         if radii[i] > rmax:
@@ -120,15 +122,24 @@ def _candidate_pairs_core(positions, radii, box, skin):
                     j = members[s]
                     if j <= i:
                         continue
-                    dx = minimum_image(positions[j, 0] - xi, Lx)
-                    dy = minimum_image(positions[j, 1] - yi, Ly)
+                    dx = positions[j, 0] - xi
+                    dy = positions[j, 1] - yi
+                    dx -= Lx * np.floor(dx * iLx + 0.5)
+                    dy -= Ly * np.floor(dy * iLy + 0.5)
                     rc = ri + radii[j] + skin
                     if dx * dx + dy * dy < rc * rc:
                         row[m] = j
                         m += 1
         if m == 0:
             continue
-        srow = np.sort(row[:m])
+        # insertion sort of the (short) row
+        for t in range(1, m):
+            v = row[t]
+            u = t - 1
+            while u >= 0 and row[u] > v:
+                row[u + 1] = row[u]
+                u -= 1
+            row[u + 1] = v
         if count + m > cap:
             while count + m > cap:
                 cap *= 2
@@ -140,7 +151,7 @@ def _candidate_pairs_core(positions, radii, box, skin):
             out_j = nj
         for t in range(m):
             out_i[count + t] = i
-            out_j[count + t] = srow[t]
+            out_j[count + t] = row[t]
         count += m
     return out_i[:count].copy(), out_j[:count].copy()
 

@@ -1,0 +1,353 @@
+"""FIRE 2.0 energy minimiser and force-balance residual on non-rattlers (numba).
+
+FIRE 2.0 (Guenole et al., Comput. Mater. Sci. 175, 109584 (2020)): semi-implicit
+Euler steps with unit masses, velocity mixing ``v <- (1 - a) v + a |v| F/|F|``, a
+half step back and zero velocity when the power ``P = F.v`` turns non-positive, a
+delay of ``N_DELAY`` steps before the time step may grow, time step bounds
+``[dt_min, dt_max] = [DT_MIN_FACTOR, DT_MAX_FACTOR] * dt0`` and an exit after
+``N_NEG_MAX`` consecutive non-positive power steps (a stall).
+
+Forces come from a Verlet list with a skin built by ``kernels.cells``; it is rebuilt
+whenever a disk has moved more than half the skin since the last build (and at
+every call, so radius changes between calls are always seen). Positions are wrapped
+into the box at every rebuild (the skin must stay below half a box side).
+
+Convergence is relative, never absolute: the *force residual* is
+
+    max over non-rattlers |F_net| / mean over non-rattler contacts |f_contact|
+
+where rattlers are found by iteratively removing disks with fewer than 3 contacts
+(``_nonrattler_mask_core``). The cheap bound ``max over all disks |F_net| / mean
+|f_contact|`` is checked every step; the rattler-aware residual every
+``CHECK_EVERY`` steps and before declaring convergence. A packing without any
+contact has nothing to balance: its residual is 0.
+
+Jitted cores, usable from other numba code:
+
+* ``_nonrattler_mask_core(n, ci, cj) -> bool (n,)`` from contact pairs (``ci < cj``).
+* ``_contacts_core(positions, radii, box, pi, pj) -> (ci, cj)``: the overlapping
+  pairs among the candidates.
+* ``_residual_core(positions, radii, box, pi, pj, alpha, forces) -> (residual,
+  n_nonrattlers, mean_contact_force)``; ``forces`` is scratch (n, 2).
+* ``_fire_core(...)``: the whole minimisation loop, see its docstring.
+
+Checked wrappers: ``minimize(...) -> FireResult`` and ``nonrattlers(...)``.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from kernels.cells import _as_radii, _candidate_pairs_core
+from kernels.potential import (_energy_forces_core, _pair_inv_sigma, check_exponent,
+                               pair_energy_force)
+from kernels.space import _as_box, _as_positions, _wrap_core, minimum_image
+
+N_DELAY = 20
+F_INC = 1.1
+F_DEC = 0.5
+A_START = 0.25
+F_A = 0.99
+DT_MAX_FACTOR = 10.0
+DT_MIN_FACTOR = 0.02
+N_NEG_MAX = 2000
+CHECK_EVERY = 25
+
+# status codes of _fire_core
+CONVERGED = 0
+MAX_STEPS = 1
+STALLED = 2
+BELOW = 3  # the energy fell below the caller's abort level (the minimum is lower still)
+STATUS_NAMES = ("converged", "max_steps", "stalled", "below")
+
+
+@njit(cache=True)
+def _nonrattler_mask_core(n, ci, cj):
+    """Iteratively remove disks with fewer than 3 contacts; True for the rest."""
+    deg = np.zeros(n, dtype=np.int64)
+    for k in range(ci.shape[0]):
+        deg[ci[k]] += 1
+        deg[cj[k]] += 1
+    # adjacency in CSR form
+    start = np.zeros(n + 1, dtype=np.int64)
+    for i in range(n):
+        start[i + 1] = start[i] + deg[i]
+    fill = start[:-1].copy()
+    adj = np.empty(2 * ci.shape[0], dtype=np.int64)
+    for k in range(ci.shape[0]):
+        adj[fill[ci[k]]] = cj[k]
+        fill[ci[k]] += 1
+        adj[fill[cj[k]]] = ci[k]
+        fill[cj[k]] += 1
+    alive = np.ones(n, dtype=np.bool_)
+    stack = np.empty(n, dtype=np.int64)
+    top = 0
+    for i in range(n):
+        if deg[i] < 3:
+            alive[i] = False
+            stack[top] = i
+            top += 1
+    while top > 0:
+        top -= 1
+        i = stack[top]
+        for s in range(start[i], start[i + 1]):
+            j = adj[s]
+            if alive[j]:
+                deg[j] -= 1
+                if deg[j] < 3:
+                    alive[j] = False
+                    stack[top] = j
+                    top += 1
+    return alive
+
+
+@njit(cache=True)
+def _contacts_core(positions, radii, box, pi, pj):
+    """The candidate pairs that overlap: centre distance < r_i + r_j (minimum image)."""
+    m = 0
+    keep = np.zeros(pi.shape[0], dtype=np.bool_)
+    for k in range(pi.shape[0]):
+        i = pi[k]
+        j = pj[k]
+        dx = minimum_image(positions[j, 0] - positions[i, 0], box[0])
+        dy = minimum_image(positions[j, 1] - positions[i, 1], box[1])
+        s = radii[i] + radii[j]
+        if dx * dx + dy * dy < s * s:
+            keep[k] = True
+            m += 1
+    ci = np.empty(m, dtype=np.int64)
+    cj = np.empty(m, dtype=np.int64)
+    t = 0
+    for k in range(pi.shape[0]):
+        if keep[k]:
+            ci[t] = pi[k]
+            cj[t] = pj[k]
+            t += 1
+    return ci, cj
+
+
+@njit(cache=True)
+def _residual_core(positions, radii, box, pi, pj, alpha, forces):
+    """Force residual on non-rattlers (see module docstring).
+
+    Returns ``(residual, n_nonrattlers, mean_contact_force)``. With no non-rattler,
+    the residual is taken over all disks and all contacts; with no contact at all it
+    is 0.
+    """
+    n = positions.shape[0]
+    _energy_forces_core(positions, box, pi, pj, _pair_inv_sigma(radii, pi, pj), alpha, forces)
+    ci, cj = _contacts_core(positions, radii, box, pi, pj)
+    if ci.shape[0] == 0:
+        return 0.0, 0, 0.0
+    alive = _nonrattler_mask_core(n, ci, cj)
+    ng = 0
+    for i in range(n):
+        if alive[i]:
+            ng += 1
+    use_all = ng == 0
+    fsum = 0.0
+    nc = 0
+    for k in range(ci.shape[0]):
+        i = ci[k]
+        j = cj[k]
+        if use_all or (alive[i] and alive[j]):
+            dx = minimum_image(positions[j, 0] - positions[i, 0], box[0])
+            dy = minimum_image(positions[j, 1] - positions[i, 1], box[1])
+            r = np.sqrt(dx * dx + dy * dy)
+            fsum += pair_energy_force(r, radii[i] + radii[j], alpha)[1]
+            nc += 1
+    fmax2 = 0.0
+    for i in range(n):
+        if use_all or alive[i]:
+            f2 = forces[i, 0] * forces[i, 0] + forces[i, 1] * forces[i, 1]
+            if f2 > fmax2:
+                fmax2 = f2
+    mean = fsum / nc
+    if mean == 0.0:
+        return 0.0, ng, 0.0
+    return np.sqrt(fmax2) / mean, ng, mean
+
+
+@njit(cache=True)
+def _wrap_inplace(positions, box):
+    w = _wrap_core(positions, box)
+    for i in range(positions.shape[0]):
+        positions[i, 0] = w[i, 0]
+        positions[i, 1] = w[i, 1]
+
+
+@njit(cache=True)
+def _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort):
+    """Minimise the total energy in place (``positions`` is overwritten).
+
+    ``tol``: force-residual tolerance; ``max_steps``: bound on FIRE steps;
+    ``skin``: Verlet skin (absolute length); ``dt0``: initial time step;
+    ``e_abort``: stop with status ``BELOW`` as soon as the total energy is below it
+    (0 disables).
+
+    Returns ``(status, steps, force_evaluations, energy, virial, residual,
+    n_contacts)``: total energy and virial ``sum r f`` at the final positions.
+    """
+    n = positions.shape[0]
+    dt_max = DT_MAX_FACTOR * dt0
+    dt_min = DT_MIN_FACTOR * dt0
+    dt = dt0
+    a = A_START
+    vel = np.zeros((n, 2))
+    frc = np.empty((n, 2))
+    scratch = np.empty((n, 2))
+    _wrap_inplace(positions, box)
+    ref = positions.copy()
+    pi, pj = _candidate_pairs_core(positions, radii, box, skin)
+    inv_s = _pair_inv_sigma(radii, pi, pj)
+    half2 = 0.25 * skin * skin
+    energy, virial, nc, fsum = _energy_forces_core(positions, box, pi, pj, inv_s, alpha, frc)
+    nforce = 1
+    n_pos = 0
+    n_neg = 0
+    status = MAX_STEPS
+    residual = np.inf
+    step = 0
+    while True:
+        # convergence tests on the current state
+        if e_abort > 0.0 and energy < e_abort:
+            status = BELOW
+            residual = -1.0
+            break
+        if nc == 0:
+            status = CONVERGED
+            residual = 0.0
+            break
+        fmax2 = 0.0
+        for i in range(n):
+            f2 = frc[i, 0] * frc[i, 0] + frc[i, 1] * frc[i, 1]
+            if f2 > fmax2:
+                fmax2 = f2
+        mean_f = fsum / nc
+        bound = np.sqrt(fmax2) / mean_f if mean_f > 0.0 else 0.0
+        if bound < tol or step % CHECK_EVERY == 0 or step >= max_steps:
+            residual = _residual_core(positions, radii, box, pi, pj, alpha, scratch)[0]
+            if residual < tol:
+                status = CONVERGED
+                break
+        if step >= max_steps:
+            status = MAX_STEPS
+            break
+        step += 1
+        # FIRE 2.0 step
+        p = 0.0
+        for i in range(n):
+            p += frc[i, 0] * vel[i, 0] + frc[i, 1] * vel[i, 1]
+        if p > 0.0:
+            n_pos += 1
+            n_neg = 0
+            if n_pos > N_DELAY:
+                dt = min(dt * F_INC, dt_max)
+                a *= F_A
+        else:
+            n_pos = 0
+            n_neg += 1
+            if n_neg > N_NEG_MAX:
+                status = STALLED
+                residual = _residual_core(positions, radii, box, pi, pj, alpha, scratch)[0]
+                break
+            if step >= N_DELAY:
+                if dt * F_DEC >= dt_min:
+                    dt *= F_DEC
+                a = A_START
+            for i in range(n):
+                positions[i, 0] -= 0.5 * dt * vel[i, 0]
+                positions[i, 1] -= 0.5 * dt * vel[i, 1]
+                vel[i, 0] = 0.0
+                vel[i, 1] = 0.0
+        vv = 0.0
+        ff = 0.0
+        for i in range(n):
+            vel[i, 0] += dt * frc[i, 0]
+            vel[i, 1] += dt * frc[i, 1]
+            vv += vel[i, 0] * vel[i, 0] + vel[i, 1] * vel[i, 1]
+            ff += frc[i, 0] * frc[i, 0] + frc[i, 1] * frc[i, 1]
+        mix = a * np.sqrt(vv / ff) if ff > 0.0 else 0.0
+        disp2 = 0.0
+        for i in range(n):
+            vel[i, 0] = (1.0 - a) * vel[i, 0] + mix * frc[i, 0]
+            vel[i, 1] = (1.0 - a) * vel[i, 1] + mix * frc[i, 1]
+            positions[i, 0] += dt * vel[i, 0]
+            positions[i, 1] += dt * vel[i, 1]
+            ddx = positions[i, 0] - ref[i, 0]
+            ddy = positions[i, 1] - ref[i, 1]
+            d2 = ddx * ddx + ddy * ddy
+            if d2 > disp2:
+                disp2 = d2
+        if disp2 > half2:
+            _wrap_inplace(positions, box)
+            pi, pj = _candidate_pairs_core(positions, radii, box, skin)
+            inv_s = _pair_inv_sigma(radii, pi, pj)
+            for i in range(n):
+                ref[i, 0] = positions[i, 0]
+                ref[i, 1] = positions[i, 1]
+        energy, virial, nc, fsum = _energy_forces_core(positions, box, pi, pj, inv_s, alpha, frc)
+        nforce += 1
+    return status, step, nforce, energy, virial, residual, nc
+
+
+@dataclass(frozen=True)
+class FireResult:
+    positions: np.ndarray  # wrapped into the box
+    energy: float  # total pair energy
+    pressure: float
+    residual: float
+    steps: int
+    force_evaluations: int
+    status: str
+
+
+def default_timestep(radii, exponent, energy_per_disk):
+    """Initial FIRE time step (see ``kernels.protocol._dt_for``)."""
+    from kernels.protocol import _dt_for
+
+    return _dt_for(np.asarray(radii, dtype=np.float64), float(exponent), float(energy_per_disk))
+
+
+def minimize(positions, radii, box, exponent=2.0, *, force_tolerance=1e-6, max_steps=100_000,
+             skin=None, dt=None):
+    """Minimise the pair energy with FIRE 2.0 at fixed radii (checked wrapper).
+
+    ``skin`` defaults to 0.3 times the mean diameter; ``dt`` to ``default_timestep``
+    at the starting energy.
+    """
+    pos = _as_positions(positions).copy()
+    rad = _as_radii(radii, pos.shape[0])
+    b = _as_box(box)
+    a = check_exponent(exponent)
+    tol = float(force_tolerance)
+    if not (np.isfinite(tol) and tol > 0):
+        raise ValueError(f"force_tolerance: expected a finite number > 0, got {force_tolerance!r}")
+    if int(max_steps) != max_steps or max_steps < 0:
+        raise ValueError(f"max_steps: expected an integer >= 0, got {max_steps!r}")
+    if skin is None:
+        skin = 0.6 * float(np.mean(rad))
+    if not (np.isfinite(skin) and skin > 0):
+        raise ValueError(f"skin: expected a finite number > 0, got {skin!r}")
+    if dt is None:
+        pi, pj = _candidate_pairs_core(pos, rad, b, 0.0)
+        e0 = _energy_forces_core(pos, b, pi, pj, _pair_inv_sigma(rad, pi, pj), a,
+                                 np.empty_like(pos))[0]
+        dt = default_timestep(rad, a, e0 / len(rad))
+    res = _fire_core(pos, rad, b, a, tol, int(max_steps), float(skin), float(dt), 0.0)
+    status, steps, nforce, e, w, residual, nc = res
+    return FireResult(positions=_wrap_core(pos, b), energy=e, pressure=w / (2 * b[0] * b[1]),
+                      residual=residual, steps=steps, force_evaluations=nforce,
+                      status=STATUS_NAMES[status])
+
+
+def nonrattlers(positions, radii, box):
+    """Boolean mask of non-rattlers: disks left after iteratively removing those with
+    fewer than 3 contacts (contact: centre distance < r_i + r_j, minimum image)."""
+    pos = _as_positions(positions)
+    rad = _as_radii(radii, pos.shape[0])
+    b = _as_box(box)
+    pi, pj = _candidate_pairs_core(pos, rad, b, 0.0)
+    ci, cj = _contacts_core(pos, rad, b, pi, pj)
+    return _nonrattler_mask_core(pos.shape[0], ci, cj)

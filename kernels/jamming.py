@@ -1,0 +1,276 @@
+"""``jam()``: a jammed packing at a target energy per grain (checked wrapper).
+
+``jam(n, energy, seed, **settings)`` places ``n`` disks uniformly at random in the
+periodic box (from ``numpy.random.Generator(PCG64(SeedSequence(seed)))``), scales
+the radii to ``phi_start`` and runs the O'Hern search of ``kernels.protocol`` with
+the FIRE 2.0 minimiser of ``kernels.fire`` until the energy per disk ``E_G`` lies in
+``[energy, energy (1 + window)]`` with the forces on non-rattlers balanced to
+``force_tolerance`` (relative to the mean contact force). The result is a frozen
+``Packing``; identical arguments give bit-identical arrays.
+"""
+
+from dataclasses import dataclass, field
+import math
+import numbers
+
+import numpy as np
+
+from kernels.cells import _candidate_pairs_core
+from kernels.fire import _contacts_core, _nonrattler_mask_core
+from kernels.potential import ALPHA_RANGE, check_exponent
+from kernels.protocol import (SEARCH_HALVING, SEARCH_NAMES, SEARCH_SECANT, STATUS_NAMES,
+                              _ohern_core)
+
+DEFAULT_SPECIES = ((0.5, 1.4), (0.5, 1.0))
+
+#: Default settings of ``jam`` (see its docstring for the meaning of each).
+DEFAULTS = dict(
+    box=(1.0, 1.0),
+    species=DEFAULT_SPECIES,
+    exponent=2.0,
+    window=0.1,
+    force_tolerance=1e-6,
+    search_tolerance=1e-3,
+    phi_start=0.86,
+    max_search=200,
+    max_steps=2_000_000,
+    minimizer="fire",
+    search="secant",
+    delta=0.01,
+    skin=0.3,
+)
+
+#: Largest factor by which the secant search lowers the energy per minimisation.
+ENERGY_STEP = 1e-2
+
+STATUS_CODES = {name: code for code, name in enumerate(STATUS_NAMES)}
+
+
+@dataclass(frozen=True)
+class Packing:
+    """A packing produced by ``jam`` (arrays are float64 unless stated)."""
+
+    positions: np.ndarray  # (n, 2), wrapped into [0, Lx) x [0, Ly)
+    radii: np.ndarray  # (n,)
+    box: np.ndarray  # (2,)
+    species: np.ndarray  # (n,) int32, species index (0 = first entry = A)
+    energy: float  # E_G: total pair energy / n
+    energy_nonrattler: float  # total pair energy / N_G (nan when N_G = 0)
+    phi: float  # sum pi r^2 / (Lx Ly)
+    pressure: float  # virial pressure (see kernels.potential)
+    force_residual: float  # max |F_net| over non-rattlers / mean contact force
+    iterations: int  # minimisations of the O'Hern search
+    force_evaluations: int
+    status: str  # "converged" or the bound that stopped the search
+    exponent: float
+    n_nonrattlers: int
+    settings: dict = field(default_factory=dict, compare=False)
+
+    @property
+    def converged(self):
+        return self.status == "converged"
+
+    @property
+    def status_code(self):
+        """Integer code of ``status`` (``STATUS_CODES``), 0 for converged."""
+        return STATUS_CODES[self.status]
+
+
+def _is_int(x):
+    return isinstance(x, numbers.Integral) and not isinstance(x, bool)
+
+
+def _positive_float(name, x, upper=None):
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected a finite number > 0, got {x!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise ValueError(f"{name}: expected a finite number > 0, got {x!r}")
+    if upper is not None and not v < upper:
+        raise ValueError(f"{name}: expected a number below {upper:g}, got {x!r}")
+    return v
+
+
+def _positive_int(name, x):
+    if not _is_int(x) or x < 1:
+        raise ValueError(f"{name}: expected an integer >= 1, got {x!r}")
+    return int(x)
+
+
+def check_species(species):
+    """Validate a size distribution: a sequence of ``(fraction, relative radius)``.
+
+    Returns ``(fractions, relative_radii)`` as float64 arrays. Fractions must be
+    positive and sum to 1 (to 1e-9); relative radii positive and finite.
+    """
+    try:
+        rows = [tuple(row) for row in species]
+    except TypeError:
+        raise ValueError("species: expected a sequence of (fraction, relative radius) pairs, "
+                         f"got {species!r}") from None
+    if not rows or any(len(row) != 2 for row in rows):
+        raise ValueError("species: expected a non-empty sequence of (fraction, relative radius) "
+                         f"pairs, got {species!r}")
+    try:
+        arr = np.array(rows, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"species: expected numbers, got {species!r}") from None
+    frac, rel = arr[:, 0], arr[:, 1]
+    if not (np.all(np.isfinite(arr)) and np.all(frac > 0) and np.all(rel > 0)):
+        raise ValueError("species: expected positive finite fractions and relative radii, "
+                         f"got {species!r}")
+    if abs(frac.sum() - 1.0) > 1e-9:
+        raise ValueError(f"species: expected fractions summing to 1, got sum {frac.sum()!r}")
+    return frac, rel
+
+
+def species_counts(n, fractions):
+    """Largest-remainder rounding of ``fractions * n`` (ties: the earlier species)."""
+    exact = np.asarray(fractions, float) * n
+    counts = np.floor(exact).astype(np.int64)
+    rest = n - int(counts.sum())
+    order = sorted(range(len(exact)), key=lambda k: (-(exact[k] - counts[k]), k))
+    for k in order[:rest]:
+        counts[k] += 1
+    return counts
+
+
+def _seed_sequence(seed):
+    if isinstance(seed, np.random.SeedSequence):
+        return seed
+    if _is_int(seed) and seed >= 0:
+        return np.random.SeedSequence(int(seed))
+    if isinstance(seed, (list, tuple)) and seed and all(_is_int(s) and s >= 0 for s in seed):
+        return np.random.SeedSequence([int(s) for s in seed])
+    raise ValueError("seed: expected a non-negative int, a non-empty sequence of them or a "
+                     f"numpy.random.SeedSequence, got {seed!r}")
+
+
+def initial_state(n, seed, box, species, phi_start):
+    """Random positions, radii at ``phi_start`` and species, in species order."""
+    frac, rel = check_species(species)
+    counts = species_counts(n, frac)
+    species_idx = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
+    rel_r = rel[species_idx]
+    b = np.asarray(box, dtype=np.float64)
+    radii = rel_r * math.sqrt(phi_start * b[0] * b[1] / (math.pi * float(np.sum(rel_r ** 2))))
+    rng = np.random.Generator(np.random.PCG64(_seed_sequence(seed)))
+    positions = rng.random((n, 2)) * b
+    return positions, radii, species_idx
+
+
+def _check_box(box):
+    try:
+        b = np.asarray(box, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"box: expected two positive lengths (Lx, Ly), got {box!r}") from None
+    if b.shape != (2,) or not (np.all(np.isfinite(b)) and np.all(b > 0)):
+        raise ValueError(f"box: expected two positive finite lengths (Lx, Ly), got {box!r}")
+    return b
+
+
+def jam(n, energy, seed, **settings):
+    """Jammed packing of ``n`` disks with ``E_G`` in ``[energy, energy (1 + window)]``.
+
+    Parameters
+    ----------
+    n : int >= 2
+        number of disks.
+    energy : float > 0
+        target energy per disk ``E_min`` (the window's lower edge), in units of the
+        interaction scale.
+    seed : int, sequence of ints or numpy.random.SeedSequence
+        the initial positions come from ``Generator(PCG64(SeedSequence(seed)))``.
+
+    Settings (keyword; defaults in ``DEFAULTS``)
+    --------------------------------------------
+    box : (Lx, Ly), default (1, 1).
+    species : sequence of (fraction, relative radius); default 50:50 with the first
+        species (A) 1.4 times larger. Counts by largest-remainder rounding.
+    exponent : alpha in [2, 3]; 2 harmonic, 2.5 Hertz.
+    window : relative window width, ``E_max = energy (1 + window)``; default 0.1.
+    force_tolerance : final bound on max |F_net| over non-rattlers / mean contact
+        force; default 1e-6. At ``E_G = 1e-14`` this fixes contact overlaps to
+        about 1e-6 of their size, far below what decides whether a pair touches, so
+        the isostatic contact count is resolved; it stays above the float64 force
+        noise down to ``E_G ~ 1e-16`` for N up to ~1000 in a unit box.
+    search_tolerance : the (looser) tolerance of intermediate minimisations of the
+        search; default 1e-3. Never looser than needed: the final minimum is always
+        converged to ``force_tolerance``.
+    phi_start : packing fraction of the random initial state; default 0.86, above
+        jamming for the default mixture (phi_J ~ 0.84), so the search shrinks.
+    max_search : bound on the minimisations of the search; default 200.
+    max_steps : bound on FIRE steps per minimisation; default 2,000,000.
+    minimizer : "fire" (FIRE 2.0), the only one.
+    search : "secant" (default) or "halving" (plain O'Hern Delta halving); see
+        ``kernels.protocol``.
+    delta : first relative radius step Delta (and the largest step); default 0.01.
+    skin : Verlet skin in units of the mean diameter; default 0.3.
+
+    Returns a ``Packing``; its ``status`` is "converged" or the bound that stopped
+    the search ("max_search", "max_steps", "stalled", "too_dense").
+
+    Raises ValueError naming the expected and received value for any bad argument,
+    including a box too small for the disks (the largest contact distance plus the
+    skin must stay below half the shorter box side).
+    """
+    unknown = sorted(set(settings) - set(DEFAULTS))
+    if unknown:
+        raise ValueError(f"settings: expected names among {sorted(DEFAULTS)}, got {unknown}")
+    opt = dict(DEFAULTS)
+    opt.update(settings)
+
+    if not _is_int(n) or n < 2:
+        raise ValueError(f"n: expected an integer >= 2, got {n!r}")
+    e_min = _positive_float("energy", energy)
+    box = _check_box(opt["box"])
+    alpha = check_exponent(opt["exponent"])
+    window = _positive_float("window", opt["window"])
+    tol = _positive_float("force_tolerance", opt["force_tolerance"], upper=1.0)
+    search_tol = _positive_float("search_tolerance", opt["search_tolerance"], upper=1.0)
+    search_tol = max(search_tol, tol)
+    phi_start = _positive_float("phi_start", opt["phi_start"], upper=1.0)
+    max_search = _positive_int("max_search", opt["max_search"])
+    max_steps = _positive_int("max_steps", opt["max_steps"])
+    if opt["minimizer"] != "fire":
+        raise ValueError(f"minimizer: expected 'fire', got {opt['minimizer']!r}")
+    if opt["search"] not in SEARCH_NAMES:
+        raise ValueError(f"search: expected one of {list(SEARCH_NAMES)}, got {opt['search']!r}")
+    rule = SEARCH_SECANT if opt["search"] == "secant" else SEARCH_HALVING
+    delta = _positive_float("delta", opt["delta"], upper=1.0)
+    skin = _positive_float("skin", opt["skin"], upper=1.0)
+    seq = _seed_sequence(seed)
+
+    positions, radii0, species_idx = initial_state(n, seq, box, opt["species"], phi_start)
+    # the nearest image must be the only one in range: 2 r_max (1 + skin) < L/2
+    max_radius = float(box.min()) / (4.0 * (1.0 + skin))
+    if radii0.max() * (1.0 + delta) ** 2 > max_radius:
+        raise ValueError(
+            f"box: expected a box large enough for {n} disks at phi_start={phi_start:g} "
+            f"(largest radius below {max_radius:.4g} = min(Lx, Ly) / (4 (1 + skin)) with room to "
+            f"grow), got box {box.tolist()} with largest radius {radii0.max():.4g}")
+
+    status, scale, e_tot, virial, residual, iterations, nforce = _ohern_core(
+        positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search, max_steps,
+        skin, delta, rule, max_radius, ENERGY_STEP)
+    radii = radii0 * scale
+    area = float(box[0] * box[1])
+    pi, pj = _candidate_pairs_core(positions, radii, box, 0.0)
+    ci, cj = _contacts_core(positions, radii, box, pi, pj)
+    n_g = int(np.count_nonzero(_nonrattler_mask_core(n, ci, cj)))
+    for arr in (positions, radii, box, species_idx):
+        arr.flags.writeable = False
+    return Packing(
+        positions=positions, radii=radii, box=box, species=species_idx,
+        energy=e_tot / n, energy_nonrattler=e_tot / n_g if n_g else math.nan,
+        phi=float(math.pi * np.sum(radii ** 2) / area), pressure=virial / (2.0 * area),
+        force_residual=float(residual), iterations=int(iterations),
+        force_evaluations=int(nforce), status=STATUS_NAMES[status], exponent=alpha,
+        n_nonrattlers=n_g,
+        settings=dict(opt, box=tuple(box.tolist()), exponent=alpha, energy=e_min, n=n),
+    )
+
+
+__all__ = ["jam", "Packing", "DEFAULTS", "STATUS_CODES", "ALPHA_RANGE", "species_counts",
+           "initial_state", "check_species"]

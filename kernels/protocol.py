@@ -1,0 +1,219 @@
+"""O'Hern grow/shrink search for a jammed packing at a target energy (numba core).
+
+The protocol (O'Hern et al., PRE 68, 011306 (2003); Ramola & Chakraborty, section
+"Simulation Protocol"): minimise the energy at fixed radii, then scale *all* radii by
+a common factor -- grow when ``E_G < E_min``, shrink when ``E_G > E_max`` -- and
+minimise again starting from the previous minimum, until ``E_min <= E_G <= E_max``
+with ``E_max = E_min (1 + window)``. Positions are never reset.
+
+Two rules choose the next scale factor; both only ever scale radii and relax
+positions from the previous minimum, so they produce the same kind of packing:
+
+* ``SEARCH_HALVING`` (the documented O'Hern rule): multiply the radii by
+  ``(1 + Delta)`` or ``1 / (1 + Delta)`` and halve ``Delta`` at every reversal of
+  direction.
+* ``SEARCH_SECANT`` (default, much faster at low energy): near jamming
+  ``E_G^(1/alpha)`` is linear in the radius scale factor ``lambda`` (it vanishes at
+  ``lambda_J``), so the next ``lambda`` is where the line through the two latest
+  jammed minima (``E_G > 0``) reaches the middle of the window in that variable. A
+  single jammed minimum gives the line through ``lambda_J ~ lambda (1 - x)``, with
+  ``x`` the typical relative overlap. Every proposal is kept strictly inside the
+  bracket of scale factors known to be below / above the window (geometric
+  bisection otherwise), and the step is limited to a factor ``(1 + Delta_max)``.
+
+Intermediate minimisations stop at the looser ``search_tolerance`` or as soon as
+the energy falls below ``E_min / 2`` (it can then only end below the window). When
+a minimum lands in the window it is minimised further to ``force_tolerance``; the
+search only ends once that fully converged minimum is inside the window.
+
+Bounds: at most ``max_search`` minimisations, each of at most ``max_steps`` FIRE
+steps. The status says which bound stopped the search (``STATUS_NAMES``); it is
+``converged`` only for a force-balanced packing inside the window.
+
+Jitted core usable from other numba code: ``_ohern_core`` (see its docstring).
+"""
+
+import numpy as np
+from numba import njit
+
+from kernels.fire import BELOW, CONVERGED, MAX_STEPS, _fire_core
+
+DT_FACTOR = 0.04
+
+AIM = 0.5
+ABORT_FRACTION = 0.5
+
+SEARCH_HALVING = 0
+SEARCH_SECANT = 1
+SEARCH_NAMES = ("halving", "secant")
+
+# status codes of _ohern_core
+ST_CONVERGED = 0
+ST_MAX_SEARCH = 1
+ST_MAX_STEPS = 2
+ST_STALLED = 3
+ST_TOO_DENSE = 4
+STATUS_NAMES = ("converged", "max_search", "max_steps", "stalled", "too_dense")
+
+
+@njit(cache=True)
+def _dt_for(radii, alpha, e_per_disk):
+    """Initial FIRE time step ``DT_FACTOR / sqrt(k)`` (unit masses).
+
+    ``k = (alpha - 1) x^(alpha - 2) / s^2`` is the stiffness of a contact between two
+    disks of mean diameter ``s`` at overlap ``x = 3 (alpha E)^(1/alpha)`` (a few
+    times the typical overlap at energy ``E`` per disk). With ``dt_max = 10 dt0`` the
+    factor 0.04 keeps the fastest harmonic mode stable; 0.06 already is not.
+    """
+    s = 0.0
+    for i in range(radii.shape[0]):
+        s += radii[i]
+    s = 2.0 * s / radii.shape[0]
+    x = 3.0 * (alpha * max(e_per_disk, 1e-300)) ** (1.0 / alpha)
+    if x > 0.2:
+        x = 0.2
+    k = (alpha - 1.0) * x ** (alpha - 2.0) / (s * s)
+    return DT_FACTOR / np.sqrt(k)
+
+
+@njit(cache=True)
+def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search,
+                max_steps, skin_factor, delta0, rule, max_radius, energy_step):
+    """Run the O'Hern search in place.
+
+    ``positions`` (n, 2): initial positions, overwritten by the final ones (wrapped).
+    ``radii0``: radii at scale factor 1. ``e_min``: target E_G (per disk, window lower
+    edge). ``tol``/``search_tol``: final and intermediate force tolerances.
+    ``skin_factor``: Verlet skin in units of the mean diameter. ``delta0``: first
+    relative radius step (and the largest step of the secant rule). ``rule``:
+    ``SEARCH_HALVING`` or ``SEARCH_SECANT``. ``max_radius``: the largest radius
+    allowed (stops with ``too_dense`` beyond it). ``energy_step``: the secant rule
+    lowers the energy by at most this factor per minimisation.
+
+    Returns ``(status, scale, energy_total, virial, residual, iterations,
+    force_evaluations)``; the final radii are ``scale * radii0``.
+    """
+    n = positions.shape[0]
+    e_max = e_min * (1.0 + window)
+    inv_a = 1.0 / alpha
+    # aim at the upper part of the window: decompression tends to undershoot
+    g_target = (e_min * (1.0 + AIM * window)) ** inv_a
+    # x = (alpha E / 2)^(1/alpha) is the typical relative overlap at energy E per disk
+    x_per_g = (0.5 * alpha) ** inv_a
+    mean_d = 0.0
+    rmax0 = 0.0
+    for i in range(n):
+        mean_d += 2.0 * radii0[i]
+        if radii0[i] > rmax0:
+            rmax0 = radii0[i]
+    mean_d /= n
+
+    scale = 1.0
+    radii = radii0.copy()
+    delta = delta0
+    last_dir = 0
+    # secant rule: the latest two jammed minima (E > 0) on the current branch
+    s1 = -1.0
+    g1 = 0.0
+    s2 = -1.0
+    g2 = 0.0
+    slope = 0.0  # d E^(1/alpha) / d scale of the linear model, 0 while unknown
+    n_below = 0
+    it = 0
+    nforce = 0
+    status = ST_MAX_SEARCH
+    e_last = 0.0
+    w_last = 0.0
+    res_last = np.inf
+    e_guess = e_min
+    abort = ABORT_FRACTION * e_min * n
+    while True:
+        it += 1
+        for i in range(n):
+            radii[i] = scale * radii0[i]
+        skin = skin_factor * mean_d * scale
+        dt0 = _dt_for(radii, alpha, e_guess)
+        st, steps, nf, e, w, res, nc = _fire_core(positions, radii, box, alpha, search_tol,
+                                                  max_steps, skin, dt0, abort)
+        nforce += nf
+        if st == CONVERGED and e_min <= e / n <= e_max and search_tol > tol:
+            # polish to the final tolerance at the same radii
+            st, steps, nf, e, w, res, nc = _fire_core(positions, radii, box, alpha, tol,
+                                                      max_steps, skin, dt0, abort)
+            nforce += nf
+        e_last = e
+        w_last = w
+        res_last = res
+        eg = e / n
+        if st == MAX_STEPS:
+            status = ST_MAX_STEPS
+            break
+        if st != CONVERGED and st != BELOW:
+            status = ST_STALLED
+            break
+        if st == CONVERGED and e_min <= eg <= e_max:
+            status = ST_CONVERGED
+            break
+        if it >= max_search:
+            status = ST_MAX_SEARCH
+            break
+        direction = 1 if (st == BELOW or eg < e_min) else -1
+        if rule == SEARCH_HALVING:
+            if last_dir != 0 and direction != last_dir:
+                delta *= 0.5
+            last_dir = direction
+            if direction > 0:
+                new = scale * (1.0 + delta)
+            else:
+                new = scale / (1.0 + delta)
+        else:
+            if st == CONVERGED and eg > 0.0:
+                # a jammed minimum: refit g = slope (scale - scale_J)
+                n_below = 0
+                s2 = s1
+                g2 = g1
+                s1 = scale
+                g1 = eg ** inv_a
+                e_guess = eg
+                # one-point model: scale_J ~ scale (1 - x)
+                c1 = 1.0 / (scale * x_per_g)
+                slope = c1
+                if s2 > 0.0 and s1 != s2:
+                    c2 = (g1 - g2) / (s1 - s2)
+                    if 0.2 * c1 < c2 < 5.0 * c1:
+                        slope = c2
+                g_goal = g_target
+                if g1 > g_target and g1 * energy_step ** inv_a > g_goal:
+                    g_goal = g1 * energy_step ** inv_a
+                new = s1 + (g_goal - g1) / slope
+            else:
+                # below the window without a force-balanced minimum (unjammed, or
+                # aborted at E < E_min / 2): grow, doubling the step each time
+                n_below += 1
+                s1 = -1.0
+                s2 = -1.0
+                if slope > 0.0:
+                    g_now = max(eg, 0.0) ** inv_a
+                    new = scale + 2.0 ** (n_below - 1) * (g_target - g_now) / slope
+                else:
+                    new = scale * (1.0 + delta0)
+            if new > scale * (1.0 + delta0):
+                new = scale * (1.0 + delta0)
+            if new < scale / (1.0 + delta0):
+                new = scale / (1.0 + delta0)
+        if new == scale:
+            # the step is below floating-point resolution of the scale factor
+            status = ST_MAX_SEARCH
+            break
+        if new * rmax0 > max_radius:
+            status = ST_TOO_DENSE
+            break
+        scale = new
+    for i in range(n):
+        for k in range(2):
+            L = box[k]
+            x = positions[i, k] - L * np.floor(positions[i, k] / L)
+            if x >= L:
+                x -= L
+            positions[i, k] = x
+    return status, scale, e_last, w_last, res_last, it, nforce
