@@ -110,7 +110,7 @@ def test_run_without_spec_runs_the_packaged_quickstart(tmp_path):
                        env=_env(), capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     with h5py.File(tmp_path / "results" / "quickstart.h5", "r") as f:
-        assert f.attrs["name"] == "quickstart" and (f["tasks/status"][:] == 1).sum() == 48
+        assert f.attrs["name"] == "quickstart" and (f["tasks/status"][:] == 1).sum() == 288
 
 
 def test_bad_options_exit_2(tmp_path):

@@ -66,11 +66,39 @@ def test_minimal_spec_defaults():
     assert s.n_tasks == 12
 
 
-def test_issue_example_quickstart():
-    s = load_spec(ROOT / "campaigns" / "quickstart.yaml")
+ISSUE_EXAMPLE = """\
+name: quickstart
+seed: 12345                     # campaign seed, mixed into every task's SeedSequence
+system:
+  box: [1.0, 1.0]
+  species: [{name: A, fraction: 0.5, radius: 1.4}, {name: B, fraction: 0.5, radius: 1.0}]
+  potential: {exponent: 2.0}
+grid:                           # Cartesian product
+  N_G: [64, 128]
+  E_G: [1.0e-4, 1.0e-8, 1.0e-12] # also {log_range: [1.0e-15, 1.0e-3], per_decade: 1}
+  seeds: 4                      # or {start: 100, count: 4}
+protocol: {window: 0.1, force_tolerance: 1.0e-6}
+variants:                       # optional: named overrides of protocol keys, each its own sub-campaign
+  - {name: loose, force_tolerance: 1.0e-3}
+observables: [scalars, contact_angles, contact_lengths, connectivity, edge_triangles, void_areas, fictitious, radial_grains, radial_contacts]
+store: {configurations: false}
+output: results/quickstart.h5
+"""
+
+
+def test_the_issue_example_is_valid():
+    s = parse_spec(ISSUE_EXAMPLE)
     assert s.n_tasks == 2 * 2 * 3 * 4
     assert [v.name for v in s.variants] == ["default", "loose"]
     assert s.variants[1].protocol_dict == {"window": 0.1, "force_tolerance": 1e-3}
+    assert s.observables == tuple(OBSERVABLES) and s.output == "results/quickstart.h5"
+
+
+def test_quickstart():
+    s = load_spec(ROOT / "campaigns" / "quickstart.yaml")
+    assert s.N == (64, 128, 256, 512) and s.E == tuple(float(f"1e-{k}") for k in range(12, 3, -1))
+    assert s.n_tasks == 2 * 4 * 9 * 4
+    assert [v.name for v in s.variants] == ["default", "loose"]
 
 
 def test_quickstart_is_the_packaged_spec():
