@@ -161,9 +161,10 @@ def fig_scaling(red, cs, plt, quantity):
             ok = (x > 0) & (y > 0)
             lab = rf"$N_G={N}$: $\beta={f['exponent']:.3f}$"
             ax.errorbar(x[ok], y[ok], ye[ok], fmt="o", ms=3, color=col, label=lab)
-            xx = np.geomspace(f["x_min"], f["x_max"], 50)
-            ax.plot(xx, f["coeff"] * xx ** f["exponent"], color=col, lw=0.8)
             shown = True
+            if f["x_min"] > 0 and f["x_max"] > f["x_min"]:
+                xx = np.geomspace(f["x_min"], f["x_max"], 50)
+                ax.plot(xx, f["coeff"] * xx ** f["exponent"], color=col, lw=0.8)
         if not shown:
             _placeholder(ax, "no fit (too few cells)")
         else:
@@ -226,9 +227,15 @@ def fig_extrapolation(red, cs, plt):
     return fig
 
 
-def _per_E(red, cs, plt, ax, name, N, transform=None, positive=False, **kw):
-    """One curve per energy at size N; ``positive``: hide empty bins (log axes)."""
+def _per_E(red, cs, plt, ax, name, N, transform=None, positive=False, step=False, **kw):
+    """One curve per energy at size N.
+
+    ``step``: draw the histogram as steps (isolated spikes, such as the three-disk peaks
+    near zero energy, stay visible); ``positive``: log axes -- empty bins are clipped
+    (steps) or hidden (lines), and the axis starts just below the smallest value.
+    """
     shown = False
+    smallest = np.inf
     for col, E in zip(_colors(len(cs.Es), "plasma"), cs.Es):
         for i in cs.at(N=N, E=E):
             x, y = _dist(red, name, i)
@@ -236,23 +243,33 @@ def _per_E(red, cs, plt, ax, name, N, transform=None, positive=False, **kw):
                 continue
             if transform:
                 x, y = transform(x, y)
-            if positive:
-                y = np.where(y > 0, y, np.nan)
-            ax.plot(x, y, color=col, lw=0.9, label=rf"$E_G=${_sci(E)}", **kw)
+            if positive and np.any(y > 0):
+                smallest = min(smallest, np.nanmin(y[y > 0]))
+            lab = rf"$E_G=${_sci(E)}"
+            if step:
+                ax.stairs(np.nan_to_num(y), red.distributions[name]["edges"], color=col, lw=0.9,
+                          label=lab, **kw)
+            else:
+                if positive:
+                    y = np.where(y > 0, y, np.nan)
+                ax.plot(x, y, color=col, lw=0.9, label=lab, **kw)
             shown = True
     if not shown:
         _placeholder(ax, f"no {name} histogram in this file")
+    elif positive:
+        ax.set_yscale("log", nonpositive="clip")
+        if np.isfinite(smallest):
+            ax.set_ylim(bottom=0.5 * smallest)
     return shown
 
 
 def fig_angles_lengths(red, cs, plt):
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.5))
     N = 2048 if 2048 in cs.Ns else cs.largest_N()
-    if _per_E(red, cs, plt, a1, "sin_theta", N, positive=True):
+    if _per_E(red, cs, plt, a1, "sin_theta", N, positive=True, step=True):
         s = np.linspace(0, 0.995, 200)
         a1.plot(s, 2 / np.pi / np.sqrt(1 - s * s), "k--", lw=1,
                 label=r"random: $\frac{2}{\pi}\frac{1}{\sqrt{1-\sin^2\theta}}$")
-        a1.set_yscale("log")
         a1.legend(ncol=2)
     a1.set(xlabel=r"$\sin\theta$", ylabel=r"$P(\sin\theta)$", title=rf"$N_G={N}$")
     if _per_E(red, cs, plt, a2, "contact_length", N):
@@ -267,7 +284,6 @@ def fig_connectivity(red, cs, plt):
     N = cs.largest_N()
     for ax, name, lab in ((a1, "z_g", "z_g"), (a2, "z_v", "z_v")):
         if _per_E(red, cs, plt, ax, name, N, positive=True, marker="o", ms=3):
-            ax.set_yscale("log")
             d = red.distributions[name]
             used = np.flatnonzero(d["counts"][cs.at(N=N)].sum(axis=0) > 0)
             if len(used):
@@ -283,8 +299,7 @@ def fig_polygon_areas(red, cs, plt):
     N = 2048 if 2048 in cs.Ns else cs.largest_N()
     for ax, name, lab, peaks in ((a1, "alpha_e", r"\alpha_e", red.peaks["alpha_e"]),
                                  (a2, "alpha_v", r"\alpha_v", red.peaks["alpha_v"])):
-        if _per_E(red, cs, plt, ax, name, N, positive=True):
-            ax.set_yscale("log")
+        if _per_E(red, cs, plt, ax, name, N, positive=True, step=True):
             for k, p in enumerate(peaks):
                 ax.axvline(p, color="0.4", lw=0.6, ls="--",
                            label="three-disk peaks" if k == 0 else None)
@@ -342,6 +357,44 @@ def fig_fictitious(red, cs, plt):
     return fig
 
 
+_SYMBOL = {"contact_angle": r"\theta", "contact_length": r"(1-r)/\sqrt{E_G}", "z_g": "z_g",
+           "z_v": "z_v", "alpha_e": r"\alpha_e", "alpha_v": r"\alpha_v",
+           "fictitious_length": "r-1"}
+
+
+def fig_self_averaging(red, cs, plt):
+    """Spread over packings of <x^n>_Omega / <x^n> against N_G (-> 0 when self-averaging)."""
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
+    E0 = cs.lowest_E()
+    names = sorted(red.self_averaging)
+    for n, ax in enumerate(axes):
+        shown = False
+        for col, name in zip(_colors(len(names), "tab10"), names):
+            sa = red.self_averaging[name]
+            i = cs.at(E=E0)
+            y = sa["ratio_std"][i, n]
+            ok = np.isfinite(y) & (y > 0)
+            if not ok.any():
+                continue
+            sym = _SYMBOL.get(name, name.replace("_", " "))
+            ax.plot(red.cells["N"][i][ok], y[ok], "o-", ms=3, lw=0.8, color=col,
+                    label=rf"${sym}$")
+            shown = True
+        if shown:
+            if cs.Ns:
+                nn = np.array([min(cs.Ns), max(cs.Ns)], float)
+                ax.plot(nn, 0.5 * (nn / nn[0]) ** -0.5, "k--", lw=0.8, label=r"$\propto N_G^{-1/2}$")
+            ax.set(xscale="log", yscale="log")
+            ax.legend(ncol=2)
+        else:
+            _placeholder(ax, "no per-object distributions in this file")
+        k = n + 1
+        ax.set(xlabel=r"$N_G$",
+               ylabel=rf"spread of $\langle x^{k}\rangle_\Omega / \langle x^{k}\rangle$",
+               title=rf"$E_G=${_sci(E0)}" if E0 else "")
+    return fig
+
+
 FIGURES = {
     "area_distributions": fig_area_distributions,
     "area_width_scaling": fig_width_scaling,
@@ -354,6 +407,7 @@ FIGURES = {
     "polygon_areas": fig_polygon_areas,
     "radial": fig_radial,
     "fictitious_length": fig_fictitious,
+    "self_averaging": fig_self_averaging,
 }
 
 

@@ -278,6 +278,11 @@ def _group_stats(values, cell, C):
     return n, mean, std, sem
 
 
+def _min_positive(x):
+    x = x[x > 0]
+    return float(x.min()) if len(x) else np.nan
+
+
 def reduce_campaign(paths, settings: Settings | None = None, *, distributions=True) -> Reduction:
     """Reduce campaign file(s) (see the module docstring). ``distributions=False`` skips the
     histogram pass (scalars, fits and the table only)."""
@@ -416,7 +421,7 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                        coeff_err=f.coeff_err, exponent=f.exponent, exponent_err=f.exponent_err,
                        chi2=f.chi2, dof=f.dof, chi2_dof=f.chi2_dof, n_points=f.n_points,
                        n_boot=f.n_boot, ok=f.ok, message=f.message,
-                       x_min=float(cells[f"mean_{absc}"][ok_cells].min()) if len(ok_cells) else np.nan,
+                       x_min=_min_positive(cells[f"mean_{absc}"][ok_cells]),
                        x_max=float(cells[f"mean_{absc}"][ok_cells].max()) if len(ok_cells) else np.nan)
             fit_records.append(rec)
             residuals.append(res)

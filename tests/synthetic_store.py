@@ -49,6 +49,7 @@ class Truth:
     sigma_P: float = 0.05
     c_Z: float = 3.0
     sigma_Z: float = 0.05
+    iso_E: float = 0.0   # below this E_G every packing is isostatic: delta_Z = 0 exactly
 
     def A_star(self, N):
         return self.A_inf + self.a_N / np.asarray(N, float)
@@ -135,6 +136,7 @@ def scalars_for(c: SyntheticCampaign, variant, N, E, rng):
     A_G = t.A_star(N) + vshift + t.c_A * E_G**t.beta_A + rng.normal(0, 1, T) * t.sigma_A / np.sqrt(N)
     psi = t.P_star(N) + t.c_P * E_G**t.beta_P + rng.normal(0, 1, T) * t.sigma_P / np.sqrt(N)
     dZ = t.c_Z * E_G**0.25 * (1 + t.sigma_Z * rng.normal(0, 1, T))
+    dZ = np.where(E_G < t.iso_E, 0.0, dZ)
     N_R = rng.binomial(N.astype(np.int64), 0.04)
     N_G = N - N_R
     z_iso = 4.0 - 2.0 / N_G

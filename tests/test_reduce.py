@@ -8,7 +8,7 @@ import pytest
 
 from campaign import cli
 from campaign import reduce as R
-from synthetic_store import SyntheticCampaign, split_store, write_store
+from synthetic_store import SyntheticCampaign, Truth, split_store, write_store
 
 FAST = R.Settings(n_boot=150)
 
@@ -342,3 +342,18 @@ def test_in_place_refuses_while_the_journal_is_locked(tmp_path, capsys):
     assert cli.main(["reduce", str(path), "--in-place", "--boot", "0"]) == 0
     with h5py.File(path, "r") as f:
         assert "reduced" in f
+
+
+def test_isostatic_cells_enter_the_delta_Z_fit_at_the_intercept(tmp_path):
+    camp = SyntheticCampaign(N=(256,), seeds=12, truth=Truth(iso_E=1e-10))
+    write_store(tmp_path / "i.h5", camp)
+    red = R.reduce_campaign(tmp_path / "i.h5", FAST)
+    zero = red.cells["mean_delta_Z"] == 0
+    assert zero.sum() == 3  # E = 1e-11, 1e-13, 1e-15
+    k = next(j for j, f in enumerate(red.fits) if f["abscissa"] == "delta_Z" and f["quantity"] == "A_G")
+    f = red.fits[k]
+    assert f["ok"] and f["n_points"] == len(camp.E)
+    assert np.all(np.isfinite(red.residuals[k][zero]))
+    # the isostatic cells sit at A* + c E^0.28 with E <= 1e-11: A* within their spread
+    assert abs(f["intercept"] - camp.truth.A_star(256)) < 4 * f["intercept_err"] + 2e-4
+    assert f["x_min"] > 0
