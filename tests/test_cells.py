@@ -119,3 +119,18 @@ def test_bad_input(bad, match):
     args.update(bad)
     with pytest.raises(ValueError, match=match):
         candidate_pairs(**args)
+
+
+def test_core_callable_from_numba():
+    from numba import njit
+
+    from kernels.cells import _candidate_pairs_core
+
+    @njit
+    def count(pos, rad, box, skin):
+        i, j = _candidate_pairs_core(pos, rad, box, skin)
+        return i.shape[0]
+
+    rng = np.random.default_rng(2)
+    pos, rad, box = random_system(rng, 50, (1.0, 1.0), 0.5)
+    assert count(pos, rad, box, 0.01) == len(brute_pairs(pos, rad, box, 0.01))

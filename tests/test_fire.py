@@ -1,0 +1,135 @@
+"""FIRE 2.0 minimiser and the rattler-aware force residual."""
+
+import numpy as np
+import pytest
+
+from kernels.fire import STATUS_NAMES, minimize, nonrattlers
+from kernels.potential import energy, forces
+
+
+def ref_contacts(pos, rad, box):
+    out = []
+    for i in range(len(pos)):
+        for j in range(i + 1, len(pos)):
+            d = pos[j] - pos[i]
+            d = d - box * np.round(d / box)
+            if np.hypot(*d) < rad[i] + rad[j]:
+                out.append((i, j))
+    return out
+
+
+def ref_nonrattlers(n, contacts):
+    """Remove disks with fewer than 3 contacts, repeatedly (plain loops)."""
+    alive = set(range(n))
+    while True:
+        deg = {i: 0 for i in alive}
+        for i, j in contacts:
+            if i in alive and j in alive:
+                deg[i] += 1
+                deg[j] += 1
+        drop = {i for i in alive if deg[i] < 3}
+        if not drop:
+            break
+        alive -= drop
+    return np.array([i in alive for i in range(n)])
+
+
+def ref_residual(pos, rad, box, alpha):
+    c = ref_contacts(pos, rad, box)
+    keep = ref_nonrattlers(len(pos), c)
+    f = forces(pos, rad, box, alpha)
+    fc = []
+    for i, j in c:
+        if keep[i] and keep[j]:
+            d = pos[j] - pos[i]
+            d = d - box * np.round(d / box)
+            s = rad[i] + rad[j]
+            fc.append((1 - np.hypot(*d) / s) ** (alpha - 1) / s)
+    return np.max(np.hypot(f[keep, 0], f[keep, 1])) / np.mean(fc), keep
+
+
+def random_dense(seed, n=64, phi=0.9):
+    rng = np.random.default_rng(seed)
+    box = np.array([1.0, 1.0])
+    pos = rng.random((n, 2))
+    rel = np.where(np.arange(n) < n // 2, 1.4, 1.0)
+    rad = rel * np.sqrt(phi / (np.pi * np.sum(rel ** 2)))
+    return pos, rad, box
+
+
+def test_nonrattlers_match_reference():
+    for seed in range(4):
+        pos, rad, box = random_dense(seed, n=80, phi=0.8)
+        ref = ref_nonrattlers(80, ref_contacts(pos, rad, box))
+        got = nonrattlers(pos, rad, box)
+        assert np.array_equal(got, ref)
+    assert 0 < ref.sum() < 80  # the case is not trivial
+
+
+def test_nonrattlers_chain_removal():
+    # a disk with 3 contacts, two of which are to disks with 1 contact: all rattlers
+    box = np.array([10.0, 10.0])
+    pos = np.array([[5.0, 5.0], [5.9, 5.0], [4.1, 5.0], [5.0, 5.9], [6.8, 5.0]])
+    rad = np.full(5, 0.5)
+    assert not nonrattlers(pos, rad, box).any()
+
+
+@pytest.mark.parametrize("alpha", [2.0, 2.5])
+def test_minimize_balances_forces(alpha):
+    pos, rad, box = random_dense(7, n=64, phi=0.9)
+    e0 = energy(pos, rad, box, alpha)
+    res = minimize(pos, rad, box, alpha, force_tolerance=1e-8)
+    assert res.status == "converged"
+    assert res.energy < e0 and res.energy > 0  # phi = 0.9 is above jamming
+    assert np.all(res.positions >= 0) and np.all(res.positions < 1)
+    resid, keep = ref_residual(res.positions, rad, box, alpha)
+    assert resid < 1e-8 and resid == pytest.approx(res.residual, rel=1e-6, abs=1e-12)
+    assert keep.sum() > 48
+    assert res.energy == pytest.approx(energy(res.positions, rad, box, alpha), rel=1e-12)
+
+
+def test_minimize_separates_dilute_disks():
+    # well below jamming the minimum has no overlap at all: nothing to balance
+    pos, rad, box = random_dense(3, n=64, phi=0.5)
+    res = minimize(pos, rad, box, 2.0)
+    assert res.status == "converged" and res.energy == 0.0 and res.residual == 0.0
+
+
+def test_triangular_crystal_is_a_minimum():
+    # compressed triangular crystal: every force vanishes by symmetry
+    nx, ny = 6, 4
+    box = np.array([1.0, np.sqrt(3) / 2 * ny / nx])
+    a = 1.0 / nx
+    pos = np.array([[(i + 0.5 * (j % 2)) * a, j * a * np.sqrt(3) / 2]
+                    for j in range(ny) for i in range(nx)])
+    rad = np.full(len(pos), 0.51 * a)
+    res = minimize(pos, rad, box, 2.0)
+    assert res.status == "converged" and res.steps == 0
+    assert res.residual < 1e-12
+    # six contacts each at overlap 1 - a/(1.02 a)
+    assert res.energy == pytest.approx(len(pos) * 3 * 0.5 * (1 - 1 / 1.02) ** 2, rel=1e-12)
+
+
+def test_max_steps_is_reported():
+    pos, rad, box = random_dense(5, n=64, phi=0.9)
+    res = minimize(pos, rad, box, 2.0, force_tolerance=1e-12, max_steps=10)
+    assert res.status == "max_steps" and res.steps == 10 and res.residual > 1e-12
+    assert "max_steps" in STATUS_NAMES
+
+
+def test_deterministic():
+    pos, rad, box = random_dense(9, n=64, phi=0.88)
+    a = minimize(pos, rad, box, 2.0)
+    b = minimize(pos, rad, box, 2.0)
+    assert a.positions.tobytes() == b.positions.tobytes() and a.steps == b.steps
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(force_tolerance=0.0), "force_tolerance"),
+    (dict(max_steps=-1), "max_steps"),
+    (dict(skin=-0.1), "skin"),
+])
+def test_bad_settings(kw, match):
+    pos, rad, box = random_dense(1, n=8, phi=0.5)
+    with pytest.raises(ValueError, match=match):
+        minimize(pos, rad, box, 2.0, **kw)
