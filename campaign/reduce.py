@@ -421,8 +421,8 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                        coeff_err=f.coeff_err, exponent=f.exponent, exponent_err=f.exponent_err,
                        chi2=f.chi2, dof=f.dof, chi2_dof=f.chi2_dof, n_points=f.n_points,
                        n_boot=f.n_boot, ok=f.ok, message=f.message,
-                       x_min=_min_positive(cells[f"mean_{absc}"][ok_cells]),
-                       x_max=float(cells[f"mean_{absc}"][ok_cells].max()) if len(ok_cells) else np.nan)
+                       x_min=_min_positive(xs := cells.get(f"mean_{absc}", np.zeros(C))[ok_cells]),
+                       x_max=float(xs.max()) if len(xs) else np.nan)
             fit_records.append(rec)
             residuals.append(res)
             row[key], row[f"{key}_err"] = f.intercept, f.intercept_err

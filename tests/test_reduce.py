@@ -357,3 +357,17 @@ def test_isostatic_cells_enter_the_delta_Z_fit_at_the_intercept(tmp_path):
     # the isostatic cells sit at A* + c E^0.28 with E <= 1e-11: A* within their spread
     assert abs(f["intercept"] - camp.truth.A_star(256)) < 4 * f["intercept_err"] + 2e-4
     assert f["x_min"] > 0
+
+
+def test_a_fresh_file_without_scalar_columns(tmp_path):
+    """The engine creates /scalars/<name> with the first finished packing."""
+    camp = SyntheticCampaign(N=(64, 128), E=(1e-3, 1e-6, 1e-9, 1e-12), seeds=3)
+    path = tmp_path / "fresh.h5"
+    write_store(path, camp, status=np.zeros(camp.n_tasks, np.int8))
+    with h5py.File(path, "r+") as f:
+        for k in list(f["scalars"]):
+            del f[f"scalars/{k}"]
+    red = R.reduce_campaign(path, FAST)
+    assert red.meta["pending"] == camp.n_tasks and red.meta["done"] == 0
+    assert any("no finished packings" in n for n in red.notes)
+    assert all(np.isnan(r["A_G_star_E"]) for r in red.rows)
