@@ -205,7 +205,7 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
             hosts = mpi_comm.gather(socket.gethostname(), root=0)
             store.run["hosts"] = sorted(set(hosts))
             comm = MPIComm(mpi_comm)
-        elif launcher == "inline":
+        elif launcher == "inline" or todo == 0:  # nothing to do: no worker processes to start
             comm = InlineComm(context)
         else:
             comm = LocalComm(context, min(n_workers, max(1, todo)))
@@ -213,8 +213,6 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
         show = not args.quiet
         progress = Progress(len(tasks), sidecar=Path(str(out) + ".progress.json"),
                             enabled=None if show else False)
-        if show and todo and not progress.tty:
-            pass  # quiet when not a terminal: only the final summary below
         master = Master(comm, store, tasks, retries=retries, depth=max(1, args.depth), progress=progress,
                         grace=args.grace, redo_failed=args.retry_failed, log=_log)
         t0 = time.monotonic()
