@@ -314,6 +314,10 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
         cells[f"std_{name}"] = std
         cells[f"sem_{name}"] = sem
     notes = []
+    schema = str(fin.attrs.get("schema", ""))
+    if not schema.startswith("jamming-campaign/"):
+        notes.append(f"{fin.paths[0]}: unknown store schema {schema!r} (expected "
+                     "jamming-campaign/1); reading it as that layout")
     if len(fin) == 0:
         notes.append("no finished packings yet: nothing to fit")
     done_total = int(len(fin))

@@ -371,3 +371,14 @@ def test_a_fresh_file_without_scalar_columns(tmp_path):
     assert red.meta["pending"] == camp.n_tasks and red.meta["done"] == 0
     assert any("no finished packings" in n for n in red.notes)
     assert all(np.isnan(r["A_G_star_E"]) for r in red.rows)
+
+
+def test_files_with_different_bins_are_refused(tmp_path, capsys):
+    camp = SyntheticCampaign(N=(64,), E=(1e-3, 1e-6), seeds=2)
+    write_store(tmp_path / "a.h5", camp)
+    write_store(tmp_path / "b.h5", camp)
+    with h5py.File(tmp_path / "b.h5", "r+") as f:
+        e = f["histograms/z_g/edges"]
+        e[...] = e[...] + 0.25
+    assert cli.main(["reduce", str(tmp_path / "a.h5"), str(tmp_path / "b.h5")]) == 2
+    assert "z_g" in capsys.readouterr().err
