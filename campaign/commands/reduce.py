@@ -29,7 +29,7 @@ def configure(parser):
                              "(default 3)")
     parser.add_argument("--in-place", action="store_true",
                         help="also write the /reduced group into FILE itself (refused while "
-                             "tasks are pending or another process has the file open)")
+                             "tasks are pending or while a run holds the file)")
 
 
 def main(args) -> int:
