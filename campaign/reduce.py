@@ -97,16 +97,20 @@ class Finished:
             if len(rows) == 0:
                 continue
             with _open(path, h5py) as f:
-                ds = f[f"histograms/{name}/counts"]
-                lo = int(rows.min())
-                hi = int(rows.max()) + 1
-                for s in range(lo, hi, block):
-                    e = min(s + block, hi)
-                    m = (rows >= s) & (rows < e)
-                    if not m.any():
-                        continue
-                    data = ds[s:e]
-                    yield pos[m], np.asarray(data[rows[m] - s], dtype=np.int64)
+                try:
+                    ds = f[f"histograms/{name}/counts"]
+                    lo = int(rows.min())
+                    hi = int(rows.max()) + 1
+                    for s in range(lo, hi, block):
+                        e = min(s + block, hi)
+                        m = (rows >= s) & (rows < e)
+                        if not m.any():
+                            continue
+                        data = ds[s:e]
+                        yield pos[m], np.asarray(data[rows[m] - s], dtype=np.int64)
+                except (OSError, KeyError, ValueError, RuntimeError) as exc:
+                    raise UserError(f"{path}: could not read histogram {name!r} ({exc}); if a "
+                                    "run is writing the file, try again in a moment") from None
 
 
 def _open(path, h5py):
@@ -158,7 +162,7 @@ def load_finished(paths) -> Finished:
                 if "histograms" in f:
                     for n in f["histograms"]:
                         hedges[n] = np.asarray(f[f"histograms/{n}/edges"][...], dtype=float)
-            except (OSError, KeyError) as exc:
+            except (OSError, KeyError, ValueError, RuntimeError) as exc:
                 raise UserError(f"{path}: could not read the store ({exc}); if a run is "
                                 "writing it, try again in a moment") from None
         attrs = attrs or file_attrs
