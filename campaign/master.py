@@ -2,8 +2,9 @@
 
 It talks to a ``comm`` (campaign.comm: inline, local processes or MPI) and a
 ``store`` (campaign.store) and knows nothing else about either. Tasks go out
-most expensive first (campaign.tasks.cost), at most ``depth`` per worker at a
-time so that a worker never waits for the master between two short tasks.
+most expensive first (campaign.tasks.cost), ``depth`` (2) per worker at a time
+so that a worker never waits for the master between two tasks (more when tasks
+are only milliseconds long).
 
 * A failed task (an error record from its worker, or a worker that died under
   it) goes back into the queue until it has had ``1 + retries`` attempts; then
@@ -45,6 +46,8 @@ class Master:
         self.stop_since = None
         self.signals = 0
         self.n_done = self.n_failed = 0
+        self._finished, self._cost, self._last_progress = 0, 0.0, 0.0
+        self.mean_wall = None  # running mean of the workers' task times (sets the dispatch depth)
 
     # ---- signals
     def _on_signal(self, signum, frame):
@@ -69,9 +72,17 @@ class Master:
         return old
 
     # ---- scheduling
+    def _depth(self):
+        """Tasks kept at a worker: ``depth``, more when tasks are so short that a worker
+        would otherwise wait for the master (about 20 ms of work queued, at most 16)."""
+        if self.mean_wall is None or self.mean_wall <= 0:
+            return self.depth
+        return max(self.depth, min(16, 1 + int(0.02 / self.mean_wall)))
+
     def _dispatch(self, w):
         q = self.in_flight[w]
-        while len(q) < self.depth and self.queue and self.stop_reason is None:
+        depth = self._depth()
+        while len(q) < depth and self.queue and self.stop_reason is None:
             i = self.queue[0][1]
             task = self.tasks[i]
             if self.can_dispatch is not None and not self.can_dispatch(task):
@@ -104,12 +115,18 @@ class Master:
 
     def _tick(self, finished=0, cost=0.0, force=False):
         self.store.maybe_flush()
-        if self.progress is not None:
+        if self.progress is None:
+            return
+        self._finished += finished
+        self._cost += cost
+        now = time.monotonic()
+        if force or now - self._last_progress >= 0.2:
             c = self.store.counts_by_status()
             running = self._running()
             self.progress.update(done=c["done"], failed=c["failed"], running=running,
                                  remaining=max(0, c["pending"] - running), cost_remaining=self.cost_remaining,
-                                 finished_now=finished, cost_now=cost, force=force)
+                                 finished_now=self._finished, cost_now=self._cost, force=True)
+            self._finished, self._cost, self._last_progress = 0, 0.0, now
 
     def run(self) -> dict:
         old = self._install_signals()
@@ -132,6 +149,9 @@ class Master:
                         self.in_flight[w].remove(i)
                     except ValueError:
                         continue  # not ours (cannot happen with these comms); ignore
+                    wall = summary.get("wall")
+                    if wall is not None and wall == wall:
+                        self.mean_wall = wall if self.mean_wall is None else 0.9 * self.mean_wall + 0.1 * wall
                     finished, cost = self._outcome(i, attempt, summary)
                     if w in self.alive:
                         self._dispatch(w)

@@ -41,8 +41,9 @@ class FakeComm:
 
     launcher = "fake"
 
-    def __init__(self, ctx, n, on_result=None, die=None):
-        self.ctx, self.n_workers = ctx, n
+    def __init__(self, ctx, n, on_result=None, die=None, wall=1.0):
+        self.ctx, self.n_workers, self.wall = ctx, n, wall
+        self.max_queue = 0
         self.fn = SyntheticTask()
         self.queues = {w: deque() for w in range(1, n + 1)}
         self.sent = []
@@ -53,7 +54,7 @@ class FakeComm:
     def send(self, w, payload):
         self.sent.append((w, payload))
         self.queues[w].append(payload)
-        assert len(self.queues[w]) <= 2  # the master's depth
+        self.max_queue = max(self.max_queue, len(self.queues[w]))
 
     def recv(self, timeout=None):
         busy = [w for w in sorted(self.queues) if self.queues[w]]
@@ -71,7 +72,10 @@ class FakeComm:
         self.received += 1
         if self.on_result:
             self.on_result(self.received)
-        return w, ("result", payload["index"], payload["attempt"], run_task(self.fn, payload, self.ctx, w))
+        summary = run_task(self.fn, payload, self.ctx, w)
+        if self.wall is not None:
+            summary["wall"] = self.wall
+        return w, ("result", payload["index"], payload["attempt"], summary)
 
     def close(self, abandon=False):
         pass
@@ -97,9 +101,18 @@ def test_inline_run_records_every_task(tmp_path):
                 assert np.array_equal(f[f"histograms/{h}/counts"][t.index], c)
 
 
+@pytest.mark.parametrize("wall, depth", [(1.0, 2), (1e-4, 16)])
+def test_dispatch_depth_follows_task_length(tmp_path, wall, depth):
+    spec, tasks, ctx, store = _setup(tmp_path)
+    comm = FakeComm(ctx, 2, wall=wall)
+    Master(comm, store, tasks, depth=2).run()
+    store.close()
+    assert comm.max_queue == depth  # 2 for real packings; up to 16 for millisecond tasks
+
+
 def test_dispatch_is_most_expensive_first_and_keeps_workers_fed(tmp_path):
     spec, tasks, ctx, store = _setup(tmp_path)
-    comm = FakeComm(ctx, 3)
+    comm = FakeComm(ctx, 3, wall=1.0)
     Master(comm, store, tasks, retries=0, depth=2).run()
     store.close()
     costs = [task_cost(tasks[p["index"]]) for _, p in comm.sent]

@@ -215,14 +215,15 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
                             enabled=None if show else False)
         master = Master(comm, store, tasks, retries=retries, depth=max(1, args.depth), progress=progress,
                         grace=args.grace, redo_failed=args.retry_failed, log=_log)
-        t0 = time.monotonic()
+        t0, cpu0 = time.monotonic(), time.process_time()
         outcome = master.run()
+        cpu = time.process_time() - cpu0
         progress.finish()
         comm.close(abandon=outcome["abandoned"] > 0)
         comm = None
         counts = store.counts_by_status()
         store.close(completed=outcome["done"], failed=outcome["failed"], stopped=outcome["stopped"],
-                    seconds=round(time.monotonic() - t0, 3))
+                    seconds=round(time.monotonic() - t0, 3), master_cpu_seconds=round(cpu, 3))
     except BaseException:
         if comm is not None:
             try:
