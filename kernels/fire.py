@@ -52,7 +52,7 @@ F_A = 0.99
 DT_MAX_FACTOR = 10.0
 DT_MIN_FACTOR = 0.02
 N_NEG_MAX = 2000
-CHECK_EVERY = 25
+CHECK_EVERY = 100
 
 # status codes of _fire_core
 CONVERGED = 0

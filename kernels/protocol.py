@@ -77,6 +77,26 @@ def _dt_for(radii, alpha, e_per_disk):
 
 
 @njit(cache=True)
+def _spatial_order(positions, box, cell):
+    """Permutation sorting disks by cell (row-major cells about ``cell`` wide, then
+    index): neighbours in space become neighbours in memory. Deterministic."""
+    n = positions.shape[0]
+    nx = max(1, int(box[0] / cell))
+    ny = max(1, int(box[1] / cell))
+    key = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        x = positions[i, 0] - box[0] * np.floor(positions[i, 0] / box[0])
+        y = positions[i, 1] - box[1] * np.floor(positions[i, 1] / box[1])
+        cx = min(int(x / box[0] * nx), nx - 1)
+        cy = min(int(y / box[1] * ny), ny - 1)
+        # serpentine rows keep consecutive cells adjacent
+        if cy % 2 == 1:
+            cx = nx - 1 - cx
+        key[i] = (cy * nx + cx) * n + i
+    return np.argsort(key)
+
+
+@njit(cache=True)
 def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search,
                 max_steps, skin_factor, delta0, rule, max_radius, energy_step):
     """Run the O'Hern search in place.
@@ -91,7 +111,9 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
     lowers the energy by at most this factor per minimisation.
 
     Returns ``(status, scale, energy_total, virial, residual, iterations,
-    force_evaluations)``; the final radii are ``scale * radii0``.
+    force_evaluations)``; the final radii are ``scale * radii0``. Internally the disks
+    are renumbered by position after the first minimisation (``_spatial_order``) and
+    the result is written back in the caller's order.
     """
     n = positions.shape[0]
     e_max = e_min * (1.0 + window)
@@ -109,6 +131,10 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
     mean_d /= n
 
     scale = 1.0
+    # work on a copy in spatial (cell) order for memory locality; see _spatial_order
+    order = np.arange(n)
+    pos = positions.copy()
+    rad0 = radii0.copy()
     radii = radii0.copy()
     delta = delta0
     last_dir = 0
@@ -130,15 +156,22 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
     while True:
         it += 1
         for i in range(n):
-            radii[i] = scale * radii0[i]
+            radii[i] = scale * rad0[i]
         skin = skin_factor * mean_d * scale
         dt0 = _dt_for(radii, alpha, e_guess)
-        st, steps, nf, e, w, res, nc = _fire_core(positions, radii, box, alpha, search_tol,
+        st, steps, nf, e, w, res, nc = _fire_core(pos, radii, box, alpha, search_tol,
                                                   max_steps, skin, dt0, abort)
         nforce += nf
+        if it == 1:
+            # the random start has relaxed: reorder the disks by cell
+            perm = _spatial_order(pos, box, mean_d)
+            pos = pos[perm].copy()
+            rad0 = rad0[perm].copy()
+            radii = radii[perm].copy()
+            order = order[perm].copy()
         if st == CONVERGED and e_min <= e / n <= e_max and search_tol > tol:
             # polish to the final tolerance at the same radii
-            st, steps, nf, e, w, res, nc = _fire_core(positions, radii, box, alpha, tol,
+            st, steps, nf, e, w, res, nc = _fire_core(pos, radii, box, alpha, tol,
                                                       max_steps, skin, dt0, abort)
             nforce += nf
         e_last = e
@@ -212,8 +245,8 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
     for i in range(n):
         for k in range(2):
             L = box[k]
-            x = positions[i, k] - L * np.floor(positions[i, k] / L)
+            x = pos[i, k] - L * np.floor(pos[i, k] / L)
             if x >= L:
                 x -= L
-            positions[i, k] = x
+            positions[order[i], k] = x
     return status, scale, e_last, w_last, res_last, it, nforce

@@ -1,0 +1,222 @@
+"""Benchmark of the packing kernels: per-step cost and time to a jammed packing.
+
+For each N (default 256, 1024, 4096):
+
+* per-step cost of our FIRE 2.0 loop: a fixed number of steps relaxing a packing
+  jammed at E_G = 1e-4 after a small shrink (Verlet list with the default skin,
+  harmonic potential, float64), median over seeds of wall time / steps;
+* the same measurement with JAX MD's ``minimize.fire_descent`` on the CPU (float64,
+  ``energy.soft_sphere_neighbor_list`` with the same exponent, contact distances
+  ``sigma_ij = r_i + r_j`` and skin, the whole loop in one ``jax.lax.fori_loop``
+  after a warm-up call), when ``jax`` and ``jax_md`` are importable (the optional
+  ``bench`` extra: ``pip install '.[bench]'``);
+* time to a jammed packing, ``kernels.jam(N, E, seed)``, for each E (default 1e-6
+  and 1e-16), median over seeds, with force evaluations and O'Hern iterations.
+
+Prints a table and, with ``--json FILE``, writes every measurement as JSON. For the
+one-core comparison run it pinned to one CPU, e.g. ``taskset -c 0`` (XLA then uses
+one thread, numba kernels are serial anyway).
+
+    python benchmarks/bench_jam.py --json bench.json
+    python benchmarks/bench_jam.py --sizes 256 1024 --energies 1e-6 --seeds 2   # quick
+"""
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+
+import numpy as np
+
+
+def _our_step_cost(n, seed, steps, exponent=2.0):
+    """Per-step cost of our FIRE loop on a relaxing near-jammed state.
+
+    The state is a packing jammed at E_G = 1e-4 whose radii are then shrunk by a
+    quarter of the typical overlap, so that every step does real work, as in the
+    O'Hern search. Tolerance 0: exactly ``steps`` steps are taken.
+    """
+    import kernels
+    from kernels.fire import _fire_core
+    from kernels.jamming import DEFAULTS
+    from kernels.protocol import _dt_for, _spatial_order
+
+    p = kernels.jam(n, 1e-4, seed)
+    box = np.array(p.box)
+    # the order jam() works in (disks sorted by cell), used for both codes
+    perm = _spatial_order(np.array(p.positions), box, 2.0 * float(np.mean(p.radii)))
+    rad = np.array(p.radii)[perm] * (1.0 - 0.25 * np.sqrt(2e-4))
+    pos = np.array(p.positions)[perm]
+    skin = DEFAULTS["skin"] * 2.0 * rad.mean()
+    dt0 = _dt_for(rad, exponent, 1e-4)
+    _fire_core(pos.copy(), rad, box, exponent, 0.0, 5, skin, dt0, 0.0)  # warm
+    q = pos.copy()
+    t = time.perf_counter()
+    out = _fire_core(q, rad, box, exponent, 0.0, steps, skin, dt0, 0.0)
+    wall = time.perf_counter() - t
+    return wall / out[2], pos, rad, box, skin
+
+
+def _jaxmd_step_cost(pos, rad, box, skin, steps, exponent=2.0):
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_platforms", "cpu")
+    import jax.numpy as jnp
+    from jax_md import energy, minimize, space
+
+    n = len(rad)
+    radii = np.unique(rad)
+    species = np.searchsorted(radii, rad)
+    sigma = radii[:, None] + radii[None, :]
+    disp, shift = space.periodic(jnp.asarray(box))
+    neighbor_fn, energy_fn = energy.soft_sphere_neighbor_list(
+        disp, jnp.asarray(box), species=jnp.asarray(species), sigma=jnp.asarray(sigma),
+        epsilon=1.0, alpha=exponent, dr_threshold=skin, fractional_coordinates=False)
+    R = jnp.asarray(pos)
+    nbrs = neighbor_fn.allocate(R)
+    s = 2.0 * rad.mean()
+    init, apply = minimize.fire_descent(energy_fn, shift, dt_start=0.04 * s, dt_max=0.4 * s)
+
+    # cross-check: same potential as ours
+    from kernels.potential import energy as our_energy
+
+    e_jax = float(energy_fn(R, neighbor=nbrs))
+    e_ours = our_energy(pos, rad, box, exponent)
+    if not np.isclose(e_jax, e_ours, rtol=1e-9):
+        raise RuntimeError(f"JAX MD energy {e_jax} differs from ours {e_ours}")
+
+    @jax.jit
+    def run(state, nbrs, k):
+        def body(_, carry):
+            st, nb = carry
+            st = apply(st, neighbor=nb)
+            nb = nb.update(st.position)
+            return st, nb
+        return jax.lax.fori_loop(0, k, body, (state, nbrs))
+
+    state = init(R, neighbor=nbrs)
+    out = run(state, nbrs, steps)  # compile
+    jax.block_until_ready(out[0].position)
+    if bool(out[1].did_buffer_overflow):
+        nbrs = neighbor_fn.allocate(out[0].position, extra_capacity=64)
+        state = init(R, neighbor=nbrs)
+        out = run(state, nbrs, steps)
+        jax.block_until_ready(out[0].position)
+    t = time.perf_counter()
+    out = run(state, nbrs, steps)
+    jax.block_until_ready(out[0].position)
+    wall = time.perf_counter() - t
+    overflow = bool(out[1].did_buffer_overflow)
+    return wall / steps, overflow
+
+
+def _jam_time(n, e, seed, **settings):
+    import kernels
+
+    t = time.perf_counter()
+    p = kernels.jam(n, e, seed, **settings)
+    wall = time.perf_counter() - t
+    return dict(seconds=wall, status=p.status, energy=p.energy, phi=p.phi,
+                force_residual=p.force_residual, iterations=p.iterations,
+                force_evaluations=p.force_evaluations, n_nonrattlers=p.n_nonrattlers)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[256, 1024, 4096])
+    ap.add_argument("--energies", type=float, nargs="+", default=[1e-6, 1e-16])
+    ap.add_argument("--seeds", type=int, default=5, help="seeds per point (median)")
+    ap.add_argument("--steps", type=int, default=2000, help="FIRE steps per step-cost sample")
+    ap.add_argument("--no-jax", action="store_true", help="skip the JAX MD comparison")
+    ap.add_argument("--no-jam", action="store_true", help="skip the time-to-jam part")
+    ap.add_argument("--json", metavar="FILE", help="write all measurements as JSON")
+    args = ap.parse_args(argv)
+
+    import numba
+
+    import kernels
+
+    kernels.jam(64, 1e-4, 0)  # load or compile the numba cache outside the timings
+    have_jax = False
+    if not args.no_jax:
+        try:
+            import jax  # noqa: F401
+            import jax_md  # noqa: F401
+            have_jax = True
+        except ImportError as exc:  # the optional `bench` extra is not installed
+            print(f"# JAX MD not available ({exc}); install '.[bench]' to compare",
+                  file=sys.stderr)
+
+    results = dict(
+        machine=dict(python=platform.python_version(), numpy=np.__version__,
+                     numba=numba.__version__, cpu=platform.processor() or platform.machine(),
+                     threads_numba=numba.get_num_threads(), cpus=os.cpu_count()),
+        step_cost=[], time_to_jam=[])
+    if have_jax:
+        import jax
+        import importlib.metadata as md
+
+        results["machine"]["jax"] = jax.__version__
+        results["machine"]["jax_md"] = md.version("jax-md")
+
+    for n in args.sizes:
+        ours, theirs, overflow = [], [], False
+        for seed in range(args.seeds):
+            c, pos, rad, box, skin = _our_step_cost(n, seed, args.steps)
+            ours.append(c)
+            if have_jax and seed < max(1, min(args.seeds, 3)):
+                j, ov = _jaxmd_step_cost(pos, rad, box, skin, args.steps)
+                theirs.append(j)
+                overflow |= ov
+        row = dict(n=n, ours_us=1e6 * statistics.median(ours),
+                   jaxmd_us=1e6 * statistics.median(theirs) if theirs else None,
+                   jaxmd_neighbor_overflow=overflow if theirs else None)
+        row["speedup"] = row["jaxmd_us"] / row["ours_us"] if theirs else None
+        results["step_cost"].append(row)
+        print(f"step cost N={n}: ours {row['ours_us']:.1f} us"
+              + (f", JAX MD {row['jaxmd_us']:.1f} us, ratio {row['speedup']:.1f}x"
+                 if theirs else ""), flush=True)
+
+    if not args.no_jam:
+        for e in args.energies:
+            for n in args.sizes:
+                runs = [_jam_time(n, e, seed) for seed in range(args.seeds)]
+                row = dict(n=n, energy=e,
+                           median_seconds=statistics.median(r["seconds"] for r in runs),
+                           median_force_evaluations=statistics.median(
+                               r["force_evaluations"] for r in runs),
+                           median_iterations=statistics.median(r["iterations"] for r in runs),
+                           converged=sum(r["status"] == "converged" for r in runs),
+                           runs=runs)
+                results["time_to_jam"].append(row)
+                print(f"jam N={n} E={e:g}: median {row['median_seconds']:.2f} s, "
+                      f"{row['converged']}/{len(runs)} converged", flush=True)
+
+    print()
+    print("| N | ours per step (us) | JAX MD per step (us) | ratio |")
+    print("|---:|---:|---:|---:|")
+    for r in results["step_cost"]:
+        j = f"{r['jaxmd_us']:.1f}" if r["jaxmd_us"] else "n/a"
+        s = f"{r['speedup']:.1f}x" if r["speedup"] else "n/a"
+        print(f"| {r['n']} | {r['ours_us']:.1f} | {j} | {s} |")
+    if results["time_to_jam"]:
+        print()
+        print("| N | E | median time to jam (s) | median force evaluations | "
+              "median iterations | converged |")
+        print("|---:|---:|---:|---:|---:|---:|")
+        for r in results["time_to_jam"]:
+            print(f"| {r['n']} | {r['energy']:g} | {r['median_seconds']:.2f} | "
+                  f"{r['median_force_evaluations']:.0f} | {r['median_iterations']:.0f} | "
+                  f"{r['converged']}/{len(r['runs'])} |")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(results, fh, indent=2)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
