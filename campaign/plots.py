@@ -80,14 +80,23 @@ def _placeholder(ax, text):
 
 
 # --------------------------------------------------------------------------- figures
+def _area_hist(red, i):
+    """Edges and counts of a cell's P(A_G) histogram (its bins only), or (None, None)."""
+    e = red.area_hist["edges"][i]
+    e = e[np.isfinite(e)]
+    if len(e) < 2:
+        return None, None
+    k = red.area_hist["counts"][i][:len(e) - 1]
+    return (e, k) if k.sum() > 0 else (None, None)
+
+
 def fig_area_distributions(red, cs, plt):
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.5))
     E0 = cs.lowest_E()
     for col, N in zip(_colors(len(cs.Ns)), cs.Ns):
         for i in cs.at(N=N, E=E0):
-            e = red.area_hist["edges"][i]
-            k = red.area_hist["counts"][i]
-            if not np.all(np.isfinite(e)) or k.sum() == 0:
+            e, k = _area_hist(red, i)
+            if e is None:
                 continue
             dens = k / k.sum() / np.diff(e)
             a1.stairs(dens, e, color=col, label=rf"$N_G={N}$")
@@ -101,9 +110,8 @@ def fig_area_distributions(red, cs, plt):
     N = 512 if 512 in cs.Ns else cs.largest_N()
     for col, E in zip(_colors(len(cs.Es), "plasma"), cs.Es):
         for i in cs.at(N=N, E=E):
-            e = red.area_hist["edges"][i]
-            k = red.area_hist["counts"][i]
-            if not np.all(np.isfinite(e)) or k.sum() == 0:
+            e, k = _area_hist(red, i)
+            if e is None:
                 continue
             a2.stairs(k / k.sum() / np.diff(e), e, color=col, label=rf"$E_G=${_sci(E)}")
     a2.set(xlabel=r"$A_G$", ylabel=r"$P(A_G)$", title=rf"$N_G={N}$")

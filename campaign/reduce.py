@@ -226,7 +226,8 @@ class Reduction:
     distributions: dict          # name -> {"edges", "counts" (C, nb), "density" (C, nb)};
     #                              sin_theta (derived from contact_angle) has no counts
     self_averaging: dict         # name -> {"ratio_mean" (C, 2), "ratio_std" (C, 2)}
-    area_hist: dict              # {"edges" (C, nb+1), "counts" (C, nb)}
+    area_hist: dict              # {"edges" (C, nb+1), "counts" (C, nb)}: a cell uses the
+    #                              first ~sqrt(n) bins; unused edges are NaN, counts 0
     fits: list                   # records (dicts), one per (variant, N, quantity, abscissa)
     residuals: np.ndarray        # (F, C) normalised residuals, NaN where a cell was not used
     width_scaling: list          # records per (variant, E)
@@ -354,8 +355,9 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
             lo, hi = v.min(), v.max()
             if hi <= lo:
                 hi = lo + abs(lo) * 1e-9 + 1e-300
-            a_edges[i] = np.linspace(lo, hi, s.area_bins + 1)
-            a_counts[i] = np.histogram(v, a_edges[i])[0]
+            nb = int(min(s.area_bins, max(4, round(np.sqrt(v.size)))))  # ~sqrt(n) bins
+            a_edges[i, :nb + 1] = np.linspace(lo, hi, nb + 1)
+            a_counts[i, :nb] = np.histogram(v, a_edges[i, :nb + 1])[0]
     cells.update(A_G_gauss_mean=gm[:, 0], A_G_gauss_sigma=gm[:, 1], A_G_gauss_mean_err=gm[:, 2],
                  A_G_gauss_sigma_err=gm[:, 3])
     width = []
