@@ -55,7 +55,7 @@ DEFAULT_BINS = {
     "alpha_v": np.linspace(0.0, 4.0, 401),
     "fictitious_length": np.linspace(0.0, 3.0, 301),
     "radial_grains": np.linspace(0.0, 8.0, 401),
-    "radial_contacts": np.linspace(0.0, 8.0, 401),
+    "radial_contacts": np.linspace(0.0, 6.0, 301),
 }
 for _e in DEFAULT_BINS.values():
     _e.setflags(write=False)
@@ -312,18 +312,21 @@ def analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0,
         count("alpha_v", varea / sigma_max**2)
     if "fictitious" in names:
         count("fictitious_length", flen - 1.0)
+    if "radial_grains" in names or "radial_contacts" in names:
+        scales, cls = np.unique(rad, return_inverse=True)
+        cls = cls.astype(np.int64)
     if "radial_grains" in names:
         e = edges["radial_grains"]
         c = np.zeros(e.shape[0] - 1, dtype=np.int64)
         keep = ~rattler
-        _radial_core(np.ascontiguousarray(pos[keep]), np.ascontiguousarray(rad[keep]),
-                     np.zeros(N_G), b, e, is_uniform(e), c)
+        _radial_core(np.ascontiguousarray(pos[keep]), np.ascontiguousarray(cls[keep]),
+                     np.full(N_G, -1, dtype=np.int64), scales, b, e, is_uniform(e), c)
         histograms["radial_grains"] = c
     if "radial_contacts" in names:
         e = edges["radial_contacts"]
         c = np.zeros(e.shape[0] - 1, dtype=np.int64)
-        pts, ra, rb = _contact_points_core(src, dst, twin, hdx, hdy, frac, pos, rad)
-        _radial_core(pts, ra, rb, b, e, is_uniform(e), c)
+        pts, ga, gb = _contact_points_core(src, dst, twin, hdx, hdy, frac, pos)
+        _radial_core(pts, cls[ga], cls[gb], scales, b, e, is_uniform(e), c)
         histograms["radial_contacts"] = c
 
     contacts = np.stack([bi, bj], axis=1) if bi.size else np.empty((0, 2), dtype=np.int64)

@@ -31,6 +31,7 @@ import numpy as np
 from numba import njit
 
 from kernels.cells import _candidate_pairs_core
+from kernels.potential import pair_energy_force
 from kernels.space import _as_box, _as_positions, minimum_image
 
 
@@ -74,17 +75,18 @@ def _contact_bonds_core(positions, radii, box):
 
 @njit(cache=True)
 def _pair_energy_core(radii, bi, bj, dx, dy, exponent):
-    """Total pair energy sum (1/a)(1 - r/s)^a and virial sum  sum r f(r)  over bonds."""
+    """Total pair energy and virial sum ``sum r f(r)`` over the bonds.
+
+    The potential is ``kernels.potential.pair_energy_force`` (its one definition).
+    """
     energy = 0.0
     virial = 0.0
     for k in range(bi.shape[0]):
         s = radii[bi[k]] + radii[bj[k]]
         r = np.sqrt(dx[k] * dx[k] + dy[k] * dy[k])
-        x = 1.0 - r / s
-        if x <= 0.0:
-            continue
-        energy += x**exponent / exponent
-        virial += r * x ** (exponent - 1.0) / s
+        v, f = pair_energy_force(r, s, exponent)
+        energy += v
+        virial += r * f
     return energy, virial
 
 

@@ -11,7 +11,7 @@ Radial distributions are raw counts of ordered pairs at normalised distance ``r`
 are minimum-image, so bins beyond half the box side are incomplete.
 
 Jitted cores: ``_histogram_core(values, edges, uniform, counts)`` and
-``_radial_core(points, scale1, scale2, box, edges, uniform, counts)`` (both add into
+``_radial_core(points, cls1, cls2, scales, box, edges, uniform, counts)`` (both add into
 ``counts``).
 """
 
@@ -41,10 +41,16 @@ def _bin_index(x, edges, nb, uniform, inv_w):
     """Bin of ``x`` (numpy.histogram convention) or -1 when outside or NaN.
 
     ``inv_w = nb / (edges[nb] - edges[0])``. With ``uniform`` the index is computed
-    directly and then corrected against the edges themselves, so both paths agree.
+    directly; a value within 1e-9 of a bin width of an edge is then corrected against
+    the edges themselves, so both paths agree exactly.
     """
     if uniform:
         f = (x - edges[0]) * inv_w
+        if f >= 0.0 and f < nb:
+            k = int(f)
+            r = f - k
+            if r > 1e-9 and r < 1.0 - 1e-9:  # clear of both edges: the direct index is exact
+                return k
         if not (f >= -1.0 and f < nb + 1.0):  # far outside, or NaN
             return -1
         k = min(max(int(f), 0), nb - 1)
@@ -84,15 +90,19 @@ def _histogram_core(values, edges, uniform, counts):
 
 
 @njit(cache=True)
-def _radial_core(points, scale1, scale2, box, edges, uniform, counts):
+def _radial_core(points, cls1, cls2, scales, box, edges, uniform, counts):
     """Ordered-pair counts of normalised distances between distinct points.
 
-    Every point ``p`` stands for one or two centres with length scales
-    ``scale1[p]`` and ``scale2[p]`` (0: no second centre). For each unordered pair
-    ``{p, q}`` at minimum-image distance ``d``, every centre of ``p`` counts
-    ``d / scale`` and so does every centre of ``q``. Grains: one centre per grain
-    (its radius). Contacts: one centre per side of the contact (the radii of its
-    two grains). Values outside the edges are not counted.
+    Every point ``p`` stands for one or two centres whose length scales are
+    ``scales[cls1[p]]`` and ``scales[cls2[p]]`` (``cls2[p] = -1``: no second centre).
+    For each unordered pair ``{p, q}`` at minimum-image distance ``d``, every centre
+    of ``p`` counts ``d / scale`` and so does every centre of ``q``. Grains: one
+    centre per grain (its radius). Contacts: one centre per side of the contact (the
+    radii of its two grains). Values outside the edges are not counted.
+
+    With few distinct scales (``len(scales) <= 4``, e.g. a bidisperse packing) the
+    centres of a pair that share a scale are binned once with their multiplicity,
+    which halves the work; otherwise every centre is binned on its own.
     """
     nb = edges.shape[0] - 1
     inv_w = nb / (edges[nb] - edges[0])
@@ -102,18 +112,26 @@ def _radial_core(points, scale1, scale2, box, edges, uniform, counts):
         return
     Lx = box[0]
     Ly = box[1]
+    nk = scales.shape[0]
     smax = 0.0
     for p in range(npt):
-        if scale1[p] > smax:
-            smax = scale1[p]
-        if scale2[p] > smax:
-            smax = scale2[p]
+        if scales[cls1[p]] > smax:
+            smax = scales[cls1[p]]
+        if cls2[p] >= 0 and scales[cls2[p]] > smax:
+            smax = scales[cls2[p]]
+    inv = np.empty(nk)
+    for k in range(nk):
+        inv[k] = 1.0 / scales[k]
+    grouped = nk <= 4
+    inv0 = inv[0]
+    inv1 = inv[1] if nk > 1 else inv[0]
+    weight = np.zeros(max(nk, 1), dtype=np.int64)
     reach = rmax * smax
     reach2 = reach * reach
-    # cells about a third of the reach wide, at most ~2 per point per side
+    # cells about half the reach wide, at most ~2 per point per side
     cap = 2 * int(np.sqrt(npt)) + 1
-    nx = min(max(int(Lx / (reach / 3.0)), 1), cap)
-    ny = min(max(int(Ly / (reach / 3.0)), 1), cap)
+    nx = min(max(int(Lx / (reach / 2.0)), 1), cap)
+    ny = min(max(int(Ly / (reach / 2.0)), 1), cap)
     hx = Lx / nx
     hy = Ly / ny
     cell_of = np.empty(npt, dtype=np.int64)
@@ -135,15 +153,15 @@ def _radial_core(points, scale1, scale2, box, edges, uniform, counts):
     fill = start[:-1].copy()
     mx = np.empty(npt)
     my = np.empty(npt)
-    m1 = np.empty(npt)
-    m2 = np.empty(npt)
+    m1 = np.empty(npt, dtype=np.int64)
+    m2 = np.empty(npt, dtype=np.int64)
     for p in range(npt):
         c = cell_of[p]
         s = fill[c]
         mx[s] = wx[p]
         my[s] = wy[p]
-        m1[s] = 1.0 / scale1[p]
-        m2[s] = 1.0 / scale2[p] if scale2[p] > 0.0 else 0.0
+        m1[s] = cls1[p]
+        m2[s] = cls2[p]
         fill[c] += 1
     # Neighbour cells within the reach. When they would wrap onto themselves along
     # a side, every cell of that side is visited once and the minimum image is
@@ -209,41 +227,68 @@ def _radial_core(points, scale1, scale2, box, edges, uniform, counts):
                         if d2 > reach2:
                             continue
                         d = np.sqrt(d2)
-                        k = _bin_index(d * m1[s], edges, nb, uniform, inv_w)
-                        if k >= 0:
-                            counts[k] += 1
-                        k = _bin_index(d * m1[t], edges, nb, uniform, inv_w)
-                        if k >= 0:
-                            counts[k] += 1
-                        if m2[s] > 0.0:
-                            k = _bin_index(d * m2[s], edges, nb, uniform, inv_w)
+                        if nk <= 2:
+                            # two scale classes: multiplicities without a scratch array
+                            w1 = m1[s] + m1[t] + (m2[s] == 1) + (m2[t] == 1)
+                            w0 = 2 + (m2[s] >= 0) + (m2[t] >= 0) - w1
+                            if w0:
+                                k = _bin_index(d * inv0, edges, nb, uniform, inv_w)
+                                if k >= 0:
+                                    counts[k] += w0
+                            if w1:
+                                k = _bin_index(d * inv1, edges, nb, uniform, inv_w)
+                                if k >= 0:
+                                    counts[k] += w1
+                        elif grouped:
+                            weight[m1[s]] += 1
+                            weight[m1[t]] += 1
+                            if m2[s] >= 0:
+                                weight[m2[s]] += 1
+                            if m2[t] >= 0:
+                                weight[m2[t]] += 1
+                            for c in range(nk):
+                                w = weight[c]
+                                if w:
+                                    weight[c] = 0
+                                    k = _bin_index(d * inv[c], edges, nb, uniform, inv_w)
+                                    if k >= 0:
+                                        counts[k] += w
+                        else:
+                            k = _bin_index(d * inv[m1[s]], edges, nb, uniform, inv_w)
                             if k >= 0:
                                 counts[k] += 1
-                        if m2[t] > 0.0:
-                            k = _bin_index(d * m2[t], edges, nb, uniform, inv_w)
+                            k = _bin_index(d * inv[m1[t]], edges, nb, uniform, inv_w)
                             if k >= 0:
                                 counts[k] += 1
+                            if m2[s] >= 0:
+                                k = _bin_index(d * inv[m2[s]], edges, nb, uniform, inv_w)
+                                if k >= 0:
+                                    counts[k] += 1
+                            if m2[t] >= 0:
+                                k = _bin_index(d * inv[m2[t]], edges, nb, uniform, inv_w)
+                                if k >= 0:
+                                    counts[k] += 1
 
 
 @njit(cache=True)
-def _contact_points_core(src, dst, twin, hdx, hdy, frac, positions, radii):
-    """Unique contact points (one per contact) with the radii of their two grains.
+def _contact_points_core(src, dst, twin, hdx, hdy, frac, positions):
+    """Unique contact points (one per contact) with their two grains.
 
     The contact of half-edge ``p`` is stored once, for the lower of ``p`` and its twin.
-    Returns ``(points (m, 2), radius_a, radius_b)``.
+    Returns ``(points (m, 2), grain_a, grain_b)``.
     """
     nh = src.shape[0]
     pts = np.empty((nh // 2, 2))
-    ra = np.empty(nh // 2)
-    rb = np.empty(nh // 2)
+    ra = np.empty(nh // 2, dtype=np.int64)
+    rb = np.empty(nh // 2, dtype=np.int64)
     t = 0
     for p in range(nh):
         if p < twin[p]:
             g = src[p]
             pts[t, 0] = positions[g, 0] + frac[p] * hdx[p]
             pts[t, 1] = positions[g, 1] + frac[p] * hdy[p]
-            ra[t] = radii[g]
-            rb[t] = radii[dst[p]]
+            ra[t] = g
+            rb[t] = dst[p]
             t += 1
     return pts, ra, rb
 
