@@ -29,8 +29,9 @@ def fmt_duration(seconds) -> str:
 def progress_text(p: dict) -> str:
     rate = p.get("per_hour")
     rate_s = f"{rate:,.0f} packings/h" if rate else "- packings/h"
+    eta = "-" if not p["remaining"] and not p["running"] else fmt_duration(p.get("eta_seconds"))
     return (f"done {p['done']}  failed {p['failed']}  running {p['running']}  remaining {p['remaining']}"
-            f"  | {rate_s}  ETA {fmt_duration(p.get('eta_seconds'))}")
+            f"  | {rate_s}  ETA {eta}")
 
 
 class Progress:

@@ -45,6 +45,14 @@ def main(args) -> int:
              "remaining": totals["pending"] - running,
              "per_hour": live.get("per_hour") if active else None,
              "eta_seconds": live.get("eta_seconds") if active else None}
+    attrs = s["attrs"]
+    if not active:  # the last run's average rate, if it recorded one
+        try:
+            last = json.loads(attrs.get("runs", "[]"))[-1]
+            if last.get("seconds"):
+                state["per_hour"] = 3600.0 * (last.get("completed", 0) + last.get("failed", 0)) / last["seconds"]
+        except (ValueError, IndexError, TypeError):
+            pass
     failures = []
     tid = s["id"].astype(str)
     for i in np.flatnonzero(status == FAILED):
@@ -54,7 +62,6 @@ def main(args) -> int:
                          "host": s["host"][i].decode(errors="replace"), "rank": int(s["rank"][i]),
                          "message": str(rec.get("message", s["error"][i].decode(errors="replace"))),
                          "traceback": str(rec.get("traceback", ""))})
-    attrs = s["attrs"]
     if args.json:
         print(json.dumps({"file": str(args.file), "name": str(attrs.get("name", "")), "live": active,
                           **state, "tasks": totals["tasks"],
