@@ -76,8 +76,19 @@ def _versions(mpi=None) -> dict:
         out["hdf5"] = h5py.version.hdf5_version
     except ImportError:
         pass
+    if mpi is None:  # not under MPI: ask the library for its version without initialising it
+        try:
+            import mpi4py
+
+            mpi4py.rc.initialize = mpi4py.rc.finalize = False
+            from mpi4py import MPI as mpi
+        except Exception:  # noqa: BLE001 - provenance is best effort
+            mpi = None
     if mpi is not None:
-        out["mpi_library"] = " ".join(mpi.Get_library_version().split())[:200]
+        try:
+            out["mpi_library"] = " ".join(mpi.Get_library_version().split())[:200]
+        except Exception:  # noqa: BLE001
+            pass
     return out
 
 
