@@ -61,7 +61,7 @@ def test_run_status_and_resume(tmp_path, capsys):
         for key in ("python", "numpy", "numba", "h5py", "mpi4py", "mpi_library"):
             assert versions[key] and versions[key] != "not installed", key
         assert f.attrs["spec_yaml"] == spec.read_text() and len(f.attrs["spec_hash"]) == 32
-        assert f.attrs["git_commit"] and f.attrs["package_version"] == "0.1.0"
+        assert f.attrs["git_commit"] and f.attrs["package_version"] == __import__("campaign").__version__
         assert json.loads(f.attrs["hosts"]) and f.attrs["start_time"] <= f.attrs["end_time"]
     assert (tmp_path / "o.h5.journal").stat().st_size - size < 4096  # two run records, no task records
 
