@@ -276,12 +276,14 @@ def test_identities_on_fire_packings(seed):
     _check_identities(res, b)
 
 
-JAM_CASES = [(32, 1e-4, 0), (48, 1e-6, 1), (64, 1e-8, 2), (96, 1e-5, 3), (128, 1e-10, 4)]
-JAM_CASES_SLOW = [(n, e, s) for n in (32, 64, 128, 256) for e in (1e-4, 1e-8, 1e-12) for s in range(3)]
+JAM_CASES = [(n, e, i) for i, (n, e) in enumerate((n, e) for n in (32, 64, 128, 256) for e in (1e-4, 1e-8, 1e-12))]
+JAM_CASES_SLOW = [(n, e, s) for n in (32, 48, 64, 96, 128, 192, 256) for e in (1e-4, 1e-6, 1e-8, 1e-10, 1e-12)
+                  for s in range(100, 104)]
 
 
 def _identities_on_jam(n, energy, seed):
     p = jammed(n, energy, seed)
+    assert p.status == "converged", f"premise: kernels.jam did not converge ({p.status})"
     res = analyze(p.positions, p.radii, p.box, bins={"fictitious_length": np.linspace(0.0, 50.0, 11)})
     _check_identities(res, p.box)
     assert res.scalars["E_G"] == pytest.approx(p.energy, rel=1e-9)
@@ -436,3 +438,19 @@ def test_bad_input_raises_value_error(kwargs, match):
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         analyze(**args)
+
+
+@settings(max_examples=15, deadline=None)
+@given(shift=st.tuples(st.floats(-3.0, 3.0), st.floats(-3.0, 3.0)), perm_seed=st.integers(0, 2**32 - 1),
+       unwrapped=st.booleans())
+def test_translation_and_relabelling_property(shift, perm_seed, unwrapped):
+    """Any translation (wrapped back into the box or not) and any relabelling."""
+    p = jammed(64, 1e-7, 7)
+    perm = np.random.default_rng(perm_seed).permutation(64)
+    pos = p.positions + np.asarray(shift) * p.box
+    if not unwrapped:
+        pos = pos % p.box
+    base = analyze(p.positions, p.radii, p.box, ["scalars", "connectivity", "void_areas", "fictitious"])
+    other = analyze(pos[perm], p.radii[perm], p.box, ["scalars", "connectivity", "void_areas", "fictitious"])
+    _assert_same(base, other)
+    assert base.ok
