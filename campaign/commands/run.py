@@ -195,7 +195,8 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
     fn = resolve(args.task_function)
     context = {"task_function": args.task_function, "system": spec.system.canonical(),
                "observables": list(spec.observables), "histograms": list(spec.histograms),
-               "bins": {h: list(e) for h, e in spec.bins}, "configurations": spec.configurations}
+               "bins": {h: list(e) for h, e in spec.bins}, "configurations": spec.configurations,
+               "protocol_warmup": spec.variants[0].protocol_dict}
     edges = fn.histogram_edges(context)
     context["edges"] = {h: [float(x) for x in e] for h, e in edges.items()}
 
