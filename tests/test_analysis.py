@@ -374,6 +374,8 @@ def test_result_keys_and_types():
     assert all(type(v) is bool for v in res.identities.values())
     for name, counts in res.histograms.items():
         assert counts.dtype == np.int64 and counts.size == res.bin_edges[name].size - 1
+        assert np.array_equal(res.bin_edges[name], DEFAULT_BINS[name])
+        assert np.all(np.diff(DEFAULT_BINS[name]) > 0) and not DEFAULT_BINS[name].flags.writeable
     assert set(res.histograms) == {h for hs in OBSERVABLES.values() for h in hs}
     assert res.contacts.shape[1] == 2 and np.all(res.contacts[:, 0] < res.contacts[:, 1])
     keys = res.contacts[:, 0] * len(rad) + res.contacts[:, 1]
