@@ -22,6 +22,7 @@ run's.
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import json
 import os
@@ -105,10 +106,14 @@ class Journal:
         self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
             fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(self.fd)
-            raise UserError(f"another run is writing {str(self.path)[:-len('.journal')]!r} (its journal "
-                            f"{str(self.path)!r} is locked); wait for it to finish or stop it first") from None
+        except OSError as exc:
+            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                os.close(self.fd)
+                raise UserError(f"another run is writing {str(self.path)[:-len('.journal')]!r} (its journal "
+                                f"{str(self.path)!r} is locked); wait for it to finish or stop it first") from None
+            # a file system without flock (some Lustre mounts): carry on, unprotected
+            print(f"campaign: warning: cannot lock {self.path} ({exc.strerror}); make sure no other run "
+                  "writes this file at the same time", file=sys.stderr)
         size = os.fstat(self.fd).st_size
         data = os.pread(self.fd, size, 0) if size else b""
         self.records, good = read_journal(data)

@@ -28,7 +28,8 @@ def configure(parser):
     parser.add_argument("--workers", type=int, default=None,
                         help="local worker processes when not under mpiexec (default: the cores)")
     parser.add_argument("--new", action="store_true",
-                        help="overwrite an existing store written by a different spec")
+                        help="start the store afresh: delete FILE and its journal first (needed when "
+                             "FILE was written by a different spec)")
     parser.add_argument("--retries", type=int, default=None,
                         help="extra attempts for a failing task (default: the spec's run.retries, else 2)")
     parser.add_argument("--retry-failed", action="store_true",
