@@ -74,10 +74,15 @@ class Master:
     # ---- scheduling
     def _depth(self):
         """Tasks kept at a worker: ``depth``, more when tasks are so short that a worker
-        would otherwise wait for the master (about 20 ms of work queued, at most 16)."""
-        if self.mean_wall is None or self.mean_wall <= 0:
-            return self.depth
-        return max(self.depth, min(16, 1 + int(0.02 / self.mean_wall)))
+        would otherwise wait for the master (about 20 ms of work queued, at most 16), and
+        one at the end of the queue, so that no task waits behind another while a worker
+        is idle."""
+        depth = self.depth
+        if self.mean_wall is not None and self.mean_wall > 0:
+            depth = max(depth, min(16, 1 + int(0.02 / self.mean_wall)))
+        if len(self.queue) < depth * len(self.alive):
+            return 1
+        return depth
 
     def _dispatch(self, w):
         q = self.in_flight[w]

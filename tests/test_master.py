@@ -44,6 +44,7 @@ class FakeComm:
     def __init__(self, ctx, n, on_result=None, die=None, wall=1.0):
         self.ctx, self.n_workers, self.wall = ctx, n, wall
         self.max_queue = 0
+        self.queued_before = []
         self.fn = SyntheticTask()
         self.queues = {w: deque() for w in range(1, n + 1)}
         self.sent = []
@@ -53,6 +54,7 @@ class FakeComm:
 
     def send(self, w, payload):
         self.sent.append((w, payload))
+        self.queued_before.append(len(self.queues[w]))
         self.queues[w].append(payload)
         self.max_queue = max(self.max_queue, len(self.queues[w]))
 
@@ -108,6 +110,15 @@ def test_dispatch_depth_follows_task_length(tmp_path, wall, depth):
     Master(comm, store, tasks, depth=2).run()
     store.close()
     assert comm.max_queue == depth  # 2 for real packings; up to 16 for millisecond tasks
+
+
+def test_no_task_waits_behind_another_at_the_end(tmp_path):
+    spec, tasks, ctx, store = _setup(tmp_path)
+    comm = FakeComm(ctx, 2)
+    Master(comm, store, tasks, depth=2).run()
+    store.close()
+    assert max(comm.queued_before) == 1  # prefetching while the queue is long ...
+    assert comm.queued_before[-3:] == [0, 0, 0]  # ... and only to idle workers at its end
 
 
 def test_dispatch_is_most_expensive_first_and_keeps_workers_fed(tmp_path):
