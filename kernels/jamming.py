@@ -160,6 +160,23 @@ def initial_state(n, seed, box, species, phi_start):
     return positions, radii, species_idx
 
 
+def energy_floor(radii, box, exponent, force_tolerance):
+    """Lowest E_G whose forces float64 can balance to ``force_tolerance``.
+
+    A coordinate is known to ``delta_r = eps max(Lx, Ly)``, so a contact force
+    ``f = x^(alpha-1)/s`` (relative overlap ``x``, contact distance ``s``) is known to
+    ``delta_f / f = (alpha - 1) delta_r / (x s)``. With ``x = (alpha E_G / 2)^(1/alpha)``
+    (about two contacts per disk) and the smallest ``s``, requiring ``delta_f / f <=
+    force_tolerance`` gives ``E_G >= (2/alpha) x_min^alpha``. In a unit box with
+    tolerance 1e-6 this allows 1e-16 up to N ~ 1500 (harmonic); measured: N = 4096 at
+    1e-16 stalls near a residual of 5e-6.
+    """
+    eps = np.finfo(np.float64).eps
+    s_min = 2.0 * float(np.min(radii))
+    x_min = (exponent - 1.0) * eps * float(np.max(box)) / (s_min * force_tolerance)
+    return 2.0 / exponent * x_min ** exponent
+
+
 def _check_box(box):
     try:
         b = np.asarray(box, dtype=np.float64)
@@ -194,7 +211,8 @@ def jam(n, energy, seed, **settings):
         force; default 1e-6. At ``E_G = 1e-14`` this fixes contact overlaps to
         about 1e-6 of their size, far below what decides whether a pair touches, so
         the isostatic contact count is resolved; it stays above the float64 force
-        noise down to ``E_G ~ 1e-16`` for N up to ~1000 in a unit box.
+        noise down to ``E_G ~ 1e-16`` for N up to ~1500 in a unit box (see
+        ``energy_floor``; lower energies are refused).
     search_tolerance : the (looser) tolerance of intermediate minimisations of the
         search; default 1e-4 (looser ones misjudge the energy near jamming and cost
         more iterations). The final minimum is always
@@ -214,7 +232,8 @@ def jam(n, energy, seed, **settings):
 
     Raises ValueError naming the expected and received value for any bad argument,
     including a box too small for the disks (the largest contact distance plus the
-    skin must stay below half the shorter box side).
+    skin must stay below half the shorter box side) and an energy below what float64
+    can resolve at this size and tolerance (``energy_floor``).
     """
     unknown = sorted(set(settings) - set(DEFAULTS))
     if unknown:
@@ -252,6 +271,14 @@ def jam(n, energy, seed, **settings):
             f"(largest radius below {max_radius:.4g} = min(Lx, Ly) / (4 (1 + skin)) with room to "
             f"grow), got box {box.tolist()} with largest radius {radii0.max():.4g}")
 
+    e_floor = energy_floor(radii0, box, alpha, tol)
+    if e_min < e_floor:
+        raise ValueError(
+            f"energy: expected at least {e_floor:.3g} for n={n}, exponent={alpha:g}, "
+            f"force_tolerance={tol:g} in box {box.tolist()} (below it float64 rounding of the "
+            f"positions exceeds force_tolerance times the contact forces), got {energy!r}; "
+            "use a larger force_tolerance, a larger energy or a smaller n")
+
     status, scale, e_tot, virial, residual, iterations, nforce = _ohern_core(
         positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search, max_steps,
         skin, delta, rule, max_radius, ENERGY_STEP)
@@ -274,4 +301,5 @@ def jam(n, energy, seed, **settings):
 
 
 __all__ = ["jam", "Packing", "DEFAULTS", "STATUS_CODES", "ALPHA_RANGE", "species_counts",
+           "energy_floor",
            "initial_state", "check_species"]

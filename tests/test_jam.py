@@ -176,3 +176,22 @@ def test_bounds_give_a_status_not_a_wrong_packing():
 def test_bad_input(args, kw, match):
     with pytest.raises(ValueError, match=match):
         kernels.jam(*args, **kw)
+
+
+def test_float64_floor_is_refused_not_silently_missed():
+    with pytest.raises(ValueError, match=r"energy: expected at least 2.7\de-16 for n=4096"):
+        kernels.jam(4096, 1e-16, 0)
+    # the floor scales as (eps L / (s_min tol))^alpha: a looser tolerance lowers it
+    from kernels.jamming import energy_floor, initial_state
+
+    _, rad, _ = initial_state(4096, 0, (1.0, 1.0), DEFAULTS["species"], 0.86)
+    box = np.array([1.0, 1.0])
+    assert energy_floor(rad, box, 2.0, 1e-5) == pytest.approx(
+        energy_floor(rad, box, 2.0, 1e-6) / 100, rel=1e-12)
+
+
+def test_deep_packing_at_1e16():
+    p = kernels.jam(128, 1e-16, 5)
+    e, resid, n_g, n_c = ref_check(p)
+    assert p.status == "converged" and 1e-16 <= e <= 1.1e-16
+    assert resid < 1e-6 and n_c == 2 * n_g - 1
