@@ -193,6 +193,8 @@ def analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0,
     names = _check_observables(observables)
     wanted = [h for name in names for h in OBSERVABLES[name]]
     edges = _check_bins(bins, wanted)
+    if int(max_void_sides) != max_void_sides or max_void_sides < 3:
+        raise ValueError(f"max_void_sides: expected an integer >= 3, got {max_void_sides!r}")
     tol = float(angle_tolerance)
     if not (np.isfinite(tol) and 0.0 <= tol < 0.5):
         raise ValueError(f"angle_tolerance: expected a number in [0, 0.5), got {angle_tolerance!r}")

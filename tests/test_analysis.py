@@ -150,6 +150,26 @@ def test_collinear_contacts_and_semicircle_are_flagged():
     assert res.scalars["identities_ok"] is False
 
 
+def test_coincident_disks_are_flagged_not_fatal():
+    pos, rad, box = compressed_packing(48, 0)
+    pos = np.array(pos)
+    pos[5] = pos[4]
+    res = analyze(pos, rad, box)
+    assert res.identities["no_collinear_contacts"] is False
+    assert res.scalars["identities_ok"] is False
+
+
+def test_voids_above_the_size_guard_are_not_triangulated_and_flagged():
+    pos, rad, box = compressed_packing(48, 0)
+    full = analyze(pos, rad, box, ["fictitious"])
+    assert full.identities["fictitious_count"] and np.any(full.z_v > 3)
+    capped = analyze(pos, rad, box, ["fictitious"], max_void_sides=3)
+    assert capped.histograms["fictitious_length"].sum() == 0
+    assert capped.identities["fictitious_count"] is False and capped.scalars["identities_ok"] is False
+    with pytest.raises(ValueError, match="max_void_sides"):
+        analyze(pos, rad, box, max_void_sides=2)
+
+
 # ----------------------------------------------------------------------------- reference
 
 
