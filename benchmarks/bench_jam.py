@@ -11,7 +11,9 @@ For each N (default 256, 1024, 4096):
   after a warm-up call), when ``jax`` and ``jax_md`` are importable (the optional
   ``bench`` extra: ``pip install '.[bench]'``);
 * time to a jammed packing, ``kernels.jam(N, E, seed)``, for each E (default 1e-6
-  and 1e-16), median over seeds, with force evaluations and O'Hern iterations.
+  and 1e-16), median over seeds, with force evaluations and O'Hern iterations. The
+  force tolerance is the default 1e-6, or the first decade above the float64 floor
+  (``kernels.jamming.energy_floor``) where 1e-6 is refused (N = 4096 at 1e-16).
 
 Prints a table and, with ``--json FILE``, writes every measurement as JSON. For the
 one-core comparison run it pinned to one CPU, e.g. ``taskset -c 0`` (XLA then uses
@@ -125,6 +127,17 @@ def _jam_time(n, e, seed, **settings):
                 force_evaluations=p.force_evaluations, n_nonrattlers=p.n_nonrattlers)
 
 
+def _tolerance_for(n, e):
+    """The default force tolerance, or the first decade above the float64 floor."""
+    from kernels.jamming import DEFAULTS, energy_floor, initial_state
+
+    _, rad, _ = initial_state(n, 0, DEFAULTS["box"], DEFAULTS["species"], DEFAULTS["phi_start"])
+    tol = DEFAULTS["force_tolerance"]
+    while energy_floor(rad, np.asarray(DEFAULTS["box"], float), DEFAULTS["exponent"], tol) > e:
+        tol *= 10.0
+    return tol
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 1024, 4096])
@@ -184,8 +197,9 @@ def main(argv=None):
     if not args.no_jam:
         for e in args.energies:
             for n in args.sizes:
-                runs = [_jam_time(n, e, seed) for seed in range(args.seeds)]
-                row = dict(n=n, energy=e,
+                tol = _tolerance_for(n, e)
+                runs = [_jam_time(n, e, seed, force_tolerance=tol) for seed in range(args.seeds)]
+                row = dict(n=n, energy=e, force_tolerance=tol,
                            median_seconds=statistics.median(r["seconds"] for r in runs),
                            median_force_evaluations=statistics.median(
                                r["force_evaluations"] for r in runs),
@@ -193,7 +207,7 @@ def main(argv=None):
                            converged=sum(r["status"] == "converged" for r in runs),
                            runs=runs)
                 results["time_to_jam"].append(row)
-                print(f"jam N={n} E={e:g}: median {row['median_seconds']:.2f} s, "
+                print(f"jam N={n} E={e:g} tol={tol:g}: median {row['median_seconds']:.2f} s, "
                       f"{row['converged']}/{len(runs)} converged", flush=True)
 
     print()
@@ -205,11 +219,12 @@ def main(argv=None):
         print(f"| {r['n']} | {r['ours_us']:.1f} | {j} | {s} |")
     if results["time_to_jam"]:
         print()
-        print("| N | E | median time to jam (s) | median force evaluations | "
+        print("| N | E | force tolerance | median time to jam (s) | median force evaluations | "
               "median iterations | converged |")
-        print("|---:|---:|---:|---:|---:|---:|")
+        print("|---:|---:|---:|---:|---:|---:|---:|")
         for r in results["time_to_jam"]:
-            print(f"| {r['n']} | {r['energy']:g} | {r['median_seconds']:.2f} | "
+            print(f"| {r['n']} | {r['energy']:g} | {r['force_tolerance']:g} | "
+                  f"{r['median_seconds']:.2f} | "
                   f"{r['median_force_evaluations']:.0f} | {r['median_iterations']:.0f} | "
                   f"{r['converged']}/{len(r['runs'])} |")
     if args.json:
