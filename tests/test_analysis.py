@@ -238,6 +238,31 @@ def test_analysis_matches_reference(which):
         assert np.array_equal(h["fictitious_length"], np.histogram(fl - 1, e["fictitious_length"])[0])
 
 
+@pytest.mark.parametrize("box,edges_kind", [((1.0, 0.5), "uniform"), ((1.0, 0.08), "uniform"),
+                                             ((0.6, 1.0), "nonuniform")])
+def test_radial_counts_with_cells_match_brute_force(box, edges_kind):
+    """Many disks and a short range, so the radial kernel uses its cell grid (with the
+    periodic shift per cell, or the minimum image along a side too short for it)."""
+    pos, rad, b = random_configuration(400, 4, phi=1.0, box=box)
+    if edges_kind == "uniform":
+        edges = np.linspace(0.0, 3.0, 61)
+    else:
+        edges = np.r_[0.0, np.cumsum(np.random.default_rng(5).uniform(0.02, 0.1, 60))]
+    res = analyze(pos, rad, b, ["radial_grains", "radial_contacts"],
+                  bins={"radial_grains": edges, "radial_contacts": edges})
+    alive = np.flatnonzero(~res.rattler)
+    assert alive.size > 100
+    counts = _radial_reference(pos[alive], [[rad[g]] for g in alive], edges, b, lambda i, j: i == j)
+    assert np.array_equal(res.histograms["radial_grains"], counts)
+    live = [(i, j) for i, j in res.contacts.tolist() if not (res.rattler[i] or res.rattler[j])]
+    d = pos[[j for _, j in live]] - pos[[i for i, _ in live]]
+    d -= b * np.round(d / b)
+    fi = np.array([rad[i] / (rad[i] + rad[j]) for i, j in live])
+    cpts = pos[[i for i, _ in live]] + fi[:, None] * d
+    counts = _radial_reference(cpts, [[rad[i], rad[j]] for i, j in live], edges, b, lambda i, j: i == j)
+    assert np.array_equal(res.histograms["radial_contacts"], counts)
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     values=st.lists(st.one_of(st.floats(-2, 12, allow_nan=False), st.integers(-2, 12).map(float)),
