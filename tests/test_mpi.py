@@ -80,6 +80,12 @@ def test_mpi_runs_complete_with_rank0_as_master(runs):
         assert (st == 1).sum() == 36 and (st == 2).sum() == 12  # seed 3 always fails
         assert set(data["tasks/rank"][st == 1]) == workers
         assert '"launcher": "mpi"' in run_attr and "MPICH" in run_attr
+        with h5py.File(out[label][0], "r") as f:  # error records crossed MPI with traceback, rank, host
+            recs = [dict(g.attrs) for g in f["failures"].values()]
+        assert len(recs) == 12
+        for rec in recs:
+            assert rec["rank"] in workers and rec["host"] and rec["attempts"] == 2
+            assert "RuntimeError: synthetic failure" in rec["message"] and "Traceback" in rec["traceback"]
 
 
 @pytest.mark.parametrize("label", ["local2", "mpi2", "mpi3"])
