@@ -13,16 +13,23 @@ positions from the previous minimum, so they produce the same kind of packing:
   ``(1 + Delta)`` or ``1 / (1 + Delta)`` and halve ``Delta`` at every reversal of
   direction.
 * ``SEARCH_SECANT`` (default, much faster at low energy): near jamming
-  ``E_G^(1/alpha)`` is linear in the radius scale factor ``lambda`` (it vanishes at
-  ``lambda_J``), so the next ``lambda`` is where the line through the two latest
-  jammed minima (``E_G > 0``) reaches the middle of the window in that variable. A
-  single jammed minimum gives the line through ``lambda_J ~ lambda (1 - x)``, with
-  ``x`` the typical relative overlap. Every proposal is kept strictly inside the
-  bracket of scale factors known to be below / above the window (geometric
-  bisection otherwise), and the step is limited to a factor ``(1 + Delta_max)``.
+  ``g = E_G^(1/alpha)`` is linear in the radius scale factor ``lambda`` (it vanishes
+  at ``lambda_J``). After each jammed minimum (force-balanced, ``E_G > 0``) the line
+  is refitted: through the two latest jammed minima when its slope agrees within a
+  factor 5 with the one-point estimate ``lambda_J ~ lambda (1 - x)`` (``x`` the
+  typical relative overlap), else through that estimate. The next ``lambda`` is
+  where the line reaches ``g_goal``: the middle of the window, but never more than
+  a factor ``energy_step`` (10) below the current energy, so that each minimisation
+  starts close to its minimum. After a minimisation that fell below the window
+  without a jammed minimum (an unjammed or collapsing packing) the radii grow by
+  the line's step to the window, doubled at each consecutive such event. History
+  matters near jamming (every minimisation can rearrange the packing and move
+  ``lambda_J``), so the rule keeps no bracket from older states; every step is
+  limited to a factor ``(1 + delta)``.
 
 Intermediate minimisations stop at the looser ``search_tolerance`` or as soon as
-the energy falls below ``E_min / 2`` (it can then only end below the window). When
+the energy falls below ``E_min / 2`` (FIRE hardly ever climbs back: the packing is
+treated as below the window). When
 a minimum lands in the window it is minimised further to ``force_tolerance``; the
 search only ends once that fully converged minimum is inside the window.
 
@@ -38,10 +45,9 @@ from numba import njit
 
 from kernels.fire import BELOW, CONVERGED, MAX_STEPS, _fire_core
 
-DT_FACTOR = 0.04
-
-AIM = 0.5
-ABORT_FRACTION = 0.5
+DT_FACTOR = 0.04  # initial FIRE time step in units of 1/sqrt(stiffness), see _dt_for
+AIM = 0.5  # the secant rule aims at E_min (1 + AIM window)
+ABORT_FRACTION = 0.5  # stop a minimisation once E_G < ABORT_FRACTION E_min
 
 SEARCH_HALVING = 0
 SEARCH_SECANT = 1
