@@ -97,6 +97,33 @@ def test_results_identical_whatever_the_launcher(runs, label):
     assert attrs == ref_attrs
 
 
+def test_sigkill_of_the_whole_mpi_job_then_resume(runs, tmp_path):
+    import signal
+    import time
+
+    _, spec, out = runs
+    path = tmp_path / "killed.h5"
+    env = _env(CAMPAIGN_SYNTHETIC_FAIL="seed:3", CAMPAIGN_SYNTHETIC_FLAKY="seed:1", CAMPAIGN_SYNTHETIC_DELAY="0.02")
+    cmd = [str(MPIEXEC), "-n", "3", sys.executable, "-m", "campaign", "run", str(spec), "--out", str(path)]
+    p = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and not Path(str(path) + ".progress.json").exists():
+        time.sleep(0.05)
+    time.sleep(0.3)
+    os.killpg(p.pid, signal.SIGKILL)
+    p.wait(timeout=30)
+    from campaign.store import read_journal
+
+    recs, _ = read_journal(Path(str(path) + ".journal").read_bytes())
+    assert 0 < sum(m.get("type") == "task" for m, _ in recs) < 48  # killed in the middle of the run
+    r = _campaign(["run", str(spec), "--out", str(path)], n=3, env=env)
+    assert r.returncode == 0, r.stderr
+    ref, ref_attrs, _ = _datasets(out["inline"][0])
+    got, attrs, _ = _datasets(path)
+    _same(ref, got)
+    assert attrs == ref_attrs
+
+
 def test_bad_spec_under_mpi_exits_2_without_hanging(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("name: x\nseed: 1\ngrid: {N_G: [], E_G: [1.0e-3], seeds: 1}\n")
