@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from hypothesis import given, strategies as st
+from hypothesis import given, settings, strategies as st
 from numba import njit
 
 from kernels.space import minimum_image, wrap
@@ -13,6 +13,7 @@ def _mi(dx, L):  # called from numba code, as other kernels do
     return minimum_image(dx, L)
 
 
+@settings(deadline=None)  # the first example compiles
 @given(dx=st.floats(-1e3, 1e3), L=st.floats(1e-2, 1e2))
 def test_minimum_image_range_and_period(dx, L):
     d = _mi(dx, L)
