@@ -37,12 +37,13 @@ HISTOGRAMS = tuple(h for hs in OBSERVABLES.values() for h in hs)
 
 
 @njit(cache=True, inline="always")
-def _bin_index(x, edges, nb, uniform, inv_w):
+def _bin_index(x, edges, nb, uniform, inv_w, guide):
     """Bin of ``x`` (numpy.histogram convention) or -1 when outside or NaN.
 
     ``inv_w = nb / (edges[nb] - edges[0])``. With ``uniform`` the index is computed
     directly; a value within 1e-9 of a bin width of an edge is then corrected against
-    the edges themselves, so both paths agree exactly.
+    the edges themselves, so both paths agree exactly. Otherwise ``guide`` (from
+    ``_guide_table``) narrows a binary search to a few bins.
     """
     if uniform:
         f = (x - edges[0]) * inv_w
@@ -67,8 +68,16 @@ def _bin_index(x, edges, nb, uniform, inv_w):
         return -1
     if x == edges[nb]:
         return nb - 1
-    lo = 0
-    hi = nb  # edges[lo] <= x < edges[hi]
+    # guide table: the bins met by guide cell g lie in guide[g] .. guide[g + 1]
+    m = guide.shape[0] - 1
+    g = int((x - edges[0]) * (m * inv_w / nb))
+    g = min(max(g, 0), m - 1)
+    lo = max(guide[g] - 1, 0)
+    hi = min(guide[g + 1] + 2, nb)  # edges[lo] <= x < edges[hi] once widened below
+    while lo > 0 and x < edges[lo]:
+        lo -= 1
+    while hi < nb and x >= edges[hi]:
+        hi += 1
     while hi - lo > 1:
         mid = (lo + hi) >> 1
         if x >= edges[mid]:
@@ -79,12 +88,36 @@ def _bin_index(x, edges, nb, uniform, inv_w):
 
 
 @njit(cache=True)
+def _guide_table(edges, uniform):
+    """Guide table for non-uniform edges (4 guide cells per bin on average).
+
+    ``guide[g]`` is the bin holding the left end of guide cell ``g`` of an even grid
+    over ``[edges[0], edges[-1]]``; lookups then search only the few bins between
+    ``guide[g]`` and ``guide[g + 1]``. Uniform edges need none (a 2-entry dummy).
+    """
+    nb = edges.shape[0] - 1
+    if uniform:
+        return np.zeros(2, dtype=np.int64)
+    m = 4 * nb
+    guide = np.empty(m + 1, dtype=np.int64)
+    span = edges[nb] - edges[0]
+    k = 0
+    for g in range(m + 1):
+        left = edges[0] + span * (g / m)
+        while k < nb - 1 and edges[k + 1] <= left:
+            k += 1
+        guide[g] = k
+    return guide
+
+
+@njit(cache=True)
 def _histogram_core(values, edges, uniform, counts):
     """Add the counts of ``values`` on ``edges`` into ``counts`` (int64, len(edges) - 1)."""
     nb = edges.shape[0] - 1
     inv_w = nb / (edges[nb] - edges[0])
+    guide = _guide_table(edges, uniform)
     for t in range(values.shape[0]):
-        k = _bin_index(values[t], edges, nb, uniform, inv_w)
+        k = _bin_index(values[t], edges, nb, uniform, inv_w, guide)
         if k >= 0:
             counts[k] += 1
 
@@ -106,6 +139,7 @@ def _radial_core(points, cls1, cls2, scales, box, edges, uniform, counts):
     """
     nb = edges.shape[0] - 1
     inv_w = nb / (edges[nb] - edges[0])
+    guide = _guide_table(edges, uniform)
     rmax = edges[nb]
     npt = points.shape[0]
     if npt < 2 or rmax <= 0.0:
@@ -232,11 +266,11 @@ def _radial_core(points, cls1, cls2, scales, box, edges, uniform, counts):
                             w1 = m1[s] + m1[t] + (m2[s] == 1) + (m2[t] == 1)
                             w0 = 2 + (m2[s] >= 0) + (m2[t] >= 0) - w1
                             if w0:
-                                k = _bin_index(d * inv0, edges, nb, uniform, inv_w)
+                                k = _bin_index(d * inv0, edges, nb, uniform, inv_w, guide)
                                 if k >= 0:
                                     counts[k] += w0
                             if w1:
-                                k = _bin_index(d * inv1, edges, nb, uniform, inv_w)
+                                k = _bin_index(d * inv1, edges, nb, uniform, inv_w, guide)
                                 if k >= 0:
                                     counts[k] += w1
                         elif grouped:
@@ -250,22 +284,22 @@ def _radial_core(points, cls1, cls2, scales, box, edges, uniform, counts):
                                 w = weight[c]
                                 if w:
                                     weight[c] = 0
-                                    k = _bin_index(d * inv[c], edges, nb, uniform, inv_w)
+                                    k = _bin_index(d * inv[c], edges, nb, uniform, inv_w, guide)
                                     if k >= 0:
                                         counts[k] += w
                         else:
-                            k = _bin_index(d * inv[m1[s]], edges, nb, uniform, inv_w)
+                            k = _bin_index(d * inv[m1[s]], edges, nb, uniform, inv_w, guide)
                             if k >= 0:
                                 counts[k] += 1
-                            k = _bin_index(d * inv[m1[t]], edges, nb, uniform, inv_w)
+                            k = _bin_index(d * inv[m1[t]], edges, nb, uniform, inv_w, guide)
                             if k >= 0:
                                 counts[k] += 1
                             if m2[s] >= 0:
-                                k = _bin_index(d * inv[m2[s]], edges, nb, uniform, inv_w)
+                                k = _bin_index(d * inv[m2[s]], edges, nb, uniform, inv_w, guide)
                                 if k >= 0:
                                     counts[k] += 1
                             if m2[t] >= 0:
-                                k = _bin_index(d * inv[m2[t]], edges, nb, uniform, inv_w)
+                                k = _bin_index(d * inv[m2[t]], edges, nb, uniform, inv_w, guide)
                                 if k >= 0:
                                     counts[k] += 1
 
