@@ -212,7 +212,7 @@ def worker_loop(recv, send, context: dict, rank: int) -> None:
     except Exception:  # noqa: BLE001 - report on the first task instead of dying silently
         err = traceback.format_exc()
         fn = None
-    if fn is not None and hasattr(fn, "warm_up"):
+    if fn is not None and hasattr(fn, "warm_up") and context.get("warm_up", True):
         try:  # load the compiled kernels now, so that no task's timing includes it
             fn.warm_up(context)
         except Exception:  # noqa: BLE001 - a real problem shows up again in the first task

@@ -138,12 +138,38 @@ def _mpi_worker(comm) -> int:
         return 0
     comm.gather(socket.gethostname(), root=0)
     try:
+        _node_warm_up(comm, context, first_warms=True)
         mpi_worker(comm, context)
     except BaseException:  # noqa: BLE001 - a worker-side fault must not hang the job
         traceback.print_exc()
         sys.stderr.flush()
         comm.Abort(1)
     return 0
+
+
+def _node_warm_up(comm, context, first_warms):
+    """One compilation per node: the node's lowest rank fills the numba cache, the others wait.
+
+    On the master's node the master (rank 0, always first) has compiled already; on other nodes
+    (possibly other CPUs, hence other cache entries) the first worker compiles while the rest of
+    the node waits, instead of every rank compiling the same kernels at once.
+    """
+    from mpi4py import MPI
+
+    node = comm.Split_type(MPI.COMM_TYPE_SHARED)
+    try:
+        if first_warms and node.Get_rank() == 0 and context.get("warm_up", True):
+            from campaign.worker import resolve
+
+            fn = resolve(context.get("task_function"))
+            if hasattr(fn, "warm_up"):
+                try:
+                    fn.warm_up(context)
+                except Exception:  # noqa: BLE001 - the tasks will report it
+                    pass
+        node.Barrier()
+    finally:
+        node.Free()
 
 
 def _mpi_master(args, comm, MPI) -> int:
@@ -208,6 +234,7 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
     try:
         todo = int(sum(1 for t in tasks if store.status[t.index] == 0 or
                        (args.retry_failed and store.status[t.index] == 2)))
+        context["warm_up"] = bool(todo)
         if todo and hasattr(fn, "warm_up") and launcher != "inline":
             if sys.stderr.isatty() and not args.quiet:
                 _log(f"campaign: compiling the kernels (once; cached in {os.environ.get('NUMBA_CACHE_DIR')})")
@@ -217,6 +244,7 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
             state["sent"] = True
             hosts = mpi_comm.gather(socket.gethostname(), root=0)
             store.run["hosts"] = sorted(set(hosts))
+            _node_warm_up(mpi_comm, context, first_warms=False)  # rank 0 has warmed its node already
             comm = MPIComm(mpi_comm)
         elif launcher == "inline" or todo == 0:  # nothing to do: no worker processes to start
             comm = InlineComm(context)
