@@ -24,7 +24,6 @@ import importlib
 import os
 import signal
 import socket
-import sys
 import time
 import traceback
 

@@ -11,7 +11,7 @@ import pytest
 from campaign.comm import InlineComm, LocalComm
 from campaign.master import Master
 from campaign.spec import parse_spec
-from campaign.store import DONE, FAILED, PENDING, Store
+from campaign.store import DONE, FAILED, Store
 from campaign.tasks import expand, task_cost
 from campaign.worker import SyntheticTask, run_task
 

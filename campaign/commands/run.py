@@ -8,7 +8,6 @@ the same spec on the same file resumes it.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import socket
