@@ -252,3 +252,41 @@ def test_hdf5_missing_group(tmp_path, capsys):
 def test_unknown_observable(capsys):
     code, out, err = run([EXAMPLE, "--observables", "scalars,bogus"], capsys)
     assert code == 2 and "bogus" in err and "Traceback" not in err
+
+
+def test_npz_scalar_box_and_species(tmp_path, capsys):
+    pos, rad, box = _example_arrays()
+    species = (rad < rad.max()).astype(np.int32)
+    np.savez(tmp_path / "c.npz", positions=pos, radii=rad, box=np.float64(box[0]), species=species)
+    code, out, err = run([tmp_path / "c.npz", "--json"], capsys)
+    assert code == 0, err
+    assert json.loads(out)["N"] == 32
+
+
+def test_npz_bad_species(tmp_path, capsys):
+    pos, rad, box = _example_arrays()
+    np.savez(tmp_path / "c.npz", positions=pos, radii=rad, box=box, species=np.zeros(5, dtype=int))
+    _user_error(capsys, tmp_path / "c.npz", expect=["'species'", "(32,)"])
+
+
+def test_directory_instead_of_file(tmp_path, capsys):
+    _user_error(capsys, tmp_path, expect=["is a directory"])
+
+
+def test_hdf5_not_readable(tmp_path, capsys):
+    p = _write(tmp_path, "not hdf5", name="c.h5")
+    _user_error(capsys, p, expect=["not a readable HDF5 file"])
+
+
+def test_header_words_instead_of_box(tmp_path, capsys):
+    p = _write(tmp_path, "Lx Ly\n1 1\n0.1 0.1 0.05\n0.5 0.5 0.05\n")
+    _user_error(capsys, p, expect=["line 1", "expected a number for a box side", "'Lx'"])
+
+
+def test_crlf_line_endings(tmp_path, capsys):
+    p = tmp_path / "c.txt"
+    p.write_bytes(EXAMPLE.read_bytes().replace(b"\n", b"\r\n"))
+    code, out, err = run([p, "--json"], capsys)
+    assert code == 0, err
+    code0, out0, _ = run([EXAMPLE, "--json"], capsys)
+    assert json.loads(out) == json.loads(out0)
