@@ -45,8 +45,10 @@ HISTOGRAMS = tuple(h for names in OBSERVABLES.values() for h in names)
 
 #: protocol keys a spec may set (forwarded to ``kernels.jam`` as keyword arguments)
 PROTOCOL_DEFAULTS = {"window": 0.1, "force_tolerance": 1e-6}
-PROTOCOL_KEYS = ("window", "force_tolerance", "phi_start", "max_search", "max_steps", "minimizer", "skin")
+PROTOCOL_KEYS = ("window", "force_tolerance", "search_tolerance", "phi_start", "max_search", "max_steps",
+                 "minimizer", "search", "delta", "skin")
 MINIMIZERS = ("fire",)
+SEARCH_RULES = ("secant", "halving")
 
 TOP_KEYS = ("name", "seed", "system", "grid", "protocol", "variants", "observables", "bins",
             "store", "run", "output")
@@ -467,6 +469,8 @@ def _protocol(c, value, path, allow, base=None):
     checks = {
         "window": dict(lo=0, hi=10, lo_open=True),
         "force_tolerance": dict(lo=0, hi=1, lo_open=True, hi_open=True),
+        "search_tolerance": dict(lo=0, hi=1, lo_open=True, hi_open=True),
+        "delta": dict(lo=0, hi=1, lo_open=True, hi_open=True),
         "phi_start": dict(lo=0, hi=1, lo_open=True, hi_open=True),
         "skin": dict(lo=0, hi=10, lo_open=True),
         "max_search": dict(lo=1, hi=10**9, integer=True),
@@ -476,6 +480,12 @@ def _protocol(c, value, path, allow, base=None):
         if k in checks:
             x = c.number(v, path + (k,), **checks[k])
             if x is not None:
+                out[k] = x
+        elif k == "search":
+            x = c.string(v, path + (k,), what=f"one of {', '.join(SEARCH_RULES)}")
+            if x is not None and x not in SEARCH_RULES:
+                c.err(path + (k,), f"unknown search rule {x!r}; expected one of {', '.join(SEARCH_RULES)}")
+            elif x is not None:
                 out[k] = x
         elif k == "minimizer":
             x = c.string(v, path + (k,), what=f"one of {', '.join(MINIMIZERS)}")

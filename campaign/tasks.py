@@ -94,3 +94,31 @@ def estimate_seconds(tasks) -> float:
 def dispatch_order(tasks) -> list[Task]:
     """Most expensive first; ties in canonical order (deterministic)."""
     return sorted(tasks, key=lambda t: (-task_cost(t), t.index))
+
+
+def energy_floor_problems(spec) -> list[str]:
+    """Grid energies below what float64 can resolve (``kernels.jamming.energy_floor``).
+
+    ``kernels.jam`` refuses them task by task; checking here turns them into one clear
+    refusal before anything runs. Empty when the kernels are not installed.
+    """
+    try:
+        from kernels.jamming import DEFAULTS, energy_floor, initial_state
+    except Exception:  # noqa: BLE001 - no kernels, nothing to check against
+        return []
+    system = spec.system
+    species = tuple((s.fraction, s.radius) for s in system.species)
+    problems = []
+    for v in spec.variants:
+        proto = dict(v.protocol)
+        tol = proto.get("force_tolerance", DEFAULTS["force_tolerance"])
+        phi = proto.get("phi_start", DEFAULTS["phi_start"])
+        for N in spec.N:
+            _, radii, _ = initial_state(N, 0, system.box, species, phi)
+            floor = energy_floor(radii, system.box, system.exponent, tol)
+            low = [E for E in spec.E if E < floor]
+            if low:
+                problems.append(f"{spec.source}: grid.E_G: {', '.join(f'{e:g}' for e in low)} below the lowest "
+                                f"energy float64 resolves for N_G = {N} with force_tolerance {tol:g} (variant "
+                                f"{v.name!r}): {floor:.3g}; raise E_G, loosen force_tolerance or lower N_G")
+    return problems

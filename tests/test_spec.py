@@ -158,3 +158,29 @@ def test_empty_file(tmp_path, capsys):
     p.write_text("# nothing\n")
     assert cli.main(["validate", str(p)]) == 2
     assert "empty" in capsys.readouterr().err
+
+
+def test_energies_below_the_float64_floor_are_refused_before_running(tmp_path, capsys):
+    pytest.importorskip("kernels.jamming")
+    from kernels.jamming import energy_floor, initial_state
+
+    _, radii, _ = initial_state(8192, 0, (1.0, 1.0), ((0.5, 1.4), (0.5, 1.0)), 0.86)
+    floor = energy_floor(radii, (1.0, 1.0), 2.0, 1e-6)
+    assert 1e-17 < floor < 1e-14  # the regime where the check matters
+    p = tmp_path / "low.yaml"
+    p.write_text(f"name: low\nseed: 1\ngrid: {{N_G: [64, 8192], E_G: [{float(floor) / 2!r}, 1.0e-6], seeds: 1}}\n")
+    assert cli.main(["validate", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert "N_G = 8192" in err and "N_G = 64" not in err and "grid.E_G" in err
+    assert cli.main(["run", str(p), "--out", str(tmp_path / "o.h5")]) == 2
+    assert not (tmp_path / "o.h5").exists()
+    # a looser tolerance lowers the floor: accepted
+    p.write_text(p.read_text() + "protocol: {force_tolerance: 1.0e-4}\n")
+    assert cli.main(["validate", str(p)]) == 0
+
+
+def test_protocol_keys_of_the_kernels():
+    s = parse_spec(MINIMAL + "protocol: {search: halving, delta: 0.005, search_tolerance: 1.0e-3}\n")
+    assert s.variants[0].protocol_dict["search"] == "halving"
+    with pytest.raises(UserError, match=r"protocol\.search: unknown search rule 'bisect'"):
+        parse_spec(MINIMAL + "protocol: {search: bisect}\n")

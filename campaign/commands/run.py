@@ -199,7 +199,7 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
     from campaign.progress import Progress
     from campaign.spec import load_spec
     from campaign.store import Store
-    from campaign.tasks import expand
+    from campaign.tasks import energy_floor_problems, expand
     from campaign.worker import resolve
 
     state = state if state is not None else {}
@@ -217,6 +217,10 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
         if n_workers < 1:
             raise UserError(f"--workers must be at least 1, got {n_workers}")
         launcher = "local"
+    if args.task_function == "kernels":
+        problems = energy_floor_problems(spec)
+        if problems:
+            raise UserError(f"{len(problems)} problem(s) in the spec:\n  " + "\n  ".join(problems))
     tasks = expand(spec)
     fn = resolve(args.task_function)
     context = {"task_function": args.task_function, "system": spec.system.canonical(),

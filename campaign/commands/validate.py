@@ -12,9 +12,13 @@ def configure(parser):
 def main(args) -> int:
     from campaign.progress import fmt_duration
     from campaign.spec import load_spec
-    from campaign.tasks import estimate_seconds, expand, task_cost
+    from campaign.errors import UserError
+    from campaign.tasks import energy_floor_problems, estimate_seconds, expand, task_cost
 
     spec = load_spec(args.spec)
+    problems = energy_floor_problems(spec)
+    if problems:
+        raise UserError(f"{len(problems)} problem(s) in the spec:\n  " + "\n  ".join(problems))
     tasks = expand(spec)
     seconds = estimate_seconds(tasks)
     longest = max(task_cost(t) for t in tasks)
