@@ -76,7 +76,7 @@ class KernelTask:
         scalars = {k: float(v) for k, v in a.scalars.items()}
         scalars.update(force_residual=float(p.force_residual), iterations=float(p.iterations),
                        force_evaluations=float(p.force_evaluations),
-                       jam_status=float(JAM_STATUS.get(str(p.status), 9)),
+                       jam_status=float(getattr(p, "status_code", JAM_STATUS.get(str(p.status), 9))),
                        sigma_max=float(np.max(p.radii)), jam_seconds=t1 - t0, analyze_seconds=t2 - t1)
         for name in ("energy_nonrattler", "pressure", "phi"):
             if name not in scalars and hasattr(p, name):
