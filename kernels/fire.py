@@ -40,8 +40,8 @@ import numpy as np
 from numba import njit
 
 from kernels.cells import _as_radii, _candidate_pairs_core
-from kernels.potential import (_energy_forces_core, _pair_inv_sigma, check_exponent,
-                               pair_energy_force)
+from kernels.potential import (_energy_forces_core, _energy_forces_rows, _pair_inv_sigma,
+                               _rows_from_pairs, check_exponent, pair_energy_force)
 from kernels.space import _as_box, _as_positions, _wrap_core, minimum_image
 
 N_DELAY = 20
@@ -201,8 +201,9 @@ def _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort)
     ref = positions.copy()
     pi, pj = _candidate_pairs_core(positions, radii, box, skin)
     inv_s = _pair_inv_sigma(radii, pi, pj)
+    start, nbr = _rows_from_pairs(n, pi, pj)
     half2 = 0.25 * skin * skin
-    energy, virial, nc, fsum = _energy_forces_core(positions, box, pi, pj, inv_s, alpha, frc)
+    energy, virial, nc, fsum = _energy_forces_rows(positions, box, start, nbr, inv_s, alpha, frc)
     nforce = 1
     n_pos = 0
     n_neg = 0
@@ -284,10 +285,12 @@ def _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort)
             _wrap_inplace(positions, box)
             pi, pj = _candidate_pairs_core(positions, radii, box, skin)
             inv_s = _pair_inv_sigma(radii, pi, pj)
+            start, nbr = _rows_from_pairs(n, pi, pj)
             for i in range(n):
                 ref[i, 0] = positions[i, 0]
                 ref[i, 1] = positions[i, 1]
-        energy, virial, nc, fsum = _energy_forces_core(positions, box, pi, pj, inv_s, alpha, frc)
+        energy, virial, nc, fsum = _energy_forces_rows(positions, box, start, nbr, inv_s, alpha,
+                                                       frc)
         nforce += 1
     return status, step, nforce, energy, virial, residual, nc
 

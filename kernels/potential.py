@@ -30,6 +30,9 @@ Jitted cores, usable from other numba code:
   ``(energy, virial, n_contacts, sum_contact_force)`` where ``energy`` is the total
   pair energy, ``virial = sum r f`` and the last two describe the overlapping pairs.
 
+* ``_energy_forces_rows(positions, box, start, nbr, inv_s, alpha, forces)``: the same
+  over a CSR Verlet list (``_rows_from_pairs``); the FIRE loop uses it.
+
 Checked wrappers (all pairs found with ``kernels.cells``): ``pair_potential``,
 ``energy``, ``forces``, ``pressure``.
 """
@@ -127,6 +130,79 @@ def _energy_forces_core(positions, box, pi, pj, inv_s, alpha, forces):
             forces[j, 0] += fx
             forces[j, 1] += fy
     return energy, virial, ncontact, fsum
+
+
+@njit(cache=True)
+def _energy_forces_rows(positions, box, start, nbr, inv_s, alpha, forces):
+    """``_energy_forces_core`` over a Verlet list in row (CSR) form.
+
+    Row ``i`` holds the neighbours ``j > i`` in ``nbr[start[i]:start[i + 1]]`` (int32,
+    half the memory traffic of int64 pair arrays) with ``inv_s`` aligned to ``nbr``;
+    the force on ``i`` is accumulated in registers. Same sums, same precondition on
+    coordinates as ``_energy_forces_core``; only the summation order differs.
+    """
+    n = positions.shape[0]
+    Lx = box[0]
+    Ly = box[1]
+    hx = 0.5 * Lx
+    hy = 0.5 * Ly
+    for i in range(n):
+        forces[i, 0] = 0.0
+        forces[i, 1] = 0.0
+    energy = 0.0
+    virial = 0.0
+    ncontact = 0
+    fsum = 0.0
+    for i in range(n):
+        xi = positions[i, 0]
+        yi = positions[i, 1]
+        fxi = 0.0
+        fyi = 0.0
+        for k in range(start[i], start[i + 1]):
+            j = nbr[k]
+            dx = positions[j, 0] - xi
+            dy = positions[j, 1] - yi
+            if dx > hx:
+                dx -= Lx
+            elif dx < -hx:
+                dx += Lx
+            if dy > hy:
+                dy -= Ly
+            elif dy < -hy:
+                dy += Ly
+            d2 = dx * dx + dy * dy
+            q = inv_s[k]
+            if d2 * q * q >= 1.0:
+                continue
+            r = np.sqrt(d2)
+            v, f = pair_energy_force_inv(r, q, alpha)
+            energy += v
+            virial += r * f
+            ncontact += 1
+            fsum += f
+            if r > 0.0:
+                fr = f / r
+                fx = fr * dx
+                fy = fr * dy
+                fxi -= fx
+                fyi -= fy
+                forces[j, 0] += fx
+                forces[j, 1] += fy
+        forces[i, 0] += fxi
+        forces[i, 1] += fyi
+    return energy, virial, ncontact, fsum
+
+
+@njit(cache=True)
+def _rows_from_pairs(n, pi, pj):
+    """CSR form ``(start int64 (n+1), nbr int32)`` of pairs sorted by ``pi``."""
+    start = np.zeros(n + 1, dtype=np.int64)
+    for k in range(pi.shape[0]):
+        start[pi[k] + 1] += 1
+    for i in range(n):
+        start[i + 1] += start[i]
+    nbr = pj.astype(np.int32)
+    return start, nbr
 
 
 @njit(cache=True)

@@ -128,3 +128,21 @@ def test_exponent_out_of_range(bad):
     with pytest.raises(ValueError, match=r"exponent: expected a number in \[2, 3\]"):
         energy(np.zeros((2, 2)), np.ones(2) * 0.1, (1, 1), bad)
     assert ALPHA_RANGE == (2.0, 3.0)
+
+
+@pytest.mark.parametrize("alpha", ALPHAS)
+def test_row_form_equals_pair_form(alpha):
+    from kernels.cells import candidate_pairs
+    from kernels.potential import (_energy_forces_core, _energy_forces_rows, _pair_inv_sigma,
+                                   _rows_from_pairs)
+
+    pos, rad, box = overlapping_system(6, n=200, phi=0.9)
+    i, j = candidate_pairs(pos, rad, box, 0.3 * rad.mean())
+    q = _pair_inv_sigma(rad, i, j)
+    f1 = np.empty_like(pos)
+    f2 = np.empty_like(pos)
+    a = _energy_forces_core(pos, box, i, j, q, alpha, f1)
+    start, nbr = _rows_from_pairs(len(pos), i, j)
+    b = _energy_forces_rows(pos, box, start, nbr, q, alpha, f2)
+    assert a[2] == b[2] and np.allclose(a, b, rtol=1e-13)
+    assert np.allclose(f1, f2, rtol=0, atol=1e-13 * np.abs(f1).max())
