@@ -220,9 +220,14 @@ def _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort)
             status = CONVERGED
             residual = 0.0
             break
+        # one pass: largest force, |F|^2 and the power P = F.v
         fmax2 = 0.0
+        ff = 0.0
+        p = 0.0
         for i in range(n):
             f2 = frc[i, 0] * frc[i, 0] + frc[i, 1] * frc[i, 1]
+            ff += f2
+            p += frc[i, 0] * vel[i, 0] + frc[i, 1] * vel[i, 1]
             if f2 > fmax2:
                 fmax2 = f2
         mean_f = fsum / nc
@@ -237,9 +242,6 @@ def _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort)
             break
         step += 1
         # FIRE 2.0 step
-        p = 0.0
-        for i in range(n):
-            p += frc[i, 0] * vel[i, 0] + frc[i, 1] * vel[i, 1]
         if p > 0.0:
             n_pos += 1
             n_neg = 0
@@ -263,12 +265,10 @@ def _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort)
                 vel[i, 0] = 0.0
                 vel[i, 1] = 0.0
         vv = 0.0
-        ff = 0.0
         for i in range(n):
             vel[i, 0] += dt * frc[i, 0]
             vel[i, 1] += dt * frc[i, 1]
             vv += vel[i, 0] * vel[i, 0] + vel[i, 1] * vel[i, 1]
-            ff += frc[i, 0] * frc[i, 0] + frc[i, 1] * frc[i, 1]
         mix = a * np.sqrt(vv / ff) if ff > 0.0 else 0.0
         disp2 = 0.0
         for i in range(n):
