@@ -61,6 +61,11 @@ def main(argv=None) -> int:
     except UserError as exc:
         print(f"campaign {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # output piped into `head` and the like: not an error
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except KeyboardInterrupt:
         print(f"campaign {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -9,9 +9,11 @@ are only milliseconds long).
 * A failed task (an error record from its worker, or a worker that died under
   it) goes back into the queue until it has had ``1 + retries`` attempts; then
   it is recorded as failed and the campaign goes on.
-* ``can_dispatch(task) -> bool``: a hook asked before each dispatch; ``False``
-  stops dispatching (e.g. the next task would not fit in the wall time left).
-* First SIGINT/SIGTERM: stop dispatching, collect the running tasks for up to
+* ``can_dispatch(task, ahead) -> bool``: a hook asked before each dispatch, with
+  the tasks already queued at that worker; ``False`` stops dispatching (the next
+  task would not fit in the wall time left: campaign.walltime).
+* First SIGINT/SIGTERM/SIGUSR1 (SLURM's warning before the time limit): stop
+  dispatching, collect the running tasks for up to
   ``grace`` seconds; a second signal (or the end of the grace time) abandons
   them. Either way the store is flushed and closed, and resuming is a rerun.
 """
@@ -64,7 +66,7 @@ class Master:
 
     def _install_signals(self):
         old = {}
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1):
             try:
                 old[sig] = signal.signal(sig, self._on_signal)
             except ValueError:  # not the main thread
@@ -90,7 +92,7 @@ class Master:
         while len(q) < depth and self.queue and self.stop_reason is None:
             i = self.queue[0][1]
             task = self.tasks[i]
-            if self.can_dispatch is not None and not self.can_dispatch(task):
+            if self.can_dispatch is not None and not self.can_dispatch(task, [self.tasks[j] for j in q]):
                 self.stop_reason = "wall time"
                 self.log("\ncampaign: the next task would not fit in the time left; no new tasks")
                 return

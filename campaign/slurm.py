@@ -80,8 +80,7 @@ def _template() -> str:
     return resources.files("campaign").joinpath("templates/campaign.sbatch").read_text()
 
 
-def render_script(*, name: str, spec: Path, out: Path, tasks: int, core_hours: float,
-                  options: SlurmOptions) -> str:
+def render_script(*, name: str, spec: Path, out: Path, tasks: int, options: SlurmOptions) -> str:
     """The sbatch script text. Paths are made absolute: jobs start in other directories."""
     options = options.checked()
     optional = "".join(f"#SBATCH --{key}={value}\n" for key, value in
@@ -90,7 +89,6 @@ def render_script(*, name: str, spec: Path, out: Path, tasks: int, core_hours: f
         name=name,
         job_name=re.sub(r"[^A-Za-z0-9_.-]", "_", name)[:64] or "campaign",
         tasks=tasks,
-        core_hours=f"{core_hours:.3g}",
         nodes=options.nodes,
         ntasks_per_node=options.ntasks_per_node,
         time=options.time,

@@ -198,10 +198,10 @@ def worker_loop(recv, send, context: dict, rank: int) -> None:
     ``recv()`` returns ``("task", payload)`` or ``("stop",)``; ``send(msg)``
     sends ``("ready", rank)`` once the task function is loaded (and its kernels
     warmed up), then ``("result", index, attempt, summary)`` per task. Signals meant for the whole
-    job (Ctrl-C, SIGTERM from a scheduler) are the master's business: a worker
-    ignores them and finishes its task; the master decides when to stop.
+    job (Ctrl-C, SIGTERM from a scheduler, SLURM's USR1 warning) are the master's business:
+    a worker ignores them and finishes its task; the master decides when to stop.
     """
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1):
         try:
             signal.signal(sig, signal.SIG_IGN)
         except (ValueError, OSError):

@@ -180,7 +180,7 @@ def test_a_dead_worker_costs_an_attempt_and_others_take_over(tmp_path):
 def test_wall_time_hook_stops_dispatching(tmp_path):
     spec, tasks, ctx, store = _setup(tmp_path)
     allowed = iter(range(10))
-    out = Master(FakeComm(ctx, 2), store, tasks, can_dispatch=lambda t: next(allowed, None) is not None).run()
+    out = Master(FakeComm(ctx, 2), store, tasks, can_dispatch=lambda t, ahead: next(allowed, None) is not None).run()
     store.close()
     assert out["stopped"] == "wall time" and out["done"] == 10 and out["remaining"] == len(tasks) - 10
 

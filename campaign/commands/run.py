@@ -40,6 +40,12 @@ def configure(parser):
     parser.add_argument("--numba-cache", default=None,
                         help="numba cache directory (default: $NUMBA_CACHE_DIR, else "
                              "~/.cache/jamming-campaign/numba)")
+    parser.add_argument("--time-limit", default=None, metavar="T",
+                        help="wall time of this run, seconds or [D-]HH:MM:SS: tasks that would not finish "
+                             "before it (minus --margin) are not started, and the run exits 0, resumable "
+                             "(SLURM_JOB_END_TIME, when set, limits it too)")
+    parser.add_argument("--margin", type=float, default=60.0, metavar="SECONDS",
+                        help="time kept free before the limit for collecting results and writing (default 60)")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
     # testing hook: the per-task function ("kernels", "synthetic" or "module:attr")
     parser.add_argument("--task-function", default=None, help=argparse.SUPPRESS)
@@ -113,7 +119,13 @@ def _set_numba_cache(args):
 
 def main(args) -> int:
     from campaign.comm import mpi_env_detected
+    from campaign.walltime import deadline
 
+    args.deadline = deadline(time.time(), args.time_limit)  # the allocation's clock starts now
+    if args.margin < 0:
+        from campaign.errors import UserError
+
+        raise UserError(f"--margin must be >= 0 seconds; got {args.margin:g}")
     _set_numba_cache(args)
     if args.task_function is None:
         args.task_function = os.environ.get("CAMPAIGN_TASK_FUNCTION") or "kernels"
@@ -257,8 +269,13 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
         show = not args.quiet
         progress = Progress(len(tasks), sidecar=Path(str(out) + ".progress.json"),
                             enabled=None if show else False)
+        wall = None
+        if args.deadline is not None:
+            from campaign.walltime import Deadline
+
+            wall = Deadline(store, tasks, args.deadline, args.margin)
         master = Master(comm, store, tasks, retries=retries, depth=max(1, args.depth), progress=progress,
-                        grace=args.grace, redo_failed=args.retry_failed, log=_log)
+                        grace=args.grace, redo_failed=args.retry_failed, log=_log, can_dispatch=wall)
         t0, cpu0 = time.monotonic(), time.process_time()
         outcome = master.run()
         cpu = time.process_time() - cpu0
@@ -285,8 +302,14 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
         resume = " ".join(["campaign", "run"] + ([args.spec] if args.spec else []) + ["--out", str(out)])
         if mpi_comm is not None:
             resume = "mpiexec -n K " + resume
-        _log(f"campaign: stopped ({outcome['stopped']}); {counts['pending']} task(s) left. Resume with: {resume}")
-        code = {"SIGINT": 130, "SIGTERM": 143}.get(outcome["stopped"], 3)
+        from campaign.walltime import fit_from_store
+
+        pending = [t for t in tasks if store.status[t.index] == 0]
+        hours = fit_from_store(store, tasks).total_seconds(pending) / 3600.0
+        _log(f"campaign: stopped ({outcome['stopped']}); {counts['pending']} task(s) left, about {hours:.3g} "
+             f"core-hours. Resume with: {resume}")
+        # Running out of allocated time is the normal end of one job of a chain: success.
+        code = {"SIGINT": 130, "SIGTERM": 143, "SIGUSR1": 0, "wall time": 0}.get(outcome["stopped"], 3)
         if mpi_comm is not None and outcome["abandoned"]:
             mpi_comm.Abort(code)  # workers still busy with abandoned tasks: do not wait for them
         return code

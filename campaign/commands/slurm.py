@@ -33,15 +33,13 @@ def configure(p):
 def main(args) -> int:
     from campaign.slurm import SlurmOptions, chain_commands, render_script
     from campaign.spec import load_spec
-    from campaign.tasks import estimate_seconds, expand
 
     spec = load_spec(args.spec)
     results = Path(args.results or spec.output or f"results/{spec.name}.h5")
     options = SlurmOptions(nodes=args.nodes, ntasks_per_node=args.ntasks_per_node, time=args.time,
                            partition=args.partition, account=args.account, launcher=args.launcher,
                            warn_seconds=args.warn)
-    text = render_script(name=spec.name, spec=Path(args.spec), out=results, tasks=spec.n_tasks,
-                         core_hours=estimate_seconds(expand(spec)) / 3600.0, options=options)
+    text = render_script(name=spec.name, spec=Path(args.spec), out=results, tasks=spec.n_tasks, options=options)
     if (args.chain or args.submit) and not args.out:
         raise UserError("--chain and --submit need --out FILE: the jobs submit the script file")
     if args.out:

@@ -62,9 +62,10 @@ def main(args) -> int:
                          "host": s["host"][i].decode(errors="replace"), "rank": int(s["rank"][i]),
                          "message": str(rec.get("message", s["error"][i].decode(errors="replace"))),
                          "traceback": str(rec.get("traceback", ""))})
+    remaining_hours, learnt_from = _remaining_core_hours(attrs, status, s["wall"])
     if args.json:
         print(json.dumps({"file": str(args.file), "name": str(attrs.get("name", "")), "live": active,
-                          **state, "tasks": totals["tasks"],
+                          **state, "tasks": totals["tasks"], "remaining_core_hours": remaining_hours,
                           "groups": [{"variant": k[0], "N": k[1], "E": k[2], "done": d, "failed": f, "pending": p}
                                      for k, d, f, p in groups],
                           "failures": failures}, indent=1))
@@ -76,6 +77,9 @@ def main(args) -> int:
               f"updated {fmt_duration(time.time() - live['updated'])} ago)")
     else:
         print(f"  no run is writing it (last run ended {attrs.get('end_time') or 'without a clean stop'})")
+    if remaining_hours is not None and totals["pending"] + totals["failed"]:
+        print(f"  estimated remaining work {remaining_hours:.3g} core-hours "
+              f"(cost model learnt from {learnt_from} finished packing(s))")
     width = max(7, max(len(k[0]) for k, *_ in groups)) if groups else 7
     print(f"  {'variant':<{width}} {'N':>7} {'E':>9} {'done':>6} {'failed':>6} {'pending':>7}")
     for (v, n, e), d, f, p in groups:
@@ -88,3 +92,20 @@ def main(args) -> int:
             if args.tracebacks and r["traceback"]:
                 print("      " + r["traceback"].rstrip().replace("\n", "\n      "))
     return 0
+
+
+def _remaining_core_hours(attrs, status, wall):
+    """Core-hours of the unfinished tasks by the cost model learnt from the finished ones."""
+    from campaign.errors import UserError
+    from campaign.spec import parse_spec
+    from campaign.tasks import expand
+    from campaign.walltime import remaining_seconds
+
+    try:
+        tasks = expand(parse_spec(str(attrs["spec_yaml"]), "the file's spec"))
+    except (KeyError, UserError):
+        return None, 0
+    if len(tasks) != len(status):
+        return None, 0
+    seconds, n = remaining_seconds(tasks, status, wall)
+    return seconds / 3600.0, n

@@ -33,4 +33,29 @@ def main(args) -> int:
     print(f"  output      {spec.output}")
     print(f"  estimated cost {seconds / 3600:.3g} core-hours ({fmt_duration(seconds)} on one core; "
           f"longest task ~{fmt_duration(longest)}; a rough model, see campaign/tasks.py)")
+    learnt = _learnt_remaining(spec, tasks)
+    if learnt:
+        print(f"  {spec.output}: {learnt}")
     return 0
+
+
+def _learnt_remaining(spec, tasks):
+    """What the spec's existing output file says is left, by the cost model learnt from it."""
+    from pathlib import Path
+
+    from campaign.errors import UserError
+    from campaign.store import DONE, read_summary
+    from campaign.walltime import remaining_seconds
+
+    if not spec.output or not Path(spec.output).exists():
+        return None
+    try:
+        s = read_summary(spec.output)
+    except UserError:
+        return None
+    if s["attrs"].get("spec_hash") != spec.hash or len(s["status"]) != len(tasks):
+        return "exists, written by a different spec"
+    seconds, n = remaining_seconds(tasks, s["status"], s["wall"])
+    done = int((s["status"] == DONE).sum())
+    return (f"{done} of {len(tasks)} done; remaining about {seconds / 3600:.3g} core-hours "
+            f"(cost model learnt from {n} finished packing(s))")
