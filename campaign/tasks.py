@@ -2,7 +2,7 @@
 
 A task is one packing: (variant, N, E, seed index). Its **id** is the blake2b
 hash (16 bytes, 32 hex characters) of the canonical JSON of
-``{system, effective protocol, N, E, seed}``: the description of the packing,
+``{campaign seed, system, effective protocol, N, E, seed}``: the description of the packing,
 not of its place in a spec. The variant's *name* is not part of it (renaming a
 variant keeps its packings); observables, bins and storage options are not
 either (they change what is kept of a packing, not the packing; the store's
@@ -41,8 +41,10 @@ class Task:
                 "seed": self.seed, "entropy": list(self.entropy), "protocol": dict(self.protocol)}
 
 
-def task_id(system: dict, protocol: dict, N: int, E: float, seed: int) -> str:
-    text = canonical_json({"system": system, "protocol": protocol, "N": N, "E": E, "seed": seed})
+def task_id(system: dict, protocol: dict, N: int, E: float, seed: int, campaign_seed: int) -> str:
+    # The campaign seed is part of the packing's identity: another campaign seed is another packing.
+    text = canonical_json({"campaign_seed": int(campaign_seed), "system": system, "protocol": protocol,
+                           "N": N, "E": E, "seed": seed})
     return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
 
 
@@ -62,7 +64,7 @@ def expand(spec: Spec) -> list[Task]:
         for N in spec.N:
             for E in spec.E:
                 for s in spec.seeds:
-                    out.append(Task(index=len(out), id=task_id(system, proto, N, E, s), variant=v.name,
+                    out.append(Task(index=len(out), id=task_id(system, proto, N, E, s, spec.seed), variant=v.name,
                                     N=N, E=E, seed=s, entropy=seed_entropy(spec.seed, system, N, E, s),
                                     protocol=v.protocol))
     return out

@@ -38,6 +38,9 @@ def test_ids_are_content_addressed():
     assert {t.id for t in d if t.variant == "loose"}.isdisjoint(a.values())
     e = expand(parse_spec(BASE + "system: {potential: {exponent: 2.5}}\n"))
     assert {t.id for t in e}.isdisjoint(a.values())
+    # so is the campaign seed: it changes every packing
+    f = expand(parse_spec(BASE.replace("seed: 11", "seed: 12")))
+    assert {t.id for t in f}.isdisjoint(a.values())
 
 
 def test_seeds_shared_by_variants_and_distinct_otherwise():
