@@ -74,6 +74,8 @@ class KernelTask:
                             exponent=exponent, species=p.species)
         t2 = time.perf_counter()
         scalars = {k: float(v) for k, v in a.scalars.items()}
+        # each identity flag too (1.0 holds), so a campaign shows which identity a packing fails
+        scalars.update({f"identity_{k}": float(bool(v)) for k, v in a.identities.items()})
         scalars.update(force_residual=float(p.force_residual), iterations=float(p.iterations),
                        force_evaluations=float(p.force_evaluations),
                        jam_status=float(getattr(p, "status_code", JAM_STATUS.get(str(p.status), 9))),

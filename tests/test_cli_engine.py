@@ -194,8 +194,6 @@ class WarmProbe:
 @pytest.mark.parametrize("launcher", ["local", "mpi"])
 def test_kernels_are_compiled_once_by_the_master_before_any_worker_starts(tmp_path, launcher):
     mpiexec = Path(sys.executable).parent / "mpiexec"
-    if launcher == "mpi" and not mpiexec.exists():
-        pytest.skip("no mpiexec")
     log, out = tmp_path / "warm.log", tmp_path / "o.h5"
     cmd = [sys.executable, "-m", "campaign", "run", str(_spec(tmp_path)), "--out", str(out),
            "--task-function", "test_cli_engine:WarmProbe"]

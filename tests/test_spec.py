@@ -161,7 +161,6 @@ def test_empty_file(tmp_path, capsys):
 
 
 def test_energies_below_the_float64_floor_are_refused_before_running(tmp_path, capsys):
-    pytest.importorskip("kernels.jamming")
     from kernels.jamming import energy_floor, initial_state
 
     _, radii, _ = initial_state(8192, 0, (1.0, 1.0), ((0.5, 1.4), (0.5, 1.0)), 0.86)
