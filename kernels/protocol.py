@@ -12,7 +12,8 @@ positions from the previous minimum, so they produce the same kind of packing:
 * ``SEARCH_HALVING`` (the documented O'Hern rule): multiply the radii by
   ``(1 + Delta)`` or ``1 / (1 + Delta)`` and halve ``Delta`` at every reversal of
   direction.
-* ``SEARCH_SECANT`` (default, much faster at low energy): near jamming
+* ``SEARCH_SECANT`` (default; about 3 times fewer minimisations at low energy, and
+  somewhat fewer force evaluations, than halving): near jamming
   ``g = E_G^(1/alpha)`` is linear in the radius scale factor ``lambda`` (it vanishes
   at ``lambda_J``). After each jammed minimum (force-balanced, ``E_G > 0``) the line
   is refitted: through the two latest jammed minima when its slope agrees within a
