@@ -46,9 +46,11 @@ ENERGY_STEP = 1e-1
 STATUS_CODES = {name: code for code, name in enumerate(STATUS_NAMES)}
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Packing:
-    """A packing produced by ``jam`` (arrays are float64 unless stated)."""
+    """A packing produced by ``jam`` (arrays are float64 unless stated; read-only).
+
+    Compared by identity (``eq=False``): compare arrays with ``tobytes()``."""
 
     positions: np.ndarray  # (n, 2), wrapped into [0, Lx) x [0, Ly)
     radii: np.ndarray  # (n,)
