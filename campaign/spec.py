@@ -28,20 +28,7 @@ from typing import Any
 import yaml
 
 from campaign.errors import UserError
-
-#: observable name -> the histograms it produces (docs/CONTRACTS.md, ``kernels.analyze``)
-OBSERVABLES: dict[str, tuple[str, ...]] = {
-    "scalars": (),
-    "contact_angles": ("contact_angle",),
-    "contact_lengths": ("contact_length",),
-    "connectivity": ("z_g", "z_v"),
-    "edge_triangles": ("alpha_e",),
-    "void_areas": ("alpha_v",),
-    "fictitious": ("fictitious_length",),
-    "radial_grains": ("radial_grains",),
-    "radial_contacts": ("radial_contacts",),
-}
-HISTOGRAMS = tuple(h for names in OBSERVABLES.values() for h in names)
+from kernels.names import HISTOGRAMS, OBSERVABLES  # noqa: F401 - re-exported
 
 #: protocol keys a spec may set (forwarded to ``kernels.jam`` as keyword arguments)
 PROTOCOL_DEFAULTS = {"window": 0.1, "force_tolerance": 1e-6}

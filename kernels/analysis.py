@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from kernels.network import (
+    _checked_config,
     _contact_bonds_core,
     _faces_core,
     _grain_pass_core,
@@ -37,7 +38,6 @@ from kernels.observables import (
     check_edges,
     is_uniform,
 )
-from kernels.space import _as_box, _as_positions
 from kernels.triangulate import _triangulate_faces_core
 
 
@@ -147,16 +147,10 @@ def _check_bins(bins, wanted):
 
 
 def _check_inputs(positions, radii, box, exponent, species):
-    pos = _as_positions(positions)
+    pos, rad, b = _checked_config(positions, radii, box)
     n = pos.shape[0]
     if n < 2:
         raise ValueError(f"positions: expected at least 2 disks, got {n}")
-    rad = np.asarray(radii, dtype=np.float64)
-    if rad.shape != (n,):
-        raise ValueError(f"radii: expected shape ({n},) to match positions, got {rad.shape}")
-    if not (np.all(np.isfinite(rad)) and np.all(rad > 0)):
-        raise ValueError("radii: expected finite positive values, got zero, negative, NaN or inf")
-    b = _as_box(box)
     if 4.0 * rad.max() >= b.min():
         raise ValueError(
             f"radii: the largest diameter ({2 * rad.max():g}) must be below half the smaller box side "

@@ -40,6 +40,7 @@ import numpy as np
 from numba import njit
 
 from kernels.cells import _as_radii, _candidate_pairs_core
+from kernels.network import _rattlers_core
 from kernels.potential import (_energy_forces_core, _energy_forces_rows, _pair_inv_sigma,
                                _rows_from_pairs, check_exponent, pair_energy_force)
 from kernels.space import _as_box, _as_positions, _wrap_core, minimum_image
@@ -64,42 +65,11 @@ STATUS_NAMES = ("converged", "max_steps", "stalled", "below")
 
 @njit(cache=True)
 def _nonrattler_mask_core(n, ci, cj):
-    """Iteratively remove disks with fewer than 3 contacts; True for the rest."""
-    deg = np.zeros(n, dtype=np.int64)
-    for k in range(ci.shape[0]):
-        deg[ci[k]] += 1
-        deg[cj[k]] += 1
-    # adjacency in CSR form
-    start = np.zeros(n + 1, dtype=np.int64)
-    for i in range(n):
-        start[i + 1] = start[i] + deg[i]
-    fill = start[:-1].copy()
-    adj = np.empty(2 * ci.shape[0], dtype=np.int64)
-    for k in range(ci.shape[0]):
-        adj[fill[ci[k]]] = cj[k]
-        fill[ci[k]] += 1
-        adj[fill[cj[k]]] = ci[k]
-        fill[cj[k]] += 1
-    alive = np.ones(n, dtype=np.bool_)
-    stack = np.empty(n, dtype=np.int64)
-    top = 0
-    for i in range(n):
-        if deg[i] < 3:
-            alive[i] = False
-            stack[top] = i
-            top += 1
-    while top > 0:
-        top -= 1
-        i = stack[top]
-        for s in range(start[i], start[i + 1]):
-            j = adj[s]
-            if alive[j]:
-                deg[j] -= 1
-                if deg[j] < 3:
-                    alive[j] = False
-                    stack[top] = j
-                    top += 1
-    return alive
+    """Iteratively remove disks with fewer than 3 contacts; True for the rest.
+
+    The one implementation of rattler removal is ``kernels.network._rattlers_core``.
+    """
+    return ~_rattlers_core(n, ci, cj)
 
 
 @njit(cache=True)

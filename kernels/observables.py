@@ -18,22 +18,8 @@ Jitted cores: ``_histogram_core(values, edges, uniform, counts)`` and
 import numpy as np
 from numba import njit
 
+from kernels.names import HISTOGRAMS, OBSERVABLES  # noqa: F401 - re-exported
 from kernels.space import minimum_image
-
-#: observable name -> histograms it produces (docs/CONTRACTS.md)
-OBSERVABLES = {
-    "scalars": (),
-    "contact_angles": ("contact_angle",),
-    "contact_lengths": ("contact_length",),
-    "connectivity": ("z_g", "z_v"),
-    "edge_triangles": ("alpha_e",),
-    "void_areas": ("alpha_v",),
-    "fictitious": ("fictitious_length",),
-    "radial_grains": ("radial_grains",),
-    "radial_contacts": ("radial_contacts",),
-}
-
-HISTOGRAMS = tuple(h for hs in OBSERVABLES.values() for h in hs)
 
 
 @njit(cache=True, inline="always")
