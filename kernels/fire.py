@@ -40,7 +40,7 @@ import numpy as np
 from numba import njit
 
 from kernels.cells import _as_radii, _candidate_pairs_core
-from kernels.network import _rattlers_core
+from kernels.network import _overlapping_core, _rattlers_core
 from kernels.potential import (_energy_forces_core, _energy_forces_rows, _pair_inv_sigma,
                                _rows_from_pairs, check_exponent, pair_energy_force)
 from kernels.space import _as_box, _as_positions, _wrap_core, minimum_image
@@ -75,25 +75,7 @@ def _nonrattler_mask_core(n, ci, cj):
 @njit(cache=True)
 def _contacts_core(positions, radii, box, pi, pj):
     """The candidate pairs that overlap: centre distance < r_i + r_j (minimum image)."""
-    m = 0
-    keep = np.zeros(pi.shape[0], dtype=np.bool_)
-    for k in range(pi.shape[0]):
-        i = pi[k]
-        j = pj[k]
-        dx = minimum_image(positions[j, 0] - positions[i, 0], box[0])
-        dy = minimum_image(positions[j, 1] - positions[i, 1], box[1])
-        s = radii[i] + radii[j]
-        if dx * dx + dy * dy < s * s:
-            keep[k] = True
-            m += 1
-    ci = np.empty(m, dtype=np.int64)
-    cj = np.empty(m, dtype=np.int64)
-    t = 0
-    for k in range(pi.shape[0]):
-        if keep[k]:
-            ci[t] = pi[k]
-            cj[t] = pj[k]
-            t += 1
+    ci, cj, _, _ = _overlapping_core(positions, radii, box, pi, pj)
     return ci, cj
 
 

@@ -17,6 +17,8 @@ Conventions (``PHYSICS.md``, "The contact network"):
 
 Jitted cores, usable from other numba code:
 
+* ``_overlapping_core(positions, radii, box, pi, pj) -> (bi, bj, dx, dy)``: the
+  overlapping pairs among candidates
 * ``_contact_bonds_core(positions, radii, box) -> (bi, bj, dx, dy)``
 * ``_rattlers_core(n, bi, bj) -> rattler`` (bool mask)
 * ``_rotation_core(n, bi, bj, dx, dy, keep, radii)`` -> half-edge CSR arrays
@@ -36,20 +38,17 @@ from kernels.space import _as_box, _as_positions, minimum_image
 
 
 @njit(cache=True)
-def _contact_bonds_core(positions, radii, box):
-    """Contacts ``|d| < r_i + r_j`` as sorted bonds ``i < j`` with displacements.
-
-    ``dx, dy`` is the minimum image of ``r_j - r_i``.
-    """
-    ci, cj = _candidate_pairs_core(positions, radii, box, 0.0)
-    m = ci.shape[0]
+def _overlapping_core(positions, radii, box, pi, pj):
+    """The candidate pairs ``(pi, pj)`` that overlap, ``|d| < r_i + r_j``, in their order,
+    with ``dx, dy`` the minimum image of ``r_j - r_i``."""
+    m = pi.shape[0]
     dx = np.empty(m)
     dy = np.empty(m)
     keep = np.zeros(m, dtype=np.bool_)
     count = 0
     for k in range(m):
-        i = ci[k]
-        j = cj[k]
+        i = pi[k]
+        j = pj[k]
         ddx = minimum_image(positions[j, 0] - positions[i, 0], box[0])
         ddy = minimum_image(positions[j, 1] - positions[i, 1], box[1])
         s = radii[i] + radii[j]
@@ -65,12 +64,22 @@ def _contact_bonds_core(positions, radii, box):
     t = 0
     for k in range(m):
         if keep[k]:
-            bi[t] = ci[k]
-            bj[t] = cj[k]
+            bi[t] = pi[k]
+            bj[t] = pj[k]
             ox[t] = dx[k]
             oy[t] = dy[k]
             t += 1
     return bi, bj, ox, oy
+
+
+@njit(cache=True)
+def _contact_bonds_core(positions, radii, box):
+    """Contacts ``|d| < r_i + r_j`` as sorted bonds ``i < j`` with displacements.
+
+    ``dx, dy`` is the minimum image of ``r_j - r_i``.
+    """
+    ci, cj = _candidate_pairs_core(positions, radii, box, 0.0)
+    return _overlapping_core(positions, radii, box, ci, cj)
 
 
 @njit(cache=True)

@@ -45,6 +45,7 @@ import numpy as np
 from numba import njit
 
 from kernels.fire import BELOW, CONVERGED, MAX_STEPS, _fire_core
+from kernels.space import _wrap_core
 
 DT_FACTOR = 0.04  # initial FIRE time step in units of 1/sqrt(stiffness), see _dt_for
 AIM = 0.5  # the secant rule aims at E_min (1 + AIM window)
@@ -249,11 +250,8 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
             status = ST_TOO_DENSE
             break
         scale = new
+    wrapped = _wrap_core(pos, box)
     for i in range(n):
-        for k in range(2):
-            L = box[k]
-            x = pos[i, k] - L * np.floor(pos[i, k] / L)
-            if x >= L:
-                x -= L
-            positions[order[i], k] = x
+        positions[order[i], 0] = wrapped[i, 0]
+        positions[order[i], 1] = wrapped[i, 1]
     return status, scale, e_last, w_last, res_last, it, nforce
