@@ -16,6 +16,11 @@ are only milliseconds long).
   dispatching, collect the running tasks for up to
   ``grace`` seconds; a second signal (or the end of the grace time) abandons
   them. Either way the store is flushed and closed, and resuming is a rerun.
+* Ladder chains (``Task.parent``): a task waits until its parent is done and is sent
+  with the parent's configuration (``payload["start"]``); a parent is asked to return
+  its configuration (``payload["return_configuration"]``), which the store keeps, so a
+  resumed run continues the chains. When a parent fails for good, its descendants are
+  recorded as failed with the reason.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ import signal
 import time
 from collections import deque
 
-from campaign.store import PENDING
+from campaign.store import DONE, FAILED, PENDING
 from campaign.tasks import task_cost
 
 
@@ -37,17 +42,28 @@ class Master:
         self.can_dispatch, self.grace = can_dispatch, grace
         self.log = log or (lambda msg: None)
         todo = [t for t in tasks if store.status[t.index] == PENDING
-                or (redo_failed and not store.status[t.index] == 1)]
-        self.queue = [(-task_cost(t), t.index) for t in todo]
+                or (redo_failed and not store.status[t.index] == DONE)]
+        todo_set = {t.index for t in todo}
+        self.children = {}
+        for t in tasks:
+            if t.parent is not None:
+                self.children.setdefault(t.parent, []).append(t.index)
+        self.configs = {}  # parent index -> its configuration, while its children need it
+        self._woken = False  # a child became ready: offer it to every worker
+        # a task runs once its parent is done; a parent that failed for good fails its chain below
+        self.blocked = {t.index for t in todo if t.parent is not None and store.status[t.parent] != DONE}
+        self.queue = [(-task_cost(t), t.index) for t in todo if t.index not in self.blocked]
         heapq.heapify(self.queue)
         self.cost_remaining = sum(task_cost(t) for t in todo)
         self.attempts = {}
+        self.n_done = self.n_failed = 0
+        self._orphans = [t.index for t in tasks if t.index in self.blocked and t.parent not in todo_set
+                         and store.status[t.parent] == FAILED]
         self.in_flight = {w: deque() for w in range(1, comm.n_workers + 1)}
         self.alive = set(self.in_flight) - set(getattr(comm, "dead", ()))
         self.stop_reason = None      # why dispatching stopped early (signal name, wall time, ...)
         self.stop_since = None
         self.signals = 0
-        self.n_done = self.n_failed = 0
         self._finished, self._cost, self._last_progress = 0, 0.0, 0.0
         self.mean_wall = None  # running mean of the workers' task times (sets the dispatch depth)
 
@@ -101,8 +117,45 @@ class Master:
             self.attempts[i] = attempt
             payload = task.payload()
             payload["attempt"] = attempt
+            if task.parent is not None:
+                start = self.configs.get(task.parent)
+                if start is None:
+                    start = self.store.configuration(task.parent)
+                if start is None:
+                    self._fail(i, f"the configuration of its ladder parent (task {self.tasks[task.parent].id}) "
+                                  "is not in the store; rerun the parent with --redo-failed after removing it, "
+                                  "or start afresh with --new")
+                    continue
+                payload["start"] = start
+            if i in self.children:
+                payload["return_configuration"] = True
             q.append(i)
             self.comm.send(w, payload)
+
+    def _fail(self, i, message, rank=-1):
+        """Record task ``i`` as failed without running it (and its descendants)."""
+        summary = {"id": self.tasks[i].id, "ok": False, "scalars": {}, "histograms": {}, "configuration": None,
+                   "wall": float("nan"), "rank": rank, "host": "", "error": {"message": message, "traceback": ""}}
+        self._outcome(i, self.retries + 1, summary)
+
+    def _release(self, i, summary):
+        """A final outcome of task ``i``: unblock its children or fail them; free its parent's data."""
+        parent = self.tasks[i].parent
+        if parent is not None and all(self.store.finished(c) for c in self.children[parent]):
+            self.configs.pop(parent, None)
+        for c in self.children.get(i, ()):
+            if c not in self.blocked:
+                continue
+            self.blocked.discard(c)
+            cfg = summary.get("configuration") if summary["ok"] else None
+            if summary["ok"] and cfg is not None:
+                self.configs[i] = cfg
+                heapq.heappush(self.queue, (-task_cost(self.tasks[c]), c))
+                self._woken = True
+            elif summary["ok"]:
+                self._fail(c, f"its ladder parent (task {self.tasks[i].id}) returned no configuration")
+            else:
+                self._fail(c, f"its ladder parent (task {self.tasks[i].id}) failed")
 
     def _outcome(self, i, attempt, summary):
         cost = task_cost(self.tasks[i])
@@ -113,6 +166,7 @@ class Master:
                 self.n_done += 1
             else:
                 self.n_failed += 1
+            self._release(i, summary)
             return 1, cost
         heapq.heappush(self.queue, (-cost, i))  # retry later
         return 0, 0.0
@@ -138,6 +192,9 @@ class Master:
     def run(self) -> dict:
         old = self._install_signals()
         try:
+            for i in self._orphans:
+                self.blocked.discard(i)
+                self._fail(i, f"its ladder parent (task {self.tasks[self.tasks[i].parent].id}) failed")
             for w in sorted(self.alive):
                 self._dispatch(w)
             while self._running():
@@ -162,6 +219,10 @@ class Master:
                     finished, cost = self._outcome(i, attempt, summary)
                     if w in self.alive:
                         self._dispatch(w)
+                    if self._woken:
+                        self._woken = False
+                        for v in sorted(self.alive):
+                            self._dispatch(v)
                 elif msg[0] == "dead":
                     self.alive.discard(w)
                     lost = list(self.in_flight[w])
@@ -183,7 +244,8 @@ class Master:
             abandoned = self._running()
             self._tick(force=True)
             return {"done": self.n_done, "failed": self.n_failed, "abandoned": abandoned,
-                    "stopped": self.stop_reason, "remaining": len(self.queue) + abandoned}
+                    "stopped": self.stop_reason,
+                    "remaining": len(self.queue) + abandoned + len(self.blocked)}
         finally:
             for sig, handler in old.items():
                 signal.signal(sig, handler)

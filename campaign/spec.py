@@ -33,9 +33,12 @@ from kernels.names import HISTOGRAMS, OBSERVABLES  # noqa: F401 - re-exported
 #: protocol keys a spec may set (forwarded to ``kernels.jam`` as keyword arguments)
 PROTOCOL_DEFAULTS = {"window": 0.1, "force_tolerance": 1e-6}
 PROTOCOL_KEYS = ("window", "force_tolerance", "search_tolerance", "phi_start", "max_search", "max_steps",
-                 "minimizer", "search", "delta", "skin")
+                 "minimizer", "search", "delta", "skin", "start")
 MINIMIZERS = ("fire",)
 SEARCH_RULES = ("secant", "halving")
+#: where each packing's search starts: "random" (independent packings, the paper's protocol) or
+#: "ladder" (the same seed's packing at the next higher energy of the grid, decompressed)
+STARTS = ("random", "ladder")
 
 TOP_KEYS = ("name", "seed", "system", "grid", "protocol", "variants", "observables", "bins",
             "store", "run", "output")
@@ -474,12 +477,20 @@ def _protocol(c, value, path, allow, base=None):
                 c.err(path + (k,), f"unknown search rule {x!r}; expected one of {', '.join(SEARCH_RULES)}")
             elif x is not None:
                 out[k] = x
+        elif k == "start":
+            x = c.string(v, path + (k,), what=f"one of {', '.join(STARTS)}")
+            if x is not None and x not in STARTS:
+                c.err(path + (k,), f"unknown start {x!r}; expected one of {', '.join(STARTS)}")
+            elif x is not None:
+                out[k] = x
         elif k == "minimizer":
             x = c.string(v, path + (k,), what=f"one of {', '.join(MINIMIZERS)}")
             if x is not None and x not in MINIMIZERS:
                 c.err(path + (k,), f"unknown minimizer {x!r}; expected one of {', '.join(MINIMIZERS)}")
             elif x is not None:
                 out[k] = x
+    if out.get("start") == "random":
+        del out["start"]  # the default: independent packings keep their ids
     return out
 
 

@@ -352,12 +352,22 @@ class Store:
             for h in self.edges:
                 arrays["h/" + h] = np.asarray(summary["histograms"][h], np.int64)
             cfg = summary.get("configuration")
-            if self.spec.configurations and cfg is not None:
+            if cfg is not None:  # asked for by the spec, or a ladder parent's
                 for k in ("positions", "radii", "box", "species"):
                     arrays["c/" + k] = np.asarray(cfg[k])
         self.journal.append(meta, arrays)
         self._apply(meta, arrays)
         self.maybe_flush()
+
+    def configuration(self, index: int):
+        """The stored configuration of task ``index`` (dict of arrays), or None."""
+        if index in self.pending_configs:
+            return dict(self.pending_configs[index])
+        tid = self.tasks[index].id
+        if tid in self.have_configs:
+            g = self.f[f"configurations/{tid}"]
+            return {k: g[k][()] for k in ("positions", "radii", "box", "species")}
+        return None
 
     def _journal_row(self, i):
         """Re-journal a row the view holds (when the journal was lost)."""

@@ -13,6 +13,11 @@ Its **seed entropy** is ``[campaign seed, w0, w1, w2, w3]`` where the ``w`` are
 feeds it to ``numpy.random.SeedSequence``. The protocol is left out on purpose:
 every variant of one (N, E, seed) starts from the same initial positions, so
 variants are compared packing by packing.
+
+A variant with ``start: ladder`` chains its tasks: the task at each energy but the highest
+of the grid has a **parent**, the task of the same variant, N and seed at the next higher
+energy, and starts from the parent's packing (``kernels.jam(..., start=...)``). The master
+dispatches a task only once its parent is done.
 """
 
 from __future__ import annotations
@@ -34,6 +39,8 @@ class Task:
     seed: int               # seed index
     entropy: tuple[int, ...]
     protocol: tuple[tuple[str, object], ...]
+    parent: int | None = None  # index of the task whose packing this one starts from (ladder)
+    parent_E: float | None = None
 
     def payload(self) -> dict:
         """What a worker needs (small and picklable)."""
@@ -59,14 +66,19 @@ def expand(spec: Spec) -> list[Task]:
     """Every task of the spec in canonical order: variant (default first), N, E, seed index."""
     system = spec.system.canonical()
     out = []
+    n_seeds = len(spec.seeds)
     for v in spec.variants:
         proto = dict(v.protocol)
+        ladder = proto.get("start") == "ladder"
         for N in spec.N:
-            for E in spec.E:
+            for k, E in enumerate(spec.E):
+                upper = k + 1 < len(spec.E) and ladder
                 for s in spec.seeds:
-                    out.append(Task(index=len(out), id=task_id(system, proto, N, E, s, spec.seed), variant=v.name,
+                    i = len(out)
+                    out.append(Task(index=i, id=task_id(system, proto, N, E, s, spec.seed), variant=v.name,
                                     N=N, E=E, seed=s, entropy=seed_entropy(spec.seed, system, N, E, s),
-                                    protocol=v.protocol))
+                                    protocol=v.protocol, parent=i + n_seeds if upper else None,
+                                    parent_E=spec.E[k + 1] if upper else None))
     return out
 
 
@@ -85,6 +97,10 @@ def cost(N: int, E: float, protocol=None) -> float:
 
 
 def task_cost(t: Task) -> float:
+    if t.parent_E is not None:
+        # a ladder step: the decades between the parent's energy and this one
+        return max(0.0, cost(t.N, t.E, t.protocol) - cost(t.N, t.parent_E, t.protocol)) + 0.1 * cost(
+            t.N, E_REF, t.protocol)
     return cost(t.N, t.E, t.protocol)
 
 

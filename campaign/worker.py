@@ -64,9 +64,14 @@ class KernelTask:
         system = context["system"]
         species = tuple((f, r) for _, f, r in system["species"])
         exponent = system["potential"]["exponent"]
+        protocol = dict(payload["protocol"])
+        protocol.pop("start", None)  # "ladder": the master sends the parent's packing as payload["start"]
+        start = payload.get("start")
+        if start is not None:
+            start = (start["positions"], start["radii"], start["species"])
         t0 = time.perf_counter()
-        p = kernels.jam(payload["N"], payload["E"], list(payload["entropy"]), box=tuple(system["box"]),
-                        species=species, exponent=exponent, **payload["protocol"])
+        p = kernels.jam(payload["N"], payload["E"], list(payload["entropy"]), start=start,
+                        box=tuple(system["box"]), species=species, exponent=exponent, **protocol)
         t1 = time.perf_counter()
         obs = [o for o in context["observables"]]
         bins = {h: np.asarray(e, dtype=np.float64) for h, e in (context.get("edges") or {}).items()}
@@ -85,7 +90,7 @@ class KernelTask:
                 scalars[name] = float(getattr(p, name))
         hists = {h: a.histograms[h] for h in context["histograms"]}
         config = None
-        if context.get("configurations"):
+        if context.get("configurations") or payload.get("return_configuration"):
             config = {"positions": np.asarray(p.positions, np.float64), "radii": np.asarray(p.radii, np.float64),
                       "box": np.asarray(p.box, np.float64), "species": np.asarray(p.species, np.int32)}
         return scalars, hists, config
@@ -145,8 +150,11 @@ class SyntheticTask:
         for h, edges in (context.get("edges") or {}).items():
             k = len(edges) - 1
             hists[h] = rng.multinomial(N, np.full(k, 1.0 / k)).astype(np.int64)
+        if payload.get("start") is not None:
+            # a ladder step: show which configuration it started from
+            scalars["start_checksum"] = float(np.sum(payload["start"]["positions"]))
         config = None
-        if context.get("configurations"):
+        if context.get("configurations") or payload.get("return_configuration"):
             pos = rng.random((N, 2))
             config = {"positions": pos, "radii": np.where(np.arange(N) < N // 2, 1.4, 1.0) * 0.01,
                       "box": np.array([1.0, 1.0]), "species": (np.arange(N) >= N // 2).astype(np.int32)}

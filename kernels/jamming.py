@@ -162,6 +162,29 @@ def initial_state(n, seed, box, species, phi_start):
     return positions, radii, species_idx
 
 
+def _check_start(start, n, box):
+    """Copies of a starting configuration's positions, radii and species, checked."""
+    if isinstance(start, Packing):
+        if not np.array_equal(start.box, box):
+            raise ValueError(f"start: expected a packing in the box {box.tolist()}, got one in "
+                             f"{start.box.tolist()}")
+        start = (start.positions, start.radii, start.species)
+    try:
+        pos, rad, spc = start
+        pos = np.array(pos, dtype=np.float64)
+        rad = np.array(rad, dtype=np.float64)
+        spc = np.array(spc, dtype=np.int32)
+    except (TypeError, ValueError):
+        raise ValueError("start: expected None, a Packing or (positions, radii, species) arrays, "
+                         f"got {type(start).__name__}") from None
+    if pos.shape != (n, 2) or rad.shape != (n,) or spc.shape != (n,):
+        raise ValueError(f"start: expected positions ({n}, 2), radii ({n},) and species ({n},) for "
+                         f"n={n}, got {pos.shape}, {rad.shape} and {spc.shape}")
+    if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(rad)) and np.all(rad > 0)):
+        raise ValueError("start: expected finite positions and positive finite radii")
+    return pos, rad, spc
+
+
 def energy_floor(radii, box, exponent, force_tolerance):
     """Lowest E_G whose forces float64 can balance to ``force_tolerance``.
 
@@ -189,7 +212,7 @@ def _check_box(box):
     return b
 
 
-def jam(n, energy, seed, **settings):
+def jam(n, energy, seed, start=None, **settings):
     """Jammed packing of ``n`` disks with ``E_G`` in ``[energy, energy (1 + window)]``.
 
     Parameters
@@ -201,6 +224,13 @@ def jam(n, energy, seed, **settings):
         interaction scale.
     seed : int, sequence of ints or numpy.random.SeedSequence
         the initial positions come from ``Generator(PCG64(SeedSequence(seed)))``.
+    start : None, a ``Packing`` or ``(positions, radii, species)``
+        None (default): random positions at ``phi_start``. Otherwise the search starts
+        from these positions and radii (scale factor 1) instead: the *energy ladder*
+        protocol, which reaches a lower energy by decompressing a packing made at a
+        higher one. ``seed``, ``phi_start`` and ``species`` are then not used; the
+        result's ``species`` are the starting ones. ``force_evaluations`` counts this
+        search only.
 
     Settings (keyword; defaults in ``DEFAULTS``)
     --------------------------------------------
@@ -262,9 +292,11 @@ def jam(n, energy, seed, **settings):
     rule = SEARCH_SECANT if opt["search"] == "secant" else SEARCH_HALVING
     delta = _positive_float("delta", opt["delta"], upper=1.0)
     skin = _positive_float("skin", opt["skin"], upper=1.0)
-    seq = _seed_sequence(seed)
-
-    positions, radii0, species_idx = initial_state(n, seq, box, opt["species"], phi_start)
+    if start is None:
+        positions, radii0, species_idx = initial_state(n, _seed_sequence(seed), box, opt["species"],
+                                                       phi_start)
+    else:
+        positions, radii0, species_idx = _check_start(start, n, box)
     # the nearest image must be the only one in range: 2 r_max (1 + skin) < L/2
     max_radius = float(box.min()) / (4.0 * (1.0 + skin))
     if radii0.max() * (1.0 + delta) ** 2 > max_radius:
@@ -298,7 +330,8 @@ def jam(n, energy, seed, **settings):
         force_residual=float(residual), iterations=int(iterations),
         force_evaluations=int(nforce), status=STATUS_NAMES[status], exponent=alpha,
         n_nonrattlers=n_g,
-        settings=dict(opt, box=tuple(box.tolist()), exponent=alpha, energy=e_min, n=n),
+        settings=dict(opt, box=tuple(box.tolist()), exponent=alpha, energy=e_min, n=n,
+                      start="random" if start is None else "packing"),
     )
 
 
