@@ -419,6 +419,40 @@ FIGURES = {
 }
 
 
+def fig_pareto(red, plt):
+    """Cost against deviation from the reference variant (campaign.tradeoff): the Pareto front."""
+    from campaign.tradeoff import QUANTITIES
+
+    recs = [r for r in red.variants if np.isfinite(r.get("cost_ratio_fe", np.nan))]
+    labels = {"A_G": r"$|\Delta A_G|$", "delta_Z": r"$|\Delta\,\Delta Z|$", "psi_O": r"$|\Delta \Psi_O|$",
+              "iso_excess": r"$|\Delta(N_C/2 - 2N_G + 1)|$"}
+    fig, axes = plt.subplots(1, 1 + len(QUANTITIES), figsize=(3.0 * (1 + len(QUANTITIES)), 3.0))
+    x = np.array([r["cost_ratio_fe"] for r in recs])
+    ref = recs[0]["reference"] if recs else ""
+    ax = axes[0]
+    sc = np.array([r.get("score", np.nan) for r in recs])
+    front = sorted((r for r in recs if r.get("on_front")), key=lambda r: r["cost_ratio_fe"])
+    ax.plot([r["cost_ratio_fe"] for r in front], [r["score"] for r in front], "-", color="0.6", zorder=0,
+            label="Pareto front")
+    ax.scatter(x, sc, c=["C3" if r.get("on_front") else "C0" for r in recs], s=18)
+    for r, xi, yi in zip(recs, x, sc):
+        ax.annotate(r["variant"], (xi, yi), fontsize=6, xytext=(3, 2), textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_xlabel(f"cost / cost({ref}) (force evaluations)")
+    ax.set_ylabel("largest |bias| / packing spread")
+    ax.legend(loc="upper right")
+    for ax, q in zip(axes[1:], QUANTITIES):
+        y = np.array([abs(r.get(f"dev_{q}", np.nan)) for r in recs])
+        e = np.array([r.get(f"dev_{q}_err", np.nan) for r in recs])
+        ax.errorbar(x, y, yerr=np.where(np.isfinite(e), e, 0), fmt="o", ms=3, capsize=2)
+        for r, xi, yi in zip(recs, x, y):
+            ax.annotate(r["variant"], (xi, yi), fontsize=6, xytext=(3, 2), textcoords="offset points")
+        ax.set_xscale("log")
+        ax.set_xlabel(f"cost / cost({ref})")
+        ax.set_ylabel(labels[q] + f" vs {ref}")
+    return fig
+
+
 def make_figures(red, out_dir, *, dpi=90):
     """Write every figure for every variant; return the list of PNG paths."""
     plt = _plt()
@@ -437,4 +471,10 @@ def make_figures(red, out_dir, *, dpi=90):
             fig.savefig(p, dpi=dpi)
             plt.close(fig)
             written.append(p)
+    if red.variants:
+        fig = fig_pareto(red, plt)
+        p = out / "pareto.png"
+        fig.savefig(p, dpi=dpi)
+        plt.close(fig)
+        written.append(p)
     return written

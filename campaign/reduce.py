@@ -47,6 +47,7 @@ class Settings:
     boot_seed: int = 20240917   # fixed: the same file gives the same errors
     area_bins: int = 30         # bins of the per-cell P(A_G) histogram
     sin_bins: int = 100         # bins of P(sin theta) on [0, 1]
+    reference: str = "default"  # the variant the others are compared with (campaign.tradeoff)
 
 
 # =========================================================================== reading
@@ -81,6 +82,7 @@ class Finished:
     N: np.ndarray                # (n,) int, campaign label (total disks)
     E: np.ndarray                # (n,) float, target E_G
     ids: np.ndarray
+    seed: np.ndarray             # (n,) int, seed index (-1 when the file has no seed column)
     scalars: dict                # name -> (n,) float
     edges: dict                  # histogram name -> edges
     tasks: dict                  # every row of every file: variant, N, E, status, error
@@ -135,7 +137,7 @@ def load_finished(paths) -> Finished:
     paths = [str(p) for p in paths]
     seen = set()
     all_rows = {k: [] for k in ("variant", "N", "E", "status", "error", "id")}
-    fin = {k: [] for k in ("variant", "N", "E", "id")}
+    fin = {k: [] for k in ("variant", "N", "E", "id", "seed")}
     scal_parts, per_file, edges, attrs = [], [], None, None
     offset = 0
     for path in paths:
@@ -145,7 +147,7 @@ def load_finished(paths) -> Finished:
                                 "expected the layout of docs/CONTRACTS.md")
             try:
                 # status first: a row's data is complete before its status says done
-                cols = _columns(f, ("status", "id", "variant", "N", "E", "error"))
+                cols = _columns(f, ("status", "id", "variant", "N", "E", "error", "seed"))
                 for need in ("status", "id", "N", "E"):
                     if need not in cols:
                         raise UserError(f"{path}: /tasks has no column {need!r}")
@@ -186,7 +188,8 @@ def load_finished(paths) -> Finished:
         for k, v in (("variant", variant), ("N", cols["N"]), ("E", cols["E"]), ("status", status),
                      ("error", err), ("id", ids)):
             all_rows[k].append(np.asarray(v))
-        for k, v in (("variant", variant), ("N", cols["N"]), ("E", cols["E"]), ("id", ids)):
+        seeds = cols.get("seed", np.full(T, -1))
+        for k, v in (("variant", variant), ("N", cols["N"]), ("E", cols["E"]), ("id", ids), ("seed", seeds)):
             fin[k].append(np.asarray(v)[rows])
         scal_parts.append({n: a[rows] for n, a in scal.items()})
     tasks = {k: np.concatenate(v) for k, v in all_rows.items()}
@@ -203,6 +206,7 @@ def load_finished(paths) -> Finished:
     return Finished(paths=paths, attrs=attrs or {}, variant=np.concatenate(fin["variant"]),
                     N=np.concatenate(fin["N"]).astype(np.int64),
                     E=np.concatenate(fin["E"]).astype(float), ids=np.concatenate(fin["id"]),
+                    seed=np.concatenate(fin["seed"]).astype(np.int64),
                     scalars=scalars, edges=edges or {}, tasks=tasks, _rows=per_file)
 
 
@@ -236,6 +240,7 @@ class Reduction:
     peaks: dict                  # alpha_e, theta, alpha_v
     notes: list                  # human-readable: what is missing, what was skipped
     meta: dict
+    variants: list = field(default_factory=list)  # campaign.tradeoff records, one per variant
 
     def to_json(self):
         def clean(v):
@@ -249,7 +254,7 @@ class Reduction:
                 return [clean(x) for x in v]
             return v
 
-        return clean({"rows": self.rows, "extrapolated": self.extrapolated,
+        return clean({"rows": self.rows, "extrapolated": self.extrapolated, "variants": self.variants,
                       "status": {k: self.meta[k] for k in ("done", "pending", "failed", "total")},
                       "notes": self.notes})
 
@@ -502,6 +507,10 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
             dists["sin_theta"] = {"edges": se, "density": dens}
     t_hist = time.perf_counter() - t1
 
+    from campaign import tradeoff
+
+    variants, vnotes = tradeoff.compare(fin, extrapolated, s.reference, n_boot=s.n_boot, seed=s.boot_seed)
+    notes += vnotes
     alpha_e, theta, alpha_v = fits.three_disk_peaks(species_radii(fin.attrs))
     meta = {"sources": fin.paths, "done": done_total, "pending": pend_total,
             "failed": fail_total, "total": int(n_tot.sum()), "n_boot": s.n_boot,
@@ -514,7 +523,7 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                      residuals=np.array(residuals).reshape(len(fit_records), C),
                      width_scaling=width, rows=rows, extrapolated=extrapolated,
                      peaks={"alpha_e": alpha_e, "theta": theta, "alpha_v": alpha_v},
-                     notes=notes, meta=meta)
+                     notes=notes, meta=meta, variants=variants)
 
 
 # =========================================================================== tables
@@ -685,6 +694,8 @@ def write_reduced(red: Reduction, h5path, *, mode="w"):
         if ex:
             _write_columns(g.create_group("extrapolated"), ex)
         _write_columns(g.create_group("peaks"), red.peaks)
+        if red.variants:
+            _write_columns(g.create_group("variants"), red.variants)
 
 
 def write_outputs(red: Reduction, out_dir, *, write_h5=True):
@@ -695,6 +706,7 @@ def write_outputs(red: Reduction, out_dir, *, write_h5=True):
         "table.md": table_markdown(red), "table.csv": table_csv(red), "table.tex": table_latex(red),
         "cells.csv": records_csv(cells_records(red)), "fits.csv": records_csv(red.fits),
         "width_scaling.csv": records_csv(red.width_scaling),
+        "variants.csv": records_csv(red.variants),
         "summary.json": json.dumps(red.to_json(), indent=1) + "\n",
     }
     for name, text in files.items():

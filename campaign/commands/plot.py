@@ -19,6 +19,8 @@ def configure(parser):
                              "figure (default 200)")
     parser.add_argument("--min-packings", type=int, default=3, metavar="K",
                         help="cells with fewer finished packings are left out of the fits")
+    parser.add_argument("--reference", default="default", metavar="VARIANT",
+                        help="the variant the Pareto figure compares the others with (default: default)")
     parser.add_argument("--dpi", type=int, default=90, help="resolution of the PNGs (default 90)")
 
 
@@ -32,7 +34,7 @@ def main(args) -> int:
         raise UserError(f"--min-packings must be at least 2, got {args.min_packings}")
     plots._plt()  # fail early, before the reduction, when matplotlib is missing
     red = R.reduce_campaign(args.files, R.Settings(min_packings=args.min_packings,
-                                                   n_boot=args.boot))
+                                                   n_boot=args.boot, reference=args.reference))
     out = Path(args.out) if args.out else R.default_out_dir(args.files[0]) / "figures"
     written = plots.make_figures(red, out, dpi=args.dpi)
     for n in red.notes:

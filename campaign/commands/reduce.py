@@ -27,6 +27,9 @@ def configure(parser):
     parser.add_argument("--min-packings", type=int, default=3, metavar="K",
                         help="cells with fewer finished packings are left out of the fits "
                              "(default 3)")
+    parser.add_argument("--reference", default="default", metavar="VARIANT",
+                        help="the variant every other one is compared with: cost ratio and deviations "
+                             "(default: default, the spec's base protocol)")
     parser.add_argument("--in-place", action="store_true",
                         help="also write the /reduced group into FILE itself (refused while "
                              "tasks are pending or while a run holds the file)")
@@ -42,7 +45,7 @@ def main(args) -> int:
                         f"packings), got {args.min_packings}")
     if args.in_place and len(args.files) != 1:
         raise UserError("--in-place needs exactly one FILE")
-    settings = R.Settings(min_packings=args.min_packings, n_boot=args.boot)
+    settings = R.Settings(min_packings=args.min_packings, n_boot=args.boot, reference=args.reference)
     if args.seed is not None:
         settings.boot_seed = args.seed
     red = R.reduce_campaign(args.files, settings)
@@ -56,6 +59,13 @@ def main(args) -> int:
           + f"; {len(red.rows)} (variant, N_G) rows; bootstrap {m['n_boot']}", file=text)
     print("", file=text)
     print(R.table_markdown(red), file=text)
+    if red.variants:
+        from campaign import tradeoff
+
+        print(f"\nVariants against {args.reference!r} (cost: ratio of summed force evaluations / seconds over the "
+              "same packings; deviations: mean paired difference; bias in units of the reference's "
+              "packing-to-packing spread)\n", file=text)
+        print(tradeoff.table_markdown(red.variants), file=text)
     for n in red.notes:
         print(n, file=sys.stderr)
     if args.in_place:
