@@ -17,7 +17,7 @@ SPEC = """\
 name: mpi
 seed: 77
 grid: {N_G: [16, 32], E_G: [1.0e-3, 1.0e-6, 1.0e-9], seeds: 4}
-variants: [{name: loose, force_tolerance: 1.0e-3}]
+variants: [{name: loose, force_tolerance: 1.0e-3}, {name: ladder, start: ladder}]
 observables: [scalars, connectivity, fictitious]
 run: {retries: 1}
 """
@@ -77,15 +77,22 @@ def test_mpi_runs_complete_with_rank0_as_master(runs):
     for label, workers in (("mpi2", {1}), ("mpi3", {1, 2})):
         data, attrs, run_attr = _datasets(out[label][0])
         st = data["tasks/status"]
-        assert (st == 1).sum() == 36 and (st == 2).sum() == 12  # seed 3 always fails
+        # seed 3 always fails; in the ladder variant its chains stop at the top (E = 1e-3)
+        assert (st == 1).sum() == 54 and (st == 2).sum() == 18
         assert set(data["tasks/rank"][st == 1]) == workers
         assert '"launcher": "mpi"' in run_attr and "MPICH" in run_attr
         with h5py.File(out[label][0], "r") as f:  # error records crossed MPI with traceback, rank, host
             recs = [dict(g.attrs) for g in f["failures"].values()]
-        assert len(recs) == 12
+        assert len(recs) == 18
+        cascaded = [rec for rec in recs if "its ladder parent" in rec["message"]]
+        assert len(cascaded) == 4  # E = 1e-6 and 1e-9 below each failed top, never run
         for rec in recs:
+            if rec in cascaded:
+                continue
             assert rec["rank"] in workers and rec["host"] and rec["attempts"] == 2
             assert "RuntimeError: synthetic failure" in rec["message"] and "Traceback" in rec["traceback"]
+        # every ladder step started from its parent's packing, carried through MPI
+        assert np.isfinite(data["scalars/start_checksum"]).sum() == 2 * 2 * 3
 
 
 @pytest.mark.parametrize("label", ["local2", "mpi2", "mpi3"])
@@ -115,7 +122,7 @@ def test_sigkill_of_the_whole_mpi_job_then_resume(runs, tmp_path):
     from campaign.store import read_journal
 
     recs, _ = read_journal(Path(str(path) + ".journal").read_bytes())
-    assert 0 < sum(m.get("type") == "task" for m, _ in recs) < 48  # killed in the middle of the run
+    assert 0 < sum(m.get("type") == "task" for m, _ in recs) < 72  # killed in the middle of the run
     r = _campaign(["run", str(spec), "--out", str(path)], n=3, env=env)
     assert r.returncode == 0, r.stderr
     ref, ref_attrs, _ = _datasets(out["inline"][0])
@@ -161,7 +168,7 @@ def test_ci_campaign_with_the_kernels_is_identical_for_1_2_3_workers(tmp_path):
     assert {"scalars/identity_euler", "scalars/identity_area_tiling", "scalars/identity_semicircle"} <= set(flags)
     assert all((ref[k][st == 1] == 1).all() for k in flags)
     assert (ref["scalars/force_residual"] <= 1e-3).all()
-    assert len([k for k in ref if k.startswith("configurations/")]) == 4 * 16  # asked for in ci.yaml
+    assert len([k for k in ref if k.startswith("configurations/")]) == 4 * 24  # asked for in ci.yaml
     timing = [k for k in ref if k.startswith("scalars/") and k.endswith("_seconds")]
     for label in ("w2", "w3"):
         got, attrs, _ = _datasets(files[label])
