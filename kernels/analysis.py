@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from kernels.network import (
+    _bond_order_core,
     _checked_config,
     _contact_bonds_core,
     _faces_core,
@@ -80,6 +81,13 @@ IDENTITY_KEYS = (
     "no_collinear_contacts",  # no relative angle at 0 or pi
     "semicircle",           # every relative angle < pi
 )
+
+#: A grain is *ordered* (crystal-like) when the bond-orientational order of its
+#: contacts, ``|psi_6| = |(1/z_g) sum_c exp(6 i theta_gc)|``, exceeds this value
+#: (scalar ``ordered_fraction``). Measured at N = 256 (kernels.jam, E_G = 1e-4 .. 1e-12):
+#: 0.08-0.10 of the grains of the bidisperse 1:1.4 mixture pass it, 0.65-0.85 of a
+#: monodisperse packing (crystallites), 1 of a triangular crystal.
+ORDER_THRESHOLD = 0.9
 
 #: Relative rounding allowance for the area identity (relative to the box area).
 AREA_RTOL = 1e-9
@@ -203,6 +211,7 @@ def analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0,
     rattler = _rattlers_core(n, bi, bj)
     offsets, src, dst, hdx, hdy, ang, twin, frac = _rotation_core(n, bi, bj, dx, dy, rattler, rad)
     theta, edge_area = _grain_pass_core(offsets, hdx, hdy, ang, frac)
+    psi6 = _bond_order_core(offsets, ang, 6.0)
     face_of, fptr, fhe, sides, sx, sy, varea = _faces_core(offsets, src, dst, hdx, hdy, twin, frac)
 
     z_g = np.diff(offsets)
@@ -278,6 +287,8 @@ def analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0,
         "delta_Z": float(z_mean - z_iso),
         "psi_O": n_tri3 / N_V if N_V else nan,
         "psi_DO": N_F / N_V if N_V else nan,
+        "ordered_fraction": (int(np.count_nonzero(psi6[~rattler] > ORDER_THRESHOLD)) / N_G
+                             if N_G else nan),
         "sigma_max": sigma_max,
         "contacts_total": int(bi.shape[0]),
         "identities_ok": bool(identities_ok),

@@ -25,6 +25,7 @@ Jitted cores, usable from other numba code:
 * ``_grain_pass_core(...)`` -> per half-edge relative angle and edge-triangle area
 * ``_faces_core(...)`` -> faces as CSR over half-edges, sides, displacement sums, areas
 * ``_pair_energy_core(radii, bi, bj, dx, dy, exponent)`` -> (total energy, virial sum)
+* ``_bond_order_core(offsets, angle, m)`` -> per grain ``|psi_m|`` over its contacts
 
 Checked wrappers: ``contact_bonds``, ``rattlers``, ``network``.
 """
@@ -326,6 +327,31 @@ def _faces_core(offsets, src, dst, hdx, hdy, twin, frac):
         sy_buf[:nf].copy(),
         area_buf[:nf].copy(),
     )
+
+
+@njit(cache=True)
+def _bond_order_core(offsets, angle, m):
+    """Local bond-orientational order ``|psi_m| = |(1/z) sum exp(i m theta)|`` per grain.
+
+    The sum runs over the grain's half-edges ``offsets[g]:offsets[g+1]`` (its contacts
+    in the network), ``theta`` their direction ``angle``. 1 when every contact lies
+    along the axes of one m-fold star (a triangular crystal for ``m = 6``); 0 for a
+    grain without contacts.
+    """
+    n = offsets.shape[0] - 1
+    out = np.zeros(n)
+    for g in range(n):
+        a = offsets[g]
+        b = offsets[g + 1]
+        if b == a:
+            continue
+        re = 0.0
+        im = 0.0
+        for p in range(a, b):
+            re += np.cos(m * angle[p])
+            im += np.sin(m * angle[p])
+        out[g] = np.sqrt(re * re + im * im) / (b - a)
+    return out
 
 
 # ----------------------------------------------------------------------------- wrappers
