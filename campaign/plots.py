@@ -420,36 +420,52 @@ FIGURES = {
 
 
 def fig_pareto(red, plt):
-    """Cost against deviation from the reference variant (campaign.tradeoff): the Pareto front."""
+    """Cost against deviation from the reference variant (campaign.tradeoff): the Pareto front.
+
+    Log axes; deviations below 1e-12 (the reference itself, or variants that reproduce its
+    packings to rounding) are drawn at 1e-12."""
+    from matplotlib.ticker import FormatStrFormatter
+
     from campaign.tradeoff import QUANTITIES
 
+    floor = 1e-12
     recs = [r for r in red.variants if np.isfinite(r.get("cost_ratio_fe", np.nan))]
     labels = {"A_G": r"$|\Delta A_G|$", "delta_Z": r"$|\Delta\,\Delta Z|$", "psi_O": r"$|\Delta \Psi_O|$",
               "iso_excess": r"$|\Delta(N_C/2 - 2N_G + 1)|$"}
-    fig, axes = plt.subplots(1, 1 + len(QUANTITIES), figsize=(3.0 * (1 + len(QUANTITIES)), 3.0))
+    fig = plt.figure(figsize=(10.0, 6.2))
+    grid = fig.add_gridspec(2, len(QUANTITIES))
+    ax0 = fig.add_subplot(grid[0, :])
+    axes = [fig.add_subplot(grid[1, k]) for k in range(len(QUANTITIES))]
     x = np.array([r["cost_ratio_fe"] for r in recs])
     ref = recs[0]["reference"] if recs else ""
-    ax = axes[0]
-    sc = np.array([r.get("score", np.nan) for r in recs])
-    front = sorted((r for r in recs if r.get("on_front")), key=lambda r: r["cost_ratio_fe"])
-    ax.plot([r["cost_ratio_fe"] for r in front], [r["score"] for r in front], "-", color="0.6", zorder=0,
-            label="Pareto front")
-    ax.scatter(x, sc, c=["C3" if r.get("on_front") else "C0" for r in recs], s=18)
-    for r, xi, yi in zip(recs, x, sc):
-        ax.annotate(r["variant"], (xi, yi), fontsize=6, xytext=(3, 2), textcoords="offset points")
-    ax.set_xscale("log")
-    ax.set_xlabel(f"cost / cost({ref}) (force evaluations)")
-    ax.set_ylabel("largest |bias| / packing spread")
-    ax.legend(loc="upper right")
-    for ax, q in zip(axes[1:], QUANTITIES):
-        y = np.array([abs(r.get(f"dev_{q}", np.nan)) for r in recs])
-        e = np.array([r.get(f"dev_{q}_err", np.nan) for r in recs])
-        ax.errorbar(x, y, yerr=np.where(np.isfinite(e), e, 0), fmt="o", ms=3, capsize=2)
-        for r, xi, yi in zip(recs, x, y):
+
+    def label(ax, ys):
+        for r, xi, yi in zip(recs, x, ys):
             ax.annotate(r["variant"], (xi, yi), fontsize=6, xytext=(3, 2), textcoords="offset points")
         ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
+        ax.xaxis.set_minor_formatter(FormatStrFormatter(""))
+
+    sc = np.maximum([r.get("score", np.nan) for r in recs], floor)
+    front = sorted((r for r in recs if r.get("on_front")), key=lambda r: r["cost_ratio_fe"])
+    ax0.step([r["cost_ratio_fe"] for r in front], [max(r["score"], floor) for r in front], where="post",
+             color="0.6", zorder=0, label="Pareto front")
+    ax0.scatter(x, sc, c=["C3" if r.get("on_front") else "C0" for r in recs], s=20, zorder=2)
+    label(ax0, sc)
+    ax0.xaxis.set_minor_formatter(FormatStrFormatter("%g"))
+    ax0.set_xlabel(f"cost / cost({ref})  (force evaluations over the same packings)")
+    ax0.set_ylabel("largest |bias| / packing spread")
+    ax0.legend(loc="lower left")
+    for ax, q in zip(axes, QUANTITIES):
+        y = np.array([abs(r.get(f"dev_{q}", np.nan)) for r in recs])
+        e = np.array([r.get(f"dev_{q}_err", np.nan) for r in recs])
+        yc = np.maximum(y, floor)
+        lo = np.minimum(np.where(np.isfinite(e), e, 0.0), yc - floor)
+        ax.errorbar(x, yc, yerr=[lo, np.where(np.isfinite(e), e, 0.0)], fmt="o", ms=3, capsize=2)
+        label(ax, yc)
         ax.set_xlabel(f"cost / cost({ref})")
-        ax.set_ylabel(labels[q] + f" vs {ref}")
+        ax.set_ylabel(labels[q])
     return fig
 
 

@@ -12,6 +12,9 @@ random positions, so they are compared **packing by packing**: a pair is the sam
   standard deviation), i.e. how it compares with the noise of one packing;
   ``worst_cell_z``: the largest ``|mean difference| / standard error`` of any single
   (N, E) cell, to see whether the deviation is concentrated somewhere;
+* ``dev_E_rel``: the mean paired difference of ``E_G / E - 1``, where in its window
+  each packing landed (a wider window, or another search rule, moves it, and with it
+  every observable); not part of ``score``;
 * the finite-size table entries (``TABLE_KEYS``): the variant's value minus the
   reference's, with the two errors added in quadrature.
 
@@ -42,7 +45,8 @@ def _per_packing(fin):
         cols["iso_excess"] = s["N_C"] / 2.0 - (2.0 * s["N_G"] - 1.0)
     else:
         cols["iso_excess"] = nan
-    return cols, s.get("force_evaluations", nan), s.get("jam_seconds", nan)
+    e_rel = s["E_G"] / np.asarray(fin.E, float) - 1.0 if "E_G" in s else nan
+    return cols, e_rel, s.get("force_evaluations", nan), s.get("jam_seconds", nan)
 
 
 def compare(fin, extrapolated, reference="default", n_boot=1000, seed=20240917):
@@ -55,7 +59,7 @@ def compare(fin, extrapolated, reference="default", n_boot=1000, seed=20240917):
         notes.append(f"no variant comparison: the reference variant {reference!r} has no finished packing "
                      f"(variants: {', '.join(variants)})")
         return [], notes
-    cols, fe, secs = _per_packing(fin)
+    cols, e_rel, fe, secs = _per_packing(fin)
     var = np.asarray(fin.variant, dtype=str)
     key = list(zip(fin.N.tolist(), fin.E.tolist(), fin.seed.tolist()))
     ref_rows = {k: i for i, k in enumerate(key) if var[i] == reference}
@@ -132,6 +136,10 @@ def compare(fin, extrapolated, reference="default", n_boot=1000, seed=20240917):
                     worst = max(worst, z)
             rec[f"worst_cell_z_{q}"] = worst
         rec["score"] = score
+        d = e_rel[a] - e_rel[b]
+        ok = np.isfinite(d)
+        rec["dev_E_rel"], rec["dev_E_rel_err"] = stat(lambda s, d=d, ok=ok: float(np.mean(d[s][ok[s]]))
+                                                      if ok[s].any() else np.nan)
         ex_v, ex_r = extrapolated.get(v, {}), extrapolated.get(reference, {})
         for k in TABLE_KEYS:
             x, xr = ex_v.get(k, np.nan), ex_r.get(k, np.nan)
@@ -158,13 +166,14 @@ def table_markdown(records) -> str:
     """The per-variant comparison as a markdown table (empty without records)."""
     if not records:
         return ""
-    head = ("variant", "packings", "cost (FE)", "cost (s)", "dA_G", "dDelta_Z", "dPsi_O", "d(iso excess)",
+    head = ("variant", "packings", "cost (FE)", "cost (s)", "d(E_G/E)", "dA_G", "dDelta_Z", "dPsi_O", "d(iso excess)",
             "max bias/spread", "dA_G*(E=0)", "dbeta_E", "front")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in records:
         lines.append("| " + " | ".join([
             r["variant"] + (" (ref)" if r["variant"] == r["reference"] else ""), str(r["n_packings"]),
             _fmt(r.get("cost_ratio_fe")), _fmt(r.get("cost_ratio_seconds")),
+            _fmt(r.get("dev_E_rel"), r.get("dev_E_rel_err")),
             *(_fmt(r.get(f"dev_{q}"), r.get(f"dev_{q}_err")) for q in QUANTITIES),
             _fmt(r.get("score"), digits=2),
             _fmt(r.get("dev_A_G_star_E"), r.get("dev_A_G_star_E_err")),

@@ -38,9 +38,11 @@ def _packings(rng, n_seeds=8, Ns=(32, 64), Es=(1e-6, 1e-4)):
 def test_a_known_shift_and_a_known_cost_are_measured_exactly():
     rng = np.random.default_rng(1)
     ref = _packings(rng)
+    for k, v in ref.items():
+        v["E_G"] = k[1] * 1.02
     rows = [("default", *k, dict(v)) for k, v in ref.items()]
     rows += [("fast", *k, dict(v, A_G=v["A_G"] + 0.003, force_evaluations=v["force_evaluations"] / 4,
-                                 N_C=v["N_C"] + 2)) for k, v in ref.items()]
+                                 N_C=v["N_C"] + 2, E_G=k[1] * 1.07)) for k, v in ref.items()]
     recs, notes = tradeoff.compare(_fin(rows), {}, "default", n_boot=200)
     assert notes == []
     r0, r1 = recs
@@ -51,6 +53,7 @@ def test_a_known_shift_and_a_known_cost_are_measured_exactly():
     assert r1["dev_A_G_err"] == pytest.approx(0.0, abs=1e-12)  # every pair differs by exactly the shift
     assert r1["dev_iso_excess"] == pytest.approx(1.0)  # one more contact (N_C counts it twice)
     assert r1["dev_delta_Z"] == 0.0 and r1["dev_psi_O"] == 0.0
+    assert r1["dev_E_rel"] == pytest.approx(0.05, rel=1e-9)  # 7% into the window instead of 2%
     # the spread: pooled within-cell standard deviation of A_G over the reference's packings
     cells = {}
     for (N, E, s), v in ref.items():
