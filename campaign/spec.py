@@ -466,27 +466,18 @@ def _protocol(c, value, path, allow, base=None):
         "max_search": dict(lo=1, hi=10**9, integer=True),
         "max_steps": dict(lo=1, hi=10**12, integer=True),
     }
+    choices = {"search": ("search rule", SEARCH_RULES), "start": ("start", STARTS),
+               "minimizer": ("minimizer", MINIMIZERS)}
     for k, v in m.items():
         if k in checks:
             x = c.number(v, path + (k,), **checks[k])
             if x is not None:
                 out[k] = x
-        elif k == "search":
-            x = c.string(v, path + (k,), what=f"one of {', '.join(SEARCH_RULES)}")
-            if x is not None and x not in SEARCH_RULES:
-                c.err(path + (k,), f"unknown search rule {x!r}; expected one of {', '.join(SEARCH_RULES)}")
-            elif x is not None:
-                out[k] = x
-        elif k == "start":
-            x = c.string(v, path + (k,), what=f"one of {', '.join(STARTS)}")
-            if x is not None and x not in STARTS:
-                c.err(path + (k,), f"unknown start {x!r}; expected one of {', '.join(STARTS)}")
-            elif x is not None:
-                out[k] = x
-        elif k == "minimizer":
-            x = c.string(v, path + (k,), what=f"one of {', '.join(MINIMIZERS)}")
-            if x is not None and x not in MINIMIZERS:
-                c.err(path + (k,), f"unknown minimizer {x!r}; expected one of {', '.join(MINIMIZERS)}")
+        elif k in choices:
+            what, allowed = choices[k]
+            x = c.string(v, path + (k,), what=f"one of {', '.join(allowed)}")
+            if x is not None and x not in allowed:
+                c.err(path + (k,), f"unknown {what} {x!r}; expected one of {', '.join(allowed)}")
             elif x is not None:
                 out[k] = x
     if out.get("start") == "random":
