@@ -89,6 +89,11 @@ IDENTITY_KEYS = (
 #: monodisperse packing (crystallites), 1 of a triangular crystal.
 ORDER_THRESHOLD = 0.9
 
+#: Radii, box sides and coordinates must lie within these magnitudes: squared lengths
+#: (contact tests, areas) then stay normal float64 numbers with room for overlaps of 1e-8
+#: of a radius (at 1e-160 contacts vanish by underflow, at 1e-170 the box area is 0).
+LENGTH_RANGE = (1e-100, 1e100)
+
 #: Relative rounding allowance for the area identity (relative to the box area).
 AREA_RTOL = 1e-9
 #: Relative rounding allowance for the duality identity (relative to 1/2).
@@ -159,6 +164,13 @@ def _check_inputs(positions, radii, box, exponent, species):
     n = pos.shape[0]
     if n < 2:
         raise ValueError(f"positions: expected at least 2 disks, got {n}")
+    lo, hi = LENGTH_RANGE
+    if not (rad.min() >= lo and b.min() >= lo and b.max() <= hi and np.abs(pos).max() <= hi):
+        raise ValueError(
+            f"lengths: expected radii and box sides in [{lo:g}, {hi:g}] and coordinates of magnitude "
+            f"at most {hi:g} (squared lengths must stay normal float64 numbers), got radii from "
+            f"{rad.min():g}, box {b.tolist()}, largest |coordinate| {np.abs(pos).max():g}; rescale "
+            "all lengths by one factor (the analysis is scale invariant)")
     if 4.0 * rad.max() >= b.min():
         raise ValueError(
             f"radii: the largest diameter ({2 * rad.max():g}) must be below half the smaller box side "

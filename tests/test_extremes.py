@@ -472,3 +472,28 @@ def test_ordered_fraction_reaches_the_store(tmp_path, capsys):
             a = analyze(g["positions"][:], g["radii"][:], g["box"][:])
             assert col[k] == a.scalars["ordered_fraction"]
             assert 0.0 <= col[k] <= 1.0
+
+
+@pytest.mark.parametrize("scale", [1e-95, 1e95])
+def test_length_scales_at_the_ends_of_the_accepted_range(scale):
+    """The analysis is scale invariant from lengths of 1e-97 (radii) to 1e95 (box)."""
+    pos, rad, box = triangular_crystal(8, 8, overlap=1e-7)
+    ref = analyze(pos, rad, box)
+    a = analyze(pos * scale, rad * scale, box * scale)
+    assert a.ok and a.scalars["N_C"] == ref.scalars["N_C"] == 6 * 64
+    assert a.scalars["A_G_fraction"] == pytest.approx(0.75, abs=1e-6)
+    assert a.scalars["E_G"] == pytest.approx(ref.scalars["E_G"], rel=1e-6)
+
+
+@pytest.mark.parametrize("scale", [1e-160, 1e-170, 1e160])
+def test_lengths_whose_squares_leave_float64_are_refused(scale, tmp_path, capsys):
+    """Squared lengths of 1e-160 underflow (every contact vanished silently), the area of a
+    1e-170 box is 0 (a division by zero): refused, in analyze and in campaign analyze."""
+    pos, rad, box = triangular_crystal(8, 8, overlap=1e-7)
+    with pytest.raises(ValueError, match=r"lengths: expected radii and box sides in \[1e-100, 1e\+100\].*got"):
+        analyze(pos * scale, rad * scale, box * scale)
+    f = tmp_path / "tiny.npz"
+    np.savez(f, positions=pos * scale, radii=rad * scale, box=box * scale)
+    assert cli_main(["analyze", str(f)]) == 2
+    err = capsys.readouterr().err
+    assert "lengths: expected" in err and str(f) in err and "Traceback" not in err
