@@ -497,3 +497,18 @@ def test_lengths_whose_squares_leave_float64_are_refused(scale, tmp_path, capsys
     assert cli_main(["analyze", str(f)]) == 2
     err = capsys.readouterr().err
     assert "lengths: expected" in err and str(f) in err and "Traceback" not in err
+
+
+def test_all_rattlers_through_campaign_analyze(tmp_path, capsys):
+    """No contact at all: exit 0, undefined scalars as null, the flags say why."""
+    import json
+
+    rng = np.random.default_rng(1)
+    rows = ["1 1"] + [f"{x!r} {y!r} 1e-4" for x, y in rng.random((50, 2)).tolist()]
+    f = tmp_path / "gas.txt"
+    f.write_text("\n".join(rows) + "\n")
+    assert cli_main(["analyze", str(f), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["N_G"] == 0 and out["N_R"] == 50 and out["E_G"] == 0.0
+    assert out["z_g_mean"] is None and out["ordered_fraction"] is None
+    assert out["identities_ok"] is False and out["identities"]["network_nonempty"] is False
