@@ -50,6 +50,11 @@ from kernels.space import _wrap_core
 DT_FACTOR = 0.04  # initial FIRE time step in units of 1/sqrt(stiffness), see _dt_for
 AIM = 0.5  # the secant rule aims at E_min (1 + AIM window)
 ABORT_FRACTION = 0.5  # stop a minimisation once E_G < ABORT_FRACTION E_min
+# The first minimisation relaxes the random start (overlaps up to x ~ 0.2): its time step is
+# sized for an energy of at least this much, not for the target. For alpha > 2 a step sized for
+# E_G ~ 1e-22 is ~1000 times too long there and FIRE never converges; for alpha = 2 the step does
+# not depend on the energy. Later minimisations use the energy of the latest jammed minimum.
+E_FIRST_GUESS = 1e-8
 
 SEARCH_HALVING = 0
 SEARCH_SECANT = 1
@@ -159,7 +164,7 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
     e_last = 0.0
     w_last = 0.0
     res_last = np.inf
-    e_guess = e_min
+    e_guess = max(e_min, E_FIRST_GUESS)
     abort = ABORT_FRACTION * e_min * n
     while True:
         it += 1
@@ -186,6 +191,8 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
         w_last = w
         res_last = res
         eg = e / n
+        if st == CONVERGED and eg > 0.0:
+            e_guess = eg
         if st == MAX_STEPS:
             status = ST_MAX_STEPS
             break
@@ -215,7 +222,6 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
                 g2 = g1
                 s1 = scale
                 g1 = eg ** inv_a
-                e_guess = eg
                 # one-point model: scale_J ~ scale (1 - x)
                 c1 = 1.0 / (scale * x_per_g)
                 slope = c1
