@@ -112,7 +112,7 @@ class SyntheticTask:
 
     SCALARS = ("N", "N_G", "N_R", "E_G", "phi", "pressure", "A_G", "A_V", "N_C", "N_V", "N_F",
                "z_g_mean", "z_iso", "delta_Z", "psi_O", "psi_DO", "identities_ok", "force_residual",
-               "iterations", "force_evaluations", "jam_status", "sigma_max")
+               "iterations", "force_evaluations", "jam_status", "sigma_max", "ordered_fraction")
 
     def histogram_edges(self, context) -> dict:
         bins = context.get("bins") or {}

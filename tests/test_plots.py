@@ -36,4 +36,5 @@ def test_plot_survives_missing_cells_histograms_and_variants(tmp_path):
     write_store(tmp_path / "p.h5", camp, status=st)
     red = R.reduce_campaign(tmp_path / "p.h5", R.Settings(n_boot=0))
     written = plots.make_figures(red, tmp_path / "f")
-    _check(written, [f"{n}_{v}.png" for n in plots.FIGURES for v in ("default", "hertz")])
+    # one set per variant, and the campaign-wide cost-against-deviation figure
+    _check(written, [f"{n}_{v}.png" for n in plots.FIGURES for v in ("default", "hertz")] + ["pareto.png"])
