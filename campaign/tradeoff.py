@@ -102,7 +102,7 @@ def compare(fin, extrapolated, reference="default", n_boot=1000, seed=20240917):
 
         def stat(fn):
             value = fn(np.arange(len(a)))
-            if draws is None:
+            if draws is None or not np.isfinite(value):
                 return value, np.nan
             vals = [fn(np.concatenate([boot[k] for k in d])) for d in draws]
             return value, float(np.nanstd(vals, ddof=1))
