@@ -19,6 +19,7 @@ import kernels
 from campaign.cli import main as cli_main
 from kernels.analysis import analyze
 from kernels.jamming import species_counts
+from test_jam import ref_nonrattlers
 from test_network import triangular_crystal
 
 EPS = np.finfo(np.float64).eps
@@ -50,16 +51,7 @@ def ref_packing(p):
     net = np.zeros((n, 2))
     np.add.at(net, i, -fv)
     np.add.at(net, j, fv)
-    alive = np.ones(n, bool)
-    while True:
-        deg = np.zeros(n, int)
-        m = alive[i] & alive[j]
-        np.add.at(deg, i[m], 1)
-        np.add.at(deg, j[m], 1)
-        drop = alive & (deg < 3)
-        if not drop.any():
-            break
-        alive &= ~drop
+    alive = ref_nonrattlers(n, i, j)
     m = alive[i] & alive[j]
     resid = np.max(np.hypot(net[alive, 0], net[alive, 1])) / np.mean(f[m])
     return e, resid, int(alive.sum()), int(m.sum()), float(np.mean(x[m]))
