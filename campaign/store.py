@@ -265,6 +265,14 @@ class Store:
                 for name in f["scalars"]:
                     if f[f"scalars/{name}"].shape != (self.T,):
                         return f"scalars/{name} has the wrong shape"
+                # groups written under a SIGKILL can be torn (unreadable, or missing a dataset)
+                for tid, g in (f["configurations"].items() if "configurations" in f else ()):
+                    for k in ("positions", "radii", "box", "species"):
+                        if k not in g:
+                            return f"configurations/{tid} lacks {k}"
+                        g[k].shape
+                for g in (f["failures"].values() if "failures" in f else ()):
+                    dict(g.attrs)
                 f["tasks/status"][:]
         except (OSError, KeyError, ValueError, RuntimeError) as exc:
             return f"{type(exc).__name__}: {exc}"
