@@ -166,12 +166,13 @@ def table_markdown(records) -> str:
     """The per-variant comparison as a markdown table (empty without records)."""
     if not records:
         return ""
-    head = ("variant", "packings", "cost (FE)", "cost (s)", "d(E_G/E)", "dA_G", "dDelta_Z", "dPsi_O", "d(iso excess)",
+    head = ("variant", "packings", "FE/packing", "cost (FE)", "cost (s)", "d(E_G/E)", "dA_G", "dDelta_Z", "dPsi_O", "d(iso excess)",
             "max bias/spread", "dA_G*(E=0)", "dbeta_E", "front")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in records:
         lines.append("| " + " | ".join([
             r["variant"] + (" (ref)" if r["variant"] == r["reference"] else ""), str(r["n_packings"]),
+            _fmt(r.get("fe_median"), digits=4),
             _fmt(r.get("cost_ratio_fe")), _fmt(r.get("cost_ratio_seconds")),
             _fmt(r.get("dev_E_rel"), r.get("dev_E_rel_err")),
             *(_fmt(r.get(f"dev_{q}"), r.get(f"dev_{q}_err")) for q in QUANTITIES),
