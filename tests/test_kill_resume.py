@@ -2,7 +2,9 @@
 
 Each round starts a real `campaign run` process (synthetic tasks with small
 delays, alternately inline and with two local worker processes), kills it with
-SIGKILL after a random time (from interpreter start-up to the end of the run),
+SIGKILL after a random time (from interpreter start-up to a little past the end of the
+run, or, every other round, while it works; estimated from an uninterrupted run and the
+work left),
 and checks the journal: nothing finished is ever lost and no task is recorded
 twice. A last run completes the campaign; every dataset must then equal an
 uninterrupted run's (run-dependent columns aside: wall time, rank, host).
@@ -80,6 +82,10 @@ def _kill_rounds(tmp_path, rounds, seed, spec_text=SPEC):
     r = subprocess.run(_cmd(spec, ref, inline=True), env=_env(), capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     span = time.monotonic() - t0
+    t0 = time.monotonic()  # a run with nothing left to do: start-up and shut-down only
+    r = subprocess.run(_cmd(spec, ref, inline=True), env=_env(), capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    idle = min(time.monotonic() - t0, span)
     out = tmp_path / "k.h5"
     rng = random.Random(seed)
     finished = set()
@@ -87,7 +93,13 @@ def _kill_rounds(tmp_path, rounds, seed, spec_text=SPEC):
     for k in range(rounds):
         p = subprocess.Popen(_cmd(spec, out, inline=k % 2 == 0), env=_env(), stdout=subprocess.DEVNULL,
                              stderr=subprocess.DEVNULL, start_new_session=True)
-        time.sleep(rng.uniform(0.0, 1.2 * span))
+        # kill within the time this run should take (start-up plus its share of the work left),
+        # every other round while it works: start-up takes most of a run of these short tasks
+        work = (span - idle) * (total - len(finished)) / total
+        if k % 4 < 2:
+            time.sleep(rng.uniform(0.0, 1.2) * (idle + work))
+        else:
+            time.sleep(0.8 * idle + rng.uniform(0.0, 1.2) * work)
         done_before = p.poll() is not None
         try:
             os.killpg(p.pid, signal.SIGKILL)  # the master and its workers, whatever they are doing
