@@ -23,6 +23,24 @@ from kernels.space import minimum_image
 
 
 @njit(cache=True, inline="always")
+def _uniform_code(x, e0, inv_w, nb):
+    """The direct step of ``_bin_index`` on uniform edges, branch-free.
+
+    Returns the bin when ``x`` is clear of every edge (the direct index is then
+    exact), ``nb`` when ``x`` is not counted (far outside the edges, or NaN), and -1
+    when ``x`` lies near an edge or just outside, where ``_bin_index`` corrects against
+    the edges. Written with selects only, so that a vector loop can call it alone.
+    """
+    f = (x - e0) * inv_w
+    inside = (f >= 0.0) & (f < nb)
+    k = int(f if inside else 0.0)
+    r = f - k
+    clear = inside & (r > 1e-9) & (r < 1.0 - 1e-9)
+    far = ~((f >= -1.0) & (f < nb + 1.0))
+    return k if clear else (nb if far else -1)
+
+
+@njit(cache=True, inline="always")
 def _bin_index(x, edges, nb, uniform, inv_w, guide):
     """Bin of ``x`` (numpy.histogram convention) or -1 when outside or NaN.
 
@@ -32,15 +50,10 @@ def _bin_index(x, edges, nb, uniform, inv_w, guide):
     ``_guide_table``) narrows a binary search to a few bins.
     """
     if uniform:
-        f = (x - edges[0]) * inv_w
-        if f >= 0.0 and f < nb:
-            k = int(f)
-            r = f - k
-            if r > 1e-9 and r < 1.0 - 1e-9:  # clear of both edges: the direct index is exact
-                return k
-        if not (f >= -1.0 and f < nb + 1.0):  # far outside, or NaN
-            return -1
-        k = min(max(int(f), 0), nb - 1)
+        c = _uniform_code(x, edges[0], inv_w, nb)
+        if c >= 0:  # clear of both edges (the direct index is exact), or far outside or NaN
+            return c if c < nb else -1
+        k = min(max(int((x - edges[0]) * inv_w), 0), nb - 1)
         # one-step correction against the edges (uniform edges lie within a small
         # fraction of a bin of e0 + k w, see is_uniform), written without branches
         k -= x < edges[k]
@@ -119,9 +132,25 @@ def _radial_core(points, cls1, cls2, scales, box, edges, uniform, counts):
     centre per grain (its radius). Contacts: one centre per side of the contact (the
     radii of its two grains). Values outside the edges are not counted.
 
-    With few distinct scales (``len(scales) <= 4``, e.g. a bidisperse packing) the
-    centres of a pair that share a scale are binned once with their multiplicity,
-    which halves the work; otherwise every centre is binned on its own.
+    Method: the points are sorted into a grid of cells about half the reach wide,
+    stored column by column (``y`` fastest), so consecutive neighbour cells of one
+    column that share a periodic shift form one contiguous run of points. For each
+    cell, the runs within reach (each unordered pair of cells once; the run that
+    begins with the cell itself first) are gathered into contiguous arrays with
+    their shifts. Each point of the cell then works on the gathered points after it
+    in a few tight loops that the compiler vectorises: the squared distances (one
+    loop per kind of boundary: the minimum image is taken per pair only along a side
+    where the neighbour cells would wrap onto themselves, i.e. a reach longer than
+    about 0.4 of the box side), the pairs within reach kept without branches, and,
+    with uniform edges and at most two distinct scales (the common case: bidisperse
+    packings), their square roots and bins (``_uniform_code``; the rare values near
+    a bin edge go through ``_bin_index``). A scalar loop then adds the counts with
+    their multiplicities. Otherwise each pair within reach is binned with
+    ``_bin_index``: with few distinct scales (``len(scales) <= 4``) the centres of a
+    pair that share a scale are binned once with their multiplicity; with more every
+    centre is binned on its own. Each distance is computed with the same operations
+    as in a plain pair-by-pair loop over the same cells, so the counts are exact and
+    do not depend on the method.
     """
     nb = edges.shape[0] - 1
     inv_w = nb / (edges[nb] - edges[0])
@@ -143,8 +172,10 @@ def _radial_core(points, cls1, cls2, scales, box, edges, uniform, counts):
     for k in range(nk):
         inv[k] = 1.0 / scales[k]
     grouped = nk <= 4
+    vector = uniform and nk <= 2
     inv0 = inv[0]
     inv1 = inv[1] if nk > 1 else inv[0]
+    e0 = edges[0]
     weight = np.zeros(max(nk, 1), dtype=np.int64)
     reach = rmax * smax
     reach2 = reach * reach
@@ -183,6 +214,12 @@ def _radial_core(points, cls1, cls2, scales, box, edges, uniform, counts):
         m1[s] = cls1[p]
         m2[s] = cls2[p]
         fill[c] += 1
+    # centres of scale 1 and of scale 0 per point (used with at most two scales)
+    n1 = np.empty(npt, dtype=np.int64)
+    n0 = np.empty(npt, dtype=np.int64)
+    for s in range(npt):
+        n1[s] = (m1[s] == 1) + (m2[s] == 1)
+        n0[s] = 1 + (m2[s] >= 0) - n1[s]
     # Neighbour cells within the reach. When they would wrap onto themselves along
     # a side, every cell of that side is visited once and the minimum image is
     # taken per pair; otherwise the periodic shift is applied per cell.
@@ -194,9 +231,34 @@ def _radial_core(points, cls1, cls2, scales, box, edges, uniform, counts):
     ax1 = nx if full_x else sx + 1
     ay0 = 0 if full_y else -sy
     ay1 = ny if full_y else sy + 1
+    # The neighbour points of one cell, gathered: coordinates, periodic shift,
+    # centres per scale and (general path) index; first the run of cells that
+    # begins with the cell itself, then the other runs of consecutive cells of one
+    # column with one shift. + 8: the vector loops run over whole vectors of 8.
+    nbx = np.zeros(npt + 8)
+    nby = np.zeros(npt + 8)
+    nsx = np.zeros(npt + 8)
+    nsy = np.zeros(npt + 8)
+    nn0 = np.empty(npt, dtype=np.int64)
+    nn1 = np.empty(npt, dtype=np.int64)
+    nt = np.empty(npt, dtype=np.int64)
+    mruns = 2 * (ax1 - ax0) + 2
+    run_lo = np.empty(mruns, dtype=np.int64)
+    run_hi = np.empty(mruns, dtype=np.int64)
+    run_sx = np.empty(mruns)
+    run_sy = np.empty(mruns)
+    buf = np.empty(npt + 8)  # squared distances of one point to the gathered ones
+    dacc = np.zeros(npt + 8)  # those within reach, then their distances
+    iacc = np.empty(npt, dtype=np.int64)  # and their places in buf
+    code0 = np.empty(npt + 8, dtype=np.int64)
+    code1 = np.empty(npt + 8, dtype=np.int64)
+    padded = np.zeros(nb + 1, dtype=np.int64)  # bin nb: not counted
     for ic in range(nx * ny):
+        if start[ic] == start[ic + 1]:
+            continue
         ix = ic // ny
         iy = ic - ix * ny
+        nrun = 1  # run 0: the one beginning with cell ic
         for a in range(ax0, ax1):
             shx = 0.0
             if full_x:
@@ -211,6 +273,8 @@ def _radial_core(points, cls1, cls2, scales, box, edges, uniform, counts):
                     gx -= nx
                     shx = Lx
                 gapx = (abs(a) - 1) * hx if abs(a) > 1 else 0.0
+            last = -2  # last cell appended to the open run (-2: none)
+            cur = -1  # the open run
             for b in range(ay0, ay1):
                 shy = 0.0
                 if full_y:
@@ -229,65 +293,140 @@ def _radial_core(points, cls1, cls2, scales, box, edges, uniform, counts):
                     continue
                 g = gx * ny + gy
                 if g < ic:
-                    continue  # each unordered pair of cells once
-                for s in range(start[ic], start[ic + 1]):
-                    xs = mx[s] - shx
-                    ys = my[s] - shy
-                    t0 = start[g]
-                    if g == ic:
-                        t0 = s + 1
-                    for t in range(t0, start[g + 1]):
-                        dx = mx[t] - xs
-                        dy = my[t] - ys
-                        if full_x:
-                            dx = minimum_image(dx, Lx)
-                        if full_y:
-                            dy = minimum_image(dy, Ly)
-                        d2 = dx * dx + dy * dy
-                        if d2 > reach2:
-                            continue
-                        d = np.sqrt(d2)
-                        if nk <= 2:
-                            # two scale classes: multiplicities without a scratch array
-                            w1 = m1[s] + m1[t] + (m2[s] == 1) + (m2[t] == 1)
-                            w0 = 2 + (m2[s] >= 0) + (m2[t] >= 0) - w1
-                            if w0:
-                                k = _bin_index(d * inv0, edges, nb, uniform, inv_w, guide)
-                                if k >= 0:
-                                    counts[k] += w0
-                            if w1:
-                                k = _bin_index(d * inv1, edges, nb, uniform, inv_w, guide)
-                                if k >= 0:
-                                    counts[k] += w1
-                        elif grouped:
-                            weight[m1[s]] += 1
-                            weight[m1[t]] += 1
-                            if m2[s] >= 0:
-                                weight[m2[s]] += 1
-                            if m2[t] >= 0:
-                                weight[m2[t]] += 1
-                            for c in range(nk):
-                                w = weight[c]
-                                if w:
-                                    weight[c] = 0
-                                    k = _bin_index(d * inv[c], edges, nb, uniform, inv_w, guide)
-                                    if k >= 0:
-                                        counts[k] += w
-                        else:
-                            k = _bin_index(d * inv[m1[s]], edges, nb, uniform, inv_w, guide)
+                    continue
+                if g == last + 1 and shy == run_sy[cur]:
+                    run_hi[cur] = start[g + 1]
+                else:
+                    cur = 0 if g == ic else nrun
+                    if cur:
+                        nrun += 1
+                    run_lo[cur] = start[g]
+                    run_hi[cur] = start[g + 1]
+                    run_sx[cur] = shx
+                    run_sy[cur] = shy
+                last = g
+        m = 0
+        for j in range(nrun):
+            lo = run_lo[j]
+            ln = run_hi[j] - lo
+            nbx[m:m + ln] = mx[lo:lo + ln]
+            nby[m:m + ln] = my[lo:lo + ln]
+            nsx[m:m + ln] = run_sx[j]
+            nsy[m:m + ln] = run_sy[j]
+            nn0[m:m + ln] = n0[lo:lo + ln]
+            nn1[m:m + ln] = n1[lo:lo + ln]
+            if not vector:
+                for i in range(ln):
+                    nt[m + i] = lo + i
+            m += ln
+        for s in range(start[ic], start[ic + 1]):
+            i0 = s - start[ic] + 1  # pairs with the later points of the cell and beyond
+            n = m - i0
+            xs = mx[s]
+            ys = my[s]
+            # views from i0, so that the loops index from 0 (no negative-index checks)
+            n8 = (n + 7) & -8  # whole vectors (the tail is ignored)
+            bx = nbx[i0:i0 + n8]
+            by = nby[i0:i0 + n8]
+            bsx = nsx[i0:i0 + n8]
+            bsy = nsy[i0:i0 + n8]
+            if full_x and full_y:
+                for i in range(n8):
+                    dx = minimum_image(bx[i] - (xs - bsx[i]), Lx)
+                    dy = minimum_image(by[i] - (ys - bsy[i]), Ly)
+                    buf[i] = dx * dx + dy * dy
+            elif full_x:
+                for i in range(n8):
+                    dx = minimum_image(bx[i] - (xs - bsx[i]), Lx)
+                    dy = by[i] - (ys - bsy[i])
+                    buf[i] = dx * dx + dy * dy
+            elif full_y:
+                for i in range(n8):
+                    dx = bx[i] - (xs - bsx[i])
+                    dy = minimum_image(by[i] - (ys - bsy[i]), Ly)
+                    buf[i] = dx * dx + dy * dy
+            else:
+                for i in range(n8):
+                    dx = bx[i] - (xs - bsx[i])
+                    dy = by[i] - (ys - bsy[i])
+                    buf[i] = dx * dx + dy * dy
+            # the pairs within reach (kept without branches), then their distances
+            na = 0
+            for i in range(n):
+                d2 = buf[i]
+                dacc[na] = d2
+                iacc[na] = i
+                na += not (d2 > reach2)
+            if vector:
+                for j in range((na + 7) & -8):  # whole vectors (the tail is ignored)
+                    d = np.sqrt(dacc[j])
+                    dacc[j] = d
+                    code0[j] = _uniform_code(d * inv0, e0, inv_w, nb)
+                    code1[j] = _uniform_code(d * inv1, e0, inv_w, nb)
+                w0 = n0[s]
+                w1 = n1[s]
+                b0 = nn0[i0:m]
+                b1 = nn1[i0:m]
+                for j in range(na):
+                    i = iacc[j]
+                    k = code0[j]
+                    if k < 0:
+                        k = _bin_index(dacc[j] * inv0, edges, nb, uniform, inv_w, guide)
+                        if k < 0:
+                            k = nb
+                    padded[k] += w0 + b0[i]
+                    k = code1[j]
+                    if k < 0:
+                        k = _bin_index(dacc[j] * inv1, edges, nb, uniform, inv_w, guide)
+                        if k < 0:
+                            k = nb
+                    padded[k] += w1 + b1[i]
+                continue
+            for j in range(na):
+                d = np.sqrt(dacc[j])
+                t = nt[i0 + iacc[j]]
+                if nk <= 2:
+                    w0 = n0[s] + n0[t]
+                    w1 = n1[s] + n1[t]
+                    if w0:
+                        k = _bin_index(d * inv0, edges, nb, uniform, inv_w, guide)
+                        if k >= 0:
+                            counts[k] += w0
+                    if w1:
+                        k = _bin_index(d * inv1, edges, nb, uniform, inv_w, guide)
+                        if k >= 0:
+                            counts[k] += w1
+                elif grouped:
+                    weight[m1[s]] += 1
+                    weight[m1[t]] += 1
+                    if m2[s] >= 0:
+                        weight[m2[s]] += 1
+                    if m2[t] >= 0:
+                        weight[m2[t]] += 1
+                    for c in range(nk):
+                        w = weight[c]
+                        if w:
+                            weight[c] = 0
+                            k = _bin_index(d * inv[c], edges, nb, uniform, inv_w, guide)
                             if k >= 0:
-                                counts[k] += 1
-                            k = _bin_index(d * inv[m1[t]], edges, nb, uniform, inv_w, guide)
-                            if k >= 0:
-                                counts[k] += 1
-                            if m2[s] >= 0:
-                                k = _bin_index(d * inv[m2[s]], edges, nb, uniform, inv_w, guide)
-                                if k >= 0:
-                                    counts[k] += 1
-                            if m2[t] >= 0:
-                                k = _bin_index(d * inv[m2[t]], edges, nb, uniform, inv_w, guide)
-                                if k >= 0:
-                                    counts[k] += 1
+                                counts[k] += w
+                else:
+                    k = _bin_index(d * inv[m1[s]], edges, nb, uniform, inv_w, guide)
+                    if k >= 0:
+                        counts[k] += 1
+                    k = _bin_index(d * inv[m1[t]], edges, nb, uniform, inv_w, guide)
+                    if k >= 0:
+                        counts[k] += 1
+                    if m2[s] >= 0:
+                        k = _bin_index(d * inv[m2[s]], edges, nb, uniform, inv_w, guide)
+                        if k >= 0:
+                            counts[k] += 1
+                    if m2[t] >= 0:
+                        k = _bin_index(d * inv[m2[t]], edges, nb, uniform, inv_w, guide)
+                        if k >= 0:
+                            counts[k] += 1
+    for k in range(nb):
+        counts[k] += padded[k]
 
 
 @njit(cache=True)
