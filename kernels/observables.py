@@ -367,6 +367,8 @@ def _radial_core(points, cls1, cls2, scales, box, edges, uniform, counts):
                 w1 = n1[s]
                 b0 = nn0[i0:m]
                 b1 = nn1[i0:m]
+                # the two scales written out: the same lines behind one inlined helper
+                # measured three times slower for the whole kernel
                 for j in range(na):
                     i = iacc[j]
                     k = code0[j]
