@@ -231,10 +231,11 @@ def _radial_core(points, cls1, cls2, scales, box, edges, uniform, counts):
     ax1 = nx if full_x else sx + 1
     ay0 = 0 if full_y else -sy
     ay1 = ny if full_y else sy + 1
-    # The neighbour points of one cell, gathered: coordinates, periodic shift,
-    # centres per scale and (general path) index; first the run of cells that
-    # begins with the cell itself, then the other runs of consecutive cells of one
-    # column with one shift. + 8: the vector loops run over whole vectors of 8.
+    # The neighbour points of one cell, gathered: coordinates, periodic shift, and
+    # centres per scale (vector path) or index (general path); first the run of
+    # cells that begins with the cell itself, then the other runs of consecutive
+    # cells of one column with one shift. + 8: the vector loops run over whole
+    # vectors of 8.
     nbx = np.zeros(npt + 8)
     nby = np.zeros(npt + 8)
     nsx = np.zeros(npt + 8)
@@ -313,9 +314,10 @@ def _radial_core(points, cls1, cls2, scales, box, edges, uniform, counts):
             nby[m:m + ln] = my[lo:lo + ln]
             nsx[m:m + ln] = run_sx[j]
             nsy[m:m + ln] = run_sy[j]
-            nn0[m:m + ln] = n0[lo:lo + ln]
-            nn1[m:m + ln] = n1[lo:lo + ln]
-            if not vector:
+            if vector:
+                nn0[m:m + ln] = n0[lo:lo + ln]
+                nn1[m:m + ln] = n1[lo:lo + ln]
+            else:
                 for i in range(ln):
                     nt[m + i] = lo + i
             m += ln
