@@ -91,6 +91,34 @@ class Finished:
     def __len__(self):
         return len(self.N)
 
+    def usable(self):
+        """``(mask, reasons)``: the packings fit for statistics -- the jam converged
+        (``jam_status == 0``) and the analysis identities held (``identities_ok == 1``).
+        ``reasons`` maps each failed condition to its (n,) bool mask. A file without one
+        of the two columns is taken as passing that condition."""
+        reasons = {}
+        if "jam_status" in self.scalars:
+            reasons["jam_status != 0"] = ~(self.scalars["jam_status"] == 0)
+        if "identities_ok" in self.scalars:
+            reasons["identities_ok != 1"] = ~(self.scalars["identities_ok"] == 1)
+        bad = np.zeros(len(self), bool)
+        for m in reasons.values():
+            bad |= m
+        return ~bad, reasons
+
+    def subset(self, mask):
+        """The finished packings where ``mask`` (n,) is true, in the same order."""
+        mask = np.asarray(mask, bool)
+        new_pos = np.cumsum(mask) - 1
+        rows = []
+        for file_rows, pos in self._rows:
+            keep = mask[pos]
+            rows.append((file_rows[keep], new_pos[pos[keep]]))
+        return Finished(paths=self.paths, attrs=self.attrs, variant=self.variant[mask],
+                        N=self.N[mask], E=self.E[mask], ids=self.ids[mask], seed=self.seed[mask],
+                        scalars={k: v[mask] for k, v in self.scalars.items()}, edges=self.edges,
+                        tasks=self.tasks, _rows=rows)
+
     def histogram_blocks(self, name, block=8192):
         """Yield ``(positions, counts)``: finished-row positions and their int64 counts."""
         import h5py
@@ -298,8 +326,12 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
     histogram pass (scalars, fits and the table only)."""
     s = settings or Settings()
     t0 = time.perf_counter()
-    fin = load_finished(paths)
+    everything = load_finished(paths)
     t_load = time.perf_counter() - t0
+    # statistics use the converged packings whose identities hold; the others are
+    # counted per cell (n_excluded) and named in the notes
+    good, reasons = everything.usable()
+    fin = everything.subset(good)
     tasks = fin.tasks
     if len(tasks["status"]) == 0:
         raise UserError(f"{fin.paths[0]}: the task table is empty")
@@ -312,12 +344,16 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                     dtype=np.int64)
     st = tasks["status"]
     n_done = np.bincount(cell, minlength=C)
+    cell_everything = np.array([lookup[(v, int(n), float(e))] for v, n, e
+                                in zip(everything.variant, everything.N, everything.E)],
+                               dtype=np.int64)
+    n_excluded = np.bincount(cell_everything[~good], minlength=C)
     counted = tasks["counted"]
     n_failed = np.bincount(cell_all[counted & (st == STATUS_FAILED)], minlength=C)
     n_pending = np.bincount(cell_all[counted & (st == STATUS_PENDING)], minlength=C)
-    n_tot = n_done + n_failed + n_pending
-    cells = {"variant": cv, "N": cN, "E": cE, "n_packings": n_done, "n_pending": n_pending,
-             "n_failed": n_failed, "n_tasks": n_tot}
+    n_tot = n_done + n_excluded + n_failed + n_pending
+    cells = {"variant": cv, "N": cN, "E": cE, "n_packings": n_done, "n_excluded": n_excluded,
+             "n_pending": n_pending, "n_failed": n_failed, "n_tasks": n_tot}
     for name, v in fin.scalars.items():
         _, mean, std, sem = _group_stats(v, cell, C)
         cells[f"mean_{name}"] = mean
@@ -331,6 +367,14 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
     if len(fin) == 0:
         notes.append("no finished packings yet: nothing to fit")
     done_total = int(len(fin))
+    excl_total = int(n_excluded.sum())
+    if excl_total:
+        why = ", ".join(f"{int(m.sum())} with {r}" for r, m in reasons.items() if m.any())
+        notes.append(f"{excl_total} finished packing(s) left out of the statistics ({why}); "
+                     "the cells' n_excluded counts them")
+        for i in np.flatnonzero(n_excluded > 0):
+            notes.append(f"  {cv[i]} N={cN[i]} E={cE[i]:.3g}: {n_excluded[i]} of "
+                         f"{n_done[i] + n_excluded[i]} finished left out")
     pend_total = int(n_pending.sum())
     fail_total = int(n_failed.sum())
     if pend_total or fail_total:
@@ -509,10 +553,11 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
 
     from campaign import tradeoff
 
-    variants, vnotes = tradeoff.compare(fin, extrapolated, s.reference, n_boot=s.n_boot, seed=s.boot_seed)
+    variants, vnotes = tradeoff.compare(everything, extrapolated, s.reference, n_boot=s.n_boot,
+                                        seed=s.boot_seed, usable=good)
     notes += vnotes
     alpha_e, theta, alpha_v = fits.three_disk_peaks(species_radii(fin.attrs))
-    meta = {"sources": fin.paths, "done": done_total, "pending": pend_total,
+    meta = {"sources": fin.paths, "done": done_total, "excluded": excl_total, "pending": pend_total,
             "failed": fail_total, "total": int(n_tot.sum()), "n_boot": s.n_boot,
             "boot_seed": s.boot_seed, "min_packings": s.min_packings,
             "spec_hash": fin.attrs.get("spec_hash", ""), "name": fin.attrs.get("name", ""),
@@ -671,7 +716,7 @@ def write_reduced(red: Reduction, h5path, *, mode="w"):
             schema="jamming-campaign-reduced/1", package_version=__version__,
             generated=time.strftime("%Y-%m-%dT%H:%M:%S%z"), sources=json.dumps(red.meta["sources"]),
             spec_hash=str(red.meta["spec_hash"]), n_done=red.meta["done"],
-            n_pending=red.meta["pending"], n_failed=red.meta["failed"],
+            n_excluded=red.meta["excluded"], n_pending=red.meta["pending"], n_failed=red.meta["failed"],
             n_boot=red.meta["n_boot"], boot_seed=red.meta["boot_seed"],
             min_packings=red.meta["min_packings"], notes=json.dumps(red.notes))
         _write_columns(g.create_group("cells"), red.cells)

@@ -12,6 +12,8 @@ random positions, so they are compared **packing by packing**: a pair is the sam
   standard deviation), i.e. how it compares with the noise of one packing;
   ``worst_cell_z``: the largest ``|mean difference| / standard error`` of any single
   (N, E) cell, to see whether the deviation is concentrated somewhere;
+* packings that did not converge or whose identities failed (``n_excluded``) count in
+  the costs, since a campaign pays for them, but no quantity of theirs is compared;
 * ``dev_E_rel``: the mean paired difference of ``E_G / E - 1``, where in its window
   each packing landed (a wider window, or another search rule, moves it, and with it
   every observable); not part of ``score``;
@@ -49,9 +51,14 @@ def _per_packing(fin):
     return cols, e_rel, s.get("force_evaluations", nan), s.get("jam_seconds", nan)
 
 
-def compare(fin, extrapolated, reference="default", n_boot=1000, seed=20240917):
-    """Records, one per variant (the reference first), and notes. See the module docstring."""
+def compare(fin, extrapolated, reference="default", n_boot=1000, seed=20240917, usable=None):
+    """Records, one per variant (the reference first), and notes. See the module docstring.
+
+    ``usable`` (n,) bool: the packings whose quantities may be compared (the reducer
+    passes ``Finished.usable()``: converged, identities held); the others still count
+    in the costs, since a campaign pays for them, and in ``n_excluded``."""
     notes = []
+    usable = np.ones(len(fin), bool) if usable is None else np.asarray(usable, bool)
     variants = sorted({str(v) for v in fin.variant})
     if len(variants) < 2:
         return [], notes
@@ -60,6 +67,9 @@ def compare(fin, extrapolated, reference="default", n_boot=1000, seed=20240917):
                      f"(variants: {', '.join(variants)})")
         return [], notes
     cols, e_rel, fe, secs = _per_packing(fin)
+    # quantities of unusable packings are not compared (NaN drops them from every mean)
+    cols = {q: np.where(usable, x, np.nan) for q, x in cols.items()}
+    e_rel = np.where(usable, e_rel, np.nan)
     var = np.asarray(fin.variant, dtype=str)
     key = list(zip(fin.N.tolist(), fin.E.tolist(), fin.seed.tolist()))
     ref_rows = {k: i for i, k in enumerate(key) if var[i] == reference}
@@ -83,7 +93,8 @@ def compare(fin, extrapolated, reference="default", n_boot=1000, seed=20240917):
     for v in [reference] + [x for x in variants if x != reference]:
         rows = np.flatnonzero(var == v)
         pairs = [(i, ref_rows[key[i]]) for i in rows if key[i] in ref_rows]
-        rec = {"variant": v, "reference": reference, "n_packings": int(len(rows)), "n_pairs": len(pairs),
+        rec = {"variant": v, "reference": reference, "n_packings": int(len(rows)),
+               "n_excluded": int(np.count_nonzero(~usable[rows])), "n_pairs": len(pairs),
                "fe_median": float(np.nanmedian(fe[rows])) if len(rows) else np.nan,
                "seconds_median": float(np.nanmedian(secs[rows])) if len(rows) and np.isfinite(secs[rows]).any()
                else np.nan}
@@ -171,7 +182,8 @@ def table_markdown(records) -> str:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in records:
         lines.append("| " + " | ".join([
-            r["variant"] + (" (ref)" if r["variant"] == r["reference"] else ""), str(r["n_packings"]),
+            r["variant"] + (" (ref)" if r["variant"] == r["reference"] else ""),
+            str(r["n_packings"]) + (f" ({r['n_excluded']} left out)" if r.get("n_excluded") else ""),
             _fmt(r.get("fe_median"), digits=4),
             _fmt(r.get("cost_ratio_fe")), _fmt(r.get("cost_ratio_seconds")),
             _fmt(r.get("dev_E_rel"), r.get("dev_E_rel_err")),

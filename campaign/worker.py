@@ -145,7 +145,8 @@ class SyntheticTask:
         window = float(payload["protocol"].get("window", 0.1))
         u = rng.random(len(self.SCALARS))
         scalars = {name: float(x) for name, x in zip(self.SCALARS, u)}
-        scalars.update(N=float(N), E_G=E * (1 + window * u[3]), force_residual=tol * u[17], identities_ok=1.0)
+        scalars.update(N=float(N), E_G=E * (1 + window * u[3]), force_residual=tol * u[17], identities_ok=1.0,
+                       jam_status=0.0)
         hists = {}
         for h, edges in (context.get("edges") or {}).items():
             k = len(edges) - 1

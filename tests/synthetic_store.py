@@ -149,7 +149,7 @@ def scalars_for(c: SyntheticCampaign, variant, N, E, rng):
         "phi": 0.84 + 0.5 * np.sqrt(E_G), "pressure": np.sqrt(E_G), "A_G": A_G, "A_V": 1.0 - A_G,
         "N_C": N_C, "N_V": N_V, "N_F": N_F, "z_g_mean": z, "z_iso": z_iso, "delta_Z": dZ,
         "psi_O": psi, "psi_DO": N_F / N_V, "identities_ok": np.ones(T),
-        "force_residual": 1e-7 * rng.random(T), "iterations": rng.integers(5, 40, T).astype(float),
+        "jam_status": np.zeros(T), "force_residual": 1e-7 * rng.random(T), "iterations": rng.integers(5, 40, T).astype(float),
         "force_evaluations": rng.integers(1000, 9000, T).astype(float),
         "jam_seconds": rng.random(T), "analyze_seconds": 0.1 * rng.random(T),
     }

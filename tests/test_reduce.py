@@ -132,6 +132,52 @@ def test_partly_finished_file_reduces_what_is_done_and_says_what_is_missing(tmp_
     assert np.all(np.isnan(red.residuals[:, small]))
 
 
+def test_unconverged_and_broken_packings_are_counted_but_left_out(tmp_path):
+    camp = SyntheticCampaign(N=(64, 128), seeds=6, variants=("default", "loose"))
+    path = tmp_path / "x.h5"
+    data = write_store(path, camp)
+    T = camp.n_tasks
+    jam_status = np.zeros(T)
+    identities = np.ones(T)
+    jam_status[[0, 7, 40]] = (1, 3, 2)       # max_search, stalled, max_steps
+    identities[[1, 7, T - 1]] = 0            # row 7 fails both
+    with h5py.File(path, "r+") as f:
+        f["scalars/jam_status"][...] = jam_status
+        f["scalars/identities_ok"][...] = identities
+    good = (jam_status == 0) & (identities == 1)
+    red = R.reduce_campaign(path, FAST)
+    c = red.cells
+    with h5py.File(path, "r") as f:
+        counts = f["histograms/z_v/counts"][...]
+    for i in range(len(c["N"])):
+        m = ((data["variant"] == c["variant"][i]) & (data["N_label"] == c["N"][i])
+             & (data["E_target"] == c["E"][i]))
+        assert c["n_packings"][i] == (m & good).sum()
+        assert c["n_excluded"][i] == (m & ~good).sum()
+        assert c["n_tasks"][i] == m.sum()
+        assert c["mean_A_G"][i] == pytest.approx(data["A_G"][m & good].mean(), rel=1e-12)
+        np.testing.assert_array_equal(red.distributions["z_v"]["counts"][i],
+                                      counts[m & good].sum(axis=0))
+    assert red.meta["excluded"] == 5 and red.meta["done"] == T - 5
+    text = "\n".join(red.notes)
+    assert "5 finished packing(s) left out" in text
+    assert "3 with jam_status != 0" in text and "3 with identities_ok != 1" in text
+    by_variant = {r["variant"]: r for r in red.variants}
+    assert by_variant["default"]["n_excluded"] == (~good[data["variant"] == "default"]).sum()
+    assert by_variant["loose"]["n_excluded"] == (~good[data["variant"] == "loose"]).sum()
+    assert by_variant["loose"]["n_packings"] == T // 2  # finished ones, used or not
+    # written out with the reduction
+    R.write_reduced(red, tmp_path / "r.h5")
+    with h5py.File(tmp_path / "r.h5", "r") as f:
+        assert f["reduced"].attrs["n_excluded"] == 5
+        np.testing.assert_array_equal(f["reduced/cells/n_excluded"][...], c["n_excluded"])
+    # a file without the two columns uses every finished packing
+    with h5py.File(path, "r+") as f:
+        del f["scalars/jam_status"], f["scalars/identities_ok"]
+    red = R.reduce_campaign(path, FAST)
+    assert red.meta["excluded"] == 0 and red.cells["n_packings"].sum() == T
+
+
 def test_a_file_with_nothing_finished(tmp_path):
     camp = SyntheticCampaign(N=(64,), E=(1e-3, 1e-6), seeds=3)
     write_store(tmp_path / "z.h5", camp, status=np.zeros(camp.n_tasks, np.int8))

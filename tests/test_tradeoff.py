@@ -76,6 +76,27 @@ def test_only_packings_done_in_both_are_compared():
     assert v["dev_A_G"] == 0.0  # the shifted packings have no reference partner
 
 
+def test_unusable_packings_count_in_the_cost_but_not_in_the_deviations():
+    rng = np.random.default_rng(4)
+    ref = _packings(rng)
+    keys = sorted(ref)
+    rows = [("default", *k, dict(ref[k])) for k in keys]
+    # the variant: shifted by 0.002 where it converged; the unconverged ones are far off
+    bad = {keys[1], keys[5], keys[6]}
+    rows += [("v", *k, dict(ref[k], A_G=ref[k]["A_G"] + (0.5 if k in bad else 0.002),
+                            force_evaluations=2 * ref[k]["force_evaluations"])) for k in keys]
+    usable = np.array([not (r[0] == "v" and tuple(r[1:4]) in bad) for r in rows])
+    usable[0] = False  # a reference packing left out: its pair is not compared either
+    recs, _ = tradeoff.compare(_fin(rows), {}, "default", n_boot=0, usable=usable)
+    r0, r1 = recs
+    assert r0["n_excluded"] == 1 and r1["n_excluded"] == len(bad)
+    assert r1["n_pairs"] == len(keys)
+    assert r1["cost_ratio_fe"] == pytest.approx(2.0, rel=1e-12)  # every packing is paid for
+    assert r1["dev_A_G"] == pytest.approx(0.002, rel=1e-9)  # none of the 0.5 shifts enters
+    recs_all, _ = tradeoff.compare(_fin(rows), {}, "default", n_boot=0)
+    assert recs_all[1]["n_excluded"] == 0 and recs_all[1]["dev_A_G"] > 0.01
+
+
 def test_error_follows_the_noise_of_the_paired_differences():
     rng = np.random.default_rng(3)
     ref = _packings(rng, n_seeds=40, Ns=(32,), Es=(1e-6,))
@@ -131,7 +152,7 @@ def test_reduce_and_plot_a_campaign_with_variants(tmp_path, capsys, monkeypatch)
     out = capsys.readouterr().out
     assert "Variants against 'default'" in out and "| ladder |" in out
     csv = (tmp_path / "red" / "variants.csv").read_text().splitlines()
-    assert csv[0].startswith("variant,reference,n_packings,n_pairs") and len(csv) == 3
+    assert csv[0].startswith("variant,reference,n_packings,n_excluded,n_pairs") and len(csv) == 3
     assert main(["reduce", str(tmp_path / "s.h5"), "--out", str(tmp_path / "red2"), "--reference", "ladder",
                  "--boot", "0"]) == 0
     assert "Variants against 'ladder'" in capsys.readouterr().out
