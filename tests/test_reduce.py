@@ -132,7 +132,7 @@ def test_partly_finished_file_reduces_what_is_done_and_says_what_is_missing(tmp_
     assert np.all(np.isnan(red.residuals[:, small]))
 
 
-def test_unconverged_and_broken_packings_are_counted_but_left_out(tmp_path):
+def test_unconverged_and_broken_packings_are_counted_but_left_out(tmp_path, capsys):
     camp = SyntheticCampaign(N=(64, 128), seeds=6, variants=("default", "loose"))
     path = tmp_path / "x.h5"
     data = write_store(path, camp)
@@ -171,6 +171,8 @@ def test_unconverged_and_broken_packings_are_counted_but_left_out(tmp_path):
     with h5py.File(tmp_path / "r.h5", "r") as f:
         assert f["reduced"].attrs["n_excluded"] == 5
         np.testing.assert_array_equal(f["reduced/cells/n_excluded"][...], c["n_excluded"])
+    assert cli.main(["reduce", str(path), "--out", str(tmp_path / "red"), "--boot", "20"]) == 0
+    assert f"{T - 5} of {T} packings used, 5 finished but left out" in capsys.readouterr().out
     # a file without the two columns uses every finished packing
     with h5py.File(path, "r+") as f:
         del f["scalars/jam_status"], f["scalars/identities_ok"]

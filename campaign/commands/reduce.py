@@ -53,7 +53,8 @@ def main(args) -> int:
     written = R.write_outputs(red, out)
     text = sys.stderr if args.json else sys.stdout
     m = red.meta
-    print(f"{m['name'] or Path(args.files[0]).name}: {m['done']} of {m['total']} packings done"
+    print(f"{m['name'] or Path(args.files[0]).name}: {m['done']} of {m['total']} packings used"
+          + (f", {m['excluded']} finished but left out (see the notes)" if m["excluded"] else "")
           + (f", {m['pending']} pending" if m["pending"] else "")
           + (f", {m['failed']} failed" if m["failed"] else "")
           + f"; {len(red.rows)} (variant, N_G) rows; bootstrap {m['n_boot']}", file=text)
