@@ -340,13 +340,12 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                                        tasks["E"].astype(float))
     C = len(cv)
     lookup = {(v, int(n), float(e)): i for i, (v, n, e) in enumerate(zip(cv, cN, cE))}
-    cell = np.array([lookup[(v, int(n), float(e))] for v, n, e in zip(fin.variant, fin.N, fin.E)],
-                    dtype=np.int64)
-    st = tasks["status"]
-    n_done = np.bincount(cell, minlength=C)
     cell_everything = np.array([lookup[(v, int(n), float(e))] for v, n, e
                                 in zip(everything.variant, everything.N, everything.E)],
                                dtype=np.int64)
+    cell = cell_everything[good]
+    st = tasks["status"]
+    n_done = np.bincount(cell, minlength=C)
     n_excluded = np.bincount(cell_everything[~good], minlength=C)
     counted = tasks["counted"]
     n_failed = np.bincount(cell_all[counted & (st == STATUS_FAILED)], minlength=C)
