@@ -70,7 +70,7 @@ SCALAR_KEYS = (
 #: Identity and degeneracy flags of ``Analysis.identities``.
 IDENTITY_KEYS = (
     "network_nonempty",     # at least one grain survives rattler removal
-    "area_tiling",          # A_G + A_V = Lx Ly
+    "area_tiling",          # A_G + A_V = 1 (fractions of the box area)
     "euler",                # N_C = 2 N_G + 2 N_V (torus, chi = 0)
     "fictitious_count",     # N_C - 3 N_V = 2 N_G - N_V (= number of fictitious contacts)
     "triangle_count",       # N_T = N_C - 2 N_V = 2 N_G
@@ -78,7 +78,7 @@ IDENTITY_KEYS = (
     "bounds",               # 3 <= z_g, <z_g> <= 6, N_V <= 2 N_G
     "void_sides",           # every z_v >= 3
     "contractible_faces",   # no face winds around the torus
-    "no_collinear_contacts",  # no relative angle at 0 or pi
+    "no_collinear_contacts",  # no relative angle at 0 or pi, no two disks at one centre
     "semicircle",           # every relative angle < pi
 )
 
@@ -94,7 +94,7 @@ ORDER_THRESHOLD = 0.9
 #: of a radius (at 1e-160 contacts vanish by underflow, at 1e-170 the box area is 0).
 LENGTH_RANGE = (1e-100, 1e100)
 
-#: Relative rounding allowance for the area identity (relative to the box area).
+#: Rounding allowance for the area identity A_G + A_V = 1 (fractions of the box area).
 AREA_RTOL = 1e-9
 #: Relative rounding allowance for the duality identity (relative to 1/2).
 DUALITY_RTOL = 1e-12
@@ -220,7 +220,7 @@ def analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0,
     # --- contacts, energy, rattlers, rotation system, grain polygons, faces
     bi, bj, dx, dy = _contact_bonds_core(pos, rad, b)
     energy, virial = _pair_energy_core(rad, bi, bj, dx, dy, alpha)
-    rattler = _rattlers_core(n, bi, bj)
+    rattler = _rattlers_core(n, bi, bj, dx, dy, tol * np.pi)
     offsets, src, dst, hdx, hdy, ang, twin, frac = _rotation_core(n, bi, bj, dx, dy, rattler, rad)
     theta, edge_area = _grain_pass_core(offsets, hdx, hdy, ang, frac)
     psi6 = _bond_order_core(offsets, ang, 6.0)
@@ -230,8 +230,10 @@ def analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0,
     N_G = int(n - rattler.sum())
     N_C = int(src.shape[0])
     N_V = int(sides.shape[0])
-    A_G = float(edge_area.sum())
-    A_V = float(varea.sum())
+    area_G = float(edge_area.sum())
+    area_V = float(varea.sum())
+    A_G = area_G / box_area
+    A_V = area_V / box_area
     E_G = energy / n
     contractible = np.hypot(sx, sy) < 0.25 * min(Lx, Ly)
     n_tri3 = int(np.count_nonzero(sides == 3))
@@ -262,7 +264,7 @@ def analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0,
 
     flags = {}
     flags["network_nonempty"] = N_G > 0
-    flags["area_tiling"] = bool(abs(A_G + A_V - box_area) <= AREA_RTOL * box_area)
+    flags["area_tiling"] = bool(abs(A_G + A_V - 1.0) <= AREA_RTOL)
     flags["euler"] = N_C == 2 * N_G + 2 * N_V
     flags["fictitious_count"] = (N_C - 3 * N_V == 2 * N_G - N_V) and n_fict == N_F
     flags["triangle_count"] = N_T == 2 * N_G and n_tri == N_T
@@ -273,7 +275,8 @@ def analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0,
     flags["bounds"] = bool(N_G > 0 and np.all(z_g[~rattler] >= 3) and N_C <= 6 * N_G and N_V <= 2 * N_G)
     flags["void_sides"] = bool(np.all(sides >= 3))
     flags["contractible_faces"] = bool(np.all(contractible))
-    flags["no_collinear_contacts"] = not bool(np.any(near_zero | near_pi))
+    coincident = bool(np.any((dx == 0.0) & (dy == 0.0)))
+    flags["no_collinear_contacts"] = not (coincident or bool(np.any(near_zero | near_pi)))
     flags["semicircle"] = bool(np.all(theta < np.pi - angle_eps))
     identities_ok = all(flags.values())
 
@@ -288,7 +291,8 @@ def analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0,
         "pressure": float(virial / (2.0 * box_area)),
         "A_G": A_G,
         "A_V": A_V,
-        "A_G_fraction": A_G / box_area,
+        "area_G": area_G,
+        "area_V": area_V,
         "N_C": N_C,
         "N_V": N_V,
         "N_F": int(N_F),

@@ -16,17 +16,19 @@ Convergence is relative, never absolute: the *force residual* is
 
     max over non-rattlers |F_net| / mean over non-rattler contacts |f_contact|
 
-where rattlers are found by iteratively removing disks with fewer than 3 contacts
-(``_nonrattler_mask_core``). The cheap bound ``max over all disks |F_net| / mean
+where rattlers are found by iteratively removing disks with fewer than 3 contacts or
+with all contacts in a closed half-plane (``_nonrattler_mask_core``): neither can
+balance repulsive forces, so they carry no load in a force-balanced packing. The cheap bound ``max over all disks |F_net| / mean
 |f_contact|`` is checked every step; the rattler-aware residual every
 ``CHECK_EVERY`` steps and before declaring convergence. A packing without any
 contact has nothing to balance: its residual is 0.
 
 Jitted cores, usable from other numba code:
 
-* ``_nonrattler_mask_core(n, ci, cj) -> bool (n,)`` from contact pairs (``ci < cj``).
-* ``_contacts_core(positions, radii, box, pi, pj) -> (ci, cj)``: the overlapping
-  pairs among the candidates.
+* ``_nonrattler_mask_core(n, ci, cj, dx, dy) -> bool (n,)`` from contact pairs
+  (``ci < cj``) and their displacements ``r_cj - r_ci``.
+* ``_contacts_core(positions, radii, box, pi, pj) -> (ci, cj, dx, dy)``: the
+  overlapping pairs among the candidates.
 * ``_residual_core(positions, radii, box, pi, pj, alpha, forces) -> (residual,
   n_nonrattlers, mean_contact_force)``; ``forces`` is scratch (n, 2).
 * ``_fire_core(...)``: the whole minimisation loop, see its docstring.
@@ -40,7 +42,7 @@ import numpy as np
 from numba import njit
 
 from kernels.cells import _as_radii, _candidate_pairs_core
-from kernels.network import _overlapping_core, _rattlers_core
+from kernels.network import HALF_PLANE_TOL, _overlapping_core, _rattlers_core
 from kernels.potential import (_energy_forces_core, _energy_forces_rows, _pair_inv_sigma,
                                _rows_from_pairs, check_exponent, pair_energy_force)
 from kernels.space import _as_box, _as_positions, _wrap_core, minimum_image
@@ -64,19 +66,20 @@ STATUS_NAMES = ("converged", "max_steps", "stalled", "below")
 
 
 @njit(cache=True)
-def _nonrattler_mask_core(n, ci, cj):
-    """Iteratively remove disks with fewer than 3 contacts; True for the rest.
+def _nonrattler_mask_core(n, ci, cj, dx, dy):
+    """Iteratively remove disks with fewer than 3 contacts or all contacts in a closed
+    half-plane; True for the rest.
 
     The one implementation of rattler removal is ``kernels.network._rattlers_core``.
     """
-    return ~_rattlers_core(n, ci, cj)
+    return ~_rattlers_core(n, ci, cj, dx, dy, HALF_PLANE_TOL)
 
 
 @njit(cache=True)
 def _contacts_core(positions, radii, box, pi, pj):
-    """The candidate pairs that overlap: centre distance < r_i + r_j (minimum image)."""
-    ci, cj, _, _ = _overlapping_core(positions, radii, box, pi, pj)
-    return ci, cj
+    """The candidate pairs that overlap: centre distance < r_i + r_j (minimum image),
+    with their displacements ``r_j - r_i``."""
+    return _overlapping_core(positions, radii, box, pi, pj)
 
 
 @njit(cache=True)
@@ -89,10 +92,10 @@ def _residual_core(positions, radii, box, pi, pj, alpha, forces):
     """
     n = positions.shape[0]
     _energy_forces_core(positions, box, pi, pj, _pair_inv_sigma(radii, pi, pj), alpha, forces)
-    ci, cj = _contacts_core(positions, radii, box, pi, pj)
+    ci, cj, cdx, cdy = _contacts_core(positions, radii, box, pi, pj)
     if ci.shape[0] == 0:
         return 0.0, 0, 0.0
-    alive = _nonrattler_mask_core(n, ci, cj)
+    alive = _nonrattler_mask_core(n, ci, cj, cdx, cdy)
     ng = 0
     for i in range(n):
         if alive[i]:
@@ -299,10 +302,11 @@ def minimize(positions, radii, box, exponent=2.0, *, force_tolerance=1e-6, max_s
 
 def nonrattlers(positions, radii, box):
     """Boolean mask of non-rattlers: disks left after iteratively removing those with
-    fewer than 3 contacts (contact: centre distance < r_i + r_j, minimum image)."""
+    fewer than 3 contacts or all contacts in a closed half-plane (contact: centre
+    distance < r_i + r_j, minimum image)."""
     pos = _as_positions(positions)
     rad = _as_radii(radii, pos.shape[0])
     b = _as_box(box)
     pi, pj = _candidate_pairs_core(pos, rad, b, 0.0)
-    ci, cj = _contacts_core(pos, rad, b, pi, pj)
-    return _nonrattler_mask_core(pos.shape[0], ci, cj)
+    ci, cj, dx, dy = _contacts_core(pos, rad, b, pi, pj)
+    return _nonrattler_mask_core(pos.shape[0], ci, cj, dx, dy)

@@ -319,8 +319,8 @@ def jam(n, energy, seed, start=None, **settings):
     radii = radii0 * scale
     area = float(box[0] * box[1])
     pi, pj = _candidate_pairs_core(positions, radii, box, 0.0)
-    ci, cj = _contacts_core(positions, radii, box, pi, pj)
-    n_g = int(np.count_nonzero(_nonrattler_mask_core(n, ci, cj)))
+    ci, cj, cdx, cdy = _contacts_core(positions, radii, box, pi, pj)
+    n_g = int(np.count_nonzero(_nonrattler_mask_core(n, ci, cj, cdx, cdy)))
     for arr in (positions, radii, box, species_idx):
         arr.flags.writeable = False
     return Packing(

@@ -3,7 +3,8 @@
 Conventions (``PHYSICS.md``, "The contact network"):
 
 * a contact is a pair with minimum-image centre distance ``|d| < r_g + r_g'``;
-* rattlers (fewer than 3 contacts) are removed repeatedly until none is left;
+* rattlers (fewer than 3 contacts, or all contacts in a closed half-plane through the
+  centre) are removed repeatedly until none is left;
 * every contact between grains ``g`` and ``g'`` gives two *half-edges*, ``g -> g'``
   carrying the displacement ``d = minimum image of (r_g' - r_g)`` and ``g' -> g``
   carrying ``-d``; the displacement is what lets the faces be walked on the torus;
@@ -20,7 +21,7 @@ Jitted cores, usable from other numba code:
 * ``_overlapping_core(positions, radii, box, pi, pj) -> (bi, bj, dx, dy)``: the
   overlapping pairs among candidates
 * ``_contact_bonds_core(positions, radii, box) -> (bi, bj, dx, dy)``
-* ``_rattlers_core(n, bi, bj) -> rattler`` (bool mask)
+* ``_rattlers_core(n, bi, bj, dx, dy, angle_tol) -> rattler`` (bool mask)
 * ``_rotation_core(n, bi, bj, dx, dy, keep, radii)`` -> half-edge CSR arrays
 * ``_grain_pass_core(...)`` -> per half-edge relative angle and edge-triangle area
 * ``_faces_core(...)`` -> faces as CSR over half-edges, sides, displacement sums, areas
@@ -100,15 +101,61 @@ def _pair_energy_core(radii, bi, bj, dx, dy, exponent):
     return energy, virial
 
 
+#: Default angular tolerance of the half-plane rattler rule (radians): all contacts of a
+#: grain lie in a closed half-plane when some line through its centre has every contact
+#: on one side or within this angle of the line. The analysis passes its own
+#: ``angle_tolerance * pi`` (the same value by default), so no grain it keeps can fail its
+#: semicircle identity.
+HALF_PLANE_TOL = 1e-9 * np.pi
+
+
 @njit(cache=True)
-def _rattlers_core(n, bi, bj):
-    """Mask of disks removed as rattlers (fewer than 3 contacts, repeatedly)."""
-    deg = np.zeros(n, dtype=np.int64)
+def _load_bearing(g, start, nbr, ux, uy, rattler, sin_tol):
+    """True when grain ``g`` can carry load among the non-rattlers: at least 3 contacts
+    and no closed half-plane through its centre holding all of them.
+
+    ``ux, uy`` are the unit contact directions seen from the grain (CSR ``start``). All
+    contacts lie in a closed half-plane exactly when one of them, ``u_k``, has every
+    other one on its left or on its line: ``u_k x u_j >= 0``, here ``>= -sin_tol``.
+    O(z^2) products, no trigonometry.
+    """
+    a = start[g]
+    b = start[g + 1]
+    z = 0
+    for s in range(a, b):
+        if not rattler[nbr[s]]:
+            z += 1
+    if z < 3:
+        return False
+    for k in range(a, b):
+        if rattler[nbr[k]]:
+            continue
+        all_left = True
+        for j in range(a, b):
+            if j == k or rattler[nbr[j]]:
+                continue
+            if ux[k] * uy[j] - uy[k] * ux[j] < -sin_tol:
+                all_left = False
+                break
+        if all_left:
+            return False
+    return True
+
+
+@njit(cache=True)
+def _rattlers_core(n, bi, bj, dx, dy, angle_tol):
+    """Mask of disks removed as rattlers, repeatedly until none is left: a disk is a
+    rattler when it has fewer than 3 contacts with non-rattlers, or when all those
+    contacts lie in a closed half-plane (seen from its centre; ``angle_tol`` radians of
+    slack, see ``HALF_PLANE_TOL``). Such a disk cannot balance repulsive forces.
+
+    ``(dx, dy)`` is the displacement ``r_bj - r_bi`` of each bond. Both rules only get
+    easier to meet as neighbours are removed, so the surviving set (the largest set in
+    which every disk is load-bearing) does not depend on the removal order; the one
+    exception is a pair of coincident centres (a zero displacement has no direction),
+    of which the first one checked goes.
+    """
     m = bi.shape[0]
-    for k in range(m):
-        deg[bi[k]] += 1
-        deg[bj[k]] += 1
-    # adjacency (CSR over bonds)
     start = np.zeros(n + 1, dtype=np.int64)
     for k in range(m):
         start[bi[k] + 1] += 1
@@ -117,30 +164,41 @@ def _rattlers_core(n, bi, bj):
         start[g + 1] += start[g]
     fill = start[:-1].copy()
     nbr = np.empty(2 * m, dtype=np.int64)
+    ux = np.empty(2 * m)
+    uy = np.empty(2 * m)
     for k in range(m):
-        nbr[fill[bi[k]]] = bj[k]
+        d = np.sqrt(dx[k] * dx[k] + dy[k] * dy[k])
+        ex = dx[k] / d if d > 0.0 else 0.0
+        ey = dy[k] / d if d > 0.0 else 0.0
+        p = fill[bi[k]]
         fill[bi[k]] += 1
-        nbr[fill[bj[k]]] = bi[k]
+        nbr[p] = bj[k]
+        ux[p] = ex
+        uy[p] = ey
+        q = fill[bj[k]]
         fill[bj[k]] += 1
+        nbr[q] = bi[k]
+        ux[q] = -ex
+        uy[q] = -ey
+    sin_tol = np.sin(angle_tol)
     rattler = np.zeros(n, dtype=np.bool_)
-    queue = np.empty(n, dtype=np.int64)
-    head = 0
-    tail = 0
+    queued = np.ones(n, dtype=np.bool_)
+    queue = np.empty(n + 2 * m, dtype=np.int64)
     for g in range(n):
-        if deg[g] < 3:
-            rattler[g] = True
-            queue[tail] = g
-            tail += 1
+        queue[g] = g
+    head = 0
+    tail = n
     while head < tail:
         g = queue[head]
         head += 1
+        queued[g] = False
+        if rattler[g] or _load_bearing(g, start, nbr, ux, uy, rattler, sin_tol):
+            continue
+        rattler[g] = True
         for s in range(start[g], start[g + 1]):
             h = nbr[s]
-            if rattler[h]:
-                continue
-            deg[h] -= 1
-            if deg[h] < 3:
-                rattler[h] = True
+            if not rattler[h] and not queued[h]:
+                queued[h] = True
                 queue[tail] = h
                 tail += 1
     return rattler
@@ -379,8 +437,9 @@ def contact_bonds(positions, radii, box):
     return _contact_bonds_core(pos, rad, b)
 
 
-def rattlers(n, bi, bj):
-    """Boolean mask of the rattlers of a network of ``n`` disks with bonds ``(bi, bj)``."""
+def rattlers(n, bi, bj, dx, dy, angle_tolerance=HALF_PLANE_TOL):
+    """Boolean mask of the rattlers of a network of ``n`` disks with bonds ``(bi, bj)``
+    and bond displacements ``(dx, dy) = r_bj - r_bi`` (see ``_rattlers_core``)."""
     n = int(n)
     bi = np.ascontiguousarray(bi, dtype=np.int64)
     bj = np.ascontiguousarray(bj, dtype=np.int64)
@@ -388,7 +447,14 @@ def rattlers(n, bi, bj):
         raise ValueError(f"bi, bj: expected two 1-D arrays of equal length, got {bi.shape} and {bj.shape}")
     if bi.size and (min(bi.min(), bj.min()) < 0 or max(bi.max(), bj.max()) >= n):
         raise ValueError(f"bi, bj: expected disk indices in [0, {n}), got values outside")
-    return _rattlers_core(n, bi, bj)
+    dx = np.ascontiguousarray(dx, dtype=np.float64)
+    dy = np.ascontiguousarray(dy, dtype=np.float64)
+    if dx.shape != bi.shape or dy.shape != bi.shape:
+        raise ValueError(f"dx, dy: expected one displacement per bond, shape {bi.shape}, got {dx.shape} and {dy.shape}")
+    tol = float(angle_tolerance)
+    if not (np.isfinite(tol) and 0.0 <= tol < 0.5 * np.pi):
+        raise ValueError(f"angle_tolerance: expected radians in [0, pi/2), got {angle_tolerance!r}")
+    return _rattlers_core(n, bi, bj, dx, dy, tol)
 
 
 def network(positions, radii, box, remove_rattlers=True):
@@ -404,7 +470,7 @@ def network(positions, radii, box, remove_rattlers=True):
     pos, rad, b = _checked_config(positions, radii, box)
     n = pos.shape[0]
     bi, bj, dx, dy = _contact_bonds_core(pos, rad, b)
-    rat = _rattlers_core(n, bi, bj) if remove_rattlers else np.zeros(n, dtype=np.bool_)
+    rat = _rattlers_core(n, bi, bj, dx, dy, HALF_PLANE_TOL) if remove_rattlers else np.zeros(n, dtype=np.bool_)
     offsets, src, dst, hdx, hdy, ang, twin, frac = _rotation_core(n, bi, bj, dx, dy, rat, rad)
     theta, earea = _grain_pass_core(offsets, hdx, hdy, ang, frac)
     face_of, fptr, fhe, sides, sx, sy, varea = _faces_core(offsets, src, dst, hdx, hdy, twin, frac)

@@ -19,6 +19,7 @@ from kernels.observables import OBSERVABLES, histogram
 from test_network import (
     _three_disks,
     compressed_packing,
+    jittered_crystal,
     random_configuration,
     reference_fictitious,
     reference_network,
@@ -42,7 +43,7 @@ def jammed(n, energy, seed):
 def _network_view(res):
     """What the contact network determines (dimensionless, invariant under scaling)."""
     s = res.scalars
-    keys = ("N", "N_G", "N_R", "N_C", "N_V", "N_F", "z_g_mean", "psi_O", "psi_DO", "A_G_fraction", "E_G")
+    keys = ("N", "N_G", "N_R", "N_C", "N_V", "N_F", "z_g_mean", "psi_O", "psi_DO", "A_G", "A_V", "E_G")
     return {k: s[k] for k in keys}
 
 
@@ -76,8 +77,9 @@ def test_triangular_crystal(nx, ny, a):
     s = res.scalars
     n = nx * ny
     assert s["N"] == s["N_G"] == n and s["N_R"] == 0
-    assert s["A_G"] / (box[0] * box[1]) == pytest.approx(0.75, abs=1e-6)
-    assert s["A_G_fraction"] == pytest.approx(0.75, abs=1e-6)
+    assert s["A_G"] == pytest.approx(0.75, abs=1e-6)  # a fraction of the box area
+    assert s["area_G"] / (box[0] * box[1]) == pytest.approx(0.75, abs=1e-6)
+    assert s["A_V"] == pytest.approx(0.25, abs=1e-6)
     assert np.all(res.z_g == 6)
     assert np.all(res.z_v == 3)
     assert res.histograms["z_g"][6] == n and res.histograms["z_g"].sum() == n
@@ -124,10 +126,36 @@ def test_energy_and_pressure_of_one_overlap():
 # ----------------------------------------------------------------------------- degeneracies
 
 
-def test_face_winding_around_the_torus_is_flagged():
-    """Two rows of a triangular crystal in a tall box: the voids above and below wrap."""
+def _degree_only_rattlers(monkeypatch):
+    """Make the analysis remove rattlers by the contact count alone (the rule before the
+    half-plane one), so that configurations the half-plane rule erodes reach the checks
+    that must flag them."""
+    from kernels import analysis as mod
+    monkeypatch.setattr(mod, "_rattlers_core", lambda n, bi, bj, dx, dy, tol: _degree_rule(n, bi, bj))
+
+
+def _degree_rule(n, bi, bj):
+    alive = np.ones(n, bool)
+    while True:
+        deg = np.zeros(n, int)
+        m = alive[bi] & alive[bj]
+        np.add.at(deg, bi[m], 1)
+        np.add.at(deg, bj[m], 1)
+        drop = alive & (deg < 3)
+        if not drop.any():
+            return ~alive
+        alive &= ~drop
+
+
+def test_face_winding_around_the_torus_is_flagged(monkeypatch):
+    """Two rows of a triangular crystal in a tall box: each grain has 4 contacts in a
+    closed half-plane, so the network is empty; with rattlers removed by contact count
+    only, the voids above and below wrap around the torus and are flagged."""
     pos, rad, box = triangular_crystal(10, 2, overlap=1e-6)
     box = np.array([box[0], 1.0])
+    res = analyze(pos, rad, box)
+    assert res.scalars["N_G"] == 0 and res.identities["network_nonempty"] is False
+    _degree_only_rattlers(monkeypatch)
     res = analyze(pos, rad, box)
     assert res.scalars["N_G"] == 20  # 4 contacts each
     assert res.identities["contractible_faces"] is False
@@ -135,9 +163,11 @@ def test_face_winding_around_the_torus_is_flagged():
     assert res.scalars["identities_ok"] is False
 
 
-def test_collinear_contacts_and_semicircle_are_flagged():
-    """A square lattice with one row missing: the grains along the gap have contacts
-    at 0, pi/2 and pi, i.e. a relative angle of exactly pi."""
+def test_collinear_contacts_and_semicircle_are_flagged(monkeypatch):
+    """A square lattice with one row missing: the grains along the gap have contacts at
+    0, pi/2 and pi (a closed half-plane), and the gap erodes the whole lattice row by row.
+    With rattlers removed by contact count only, the relative angle of exactly pi is
+    flagged by both checks."""
     m = 8
     a = 1.0 / m
     i, j = np.divmod(np.arange(m * m), m)
@@ -145,16 +175,26 @@ def test_collinear_contacts_and_semicircle_are_flagged():
     pos = np.stack([i * a, j * a], axis=1)[keep] + a / 2
     rad = np.full(keep.sum(), 0.5 * a * (1 + 1e-6))
     res = analyze(pos, rad, (1.0, 1.0))
+    assert res.scalars["N_G"] == 0
+    full = np.stack([i * a, j * a], axis=1) + a / 2  # without the gap every grain bears load
+    ok = analyze(full, np.full(m * m, 0.5 * a * (1 + 1e-6)), (1.0, 1.0))
+    assert ok.scalars["N_G"] == m * m and ok.ok
+    _degree_only_rattlers(monkeypatch)
+    res = analyze(pos, rad, (1.0, 1.0))
     assert res.identities["no_collinear_contacts"] is False
     assert res.identities["semicircle"] is False
     assert res.scalars["identities_ok"] is False
 
 
 def test_coincident_disks_are_flagged_not_fatal():
+    """Two disks at one centre have no contact direction: the first one checked counts as a
+    rattler (its contacts lie in a half-plane through the zero vector), and the
+    configuration is flagged."""
     pos, rad, box = compressed_packing(48, 0)
     pos = np.array(pos)
     pos[5] = pos[4]
     res = analyze(pos, rad, box)
+    assert res.rattler[4] or res.rattler[5]  # one of the two; the other may bear load
     assert res.identities["no_collinear_contacts"] is False
     assert res.scalars["identities_ok"] is False
 
@@ -191,18 +231,17 @@ def test_analysis_matches_reference(which):
     if which == "packing":
         pos, rad, box = compressed_packing(48, 0)
     elif which == "random":
-        pos, rad, box = random_configuration(60, 2)
+        pos, rad, box = jittered_crystal(8, 8, 2)
     else:  # many distinct radii: the radial kernel bins every centre on its own
-        pos, rad, box = random_configuration(60, 3, box=(1.0, 1.3))
-        rad = rad * np.random.default_rng(0).uniform(0.8, 1.2, rad.size)
+        pos, rad, box = jittered_crystal(6, 10, 3, box=(1.0, 1.3), poly=0.08)
     bins = {"radial_grains": np.linspace(0.0, 5.0, 51), "radial_contacts": np.linspace(0.0, 6.0, 61)}
     res = analyze(pos, rad, box, bins=bins)
     ref = reference_network(pos, rad, box)
     s = res.scalars
     area = box[0] * box[1]
     assert (s["N_G"], s["N_C"], s["N_V"]) == (ref["N_G"], ref["N_C"], len(ref["voids"]))
-    assert s["A_G"] == pytest.approx(ref["A_G"], rel=1e-12)
-    assert s["A_V"] == pytest.approx(sum(v["area"] for v in ref["voids"]), rel=1e-10, abs=1e-12 * area)
+    assert s["A_G"] == pytest.approx(ref["A_G"] / area, rel=1e-12)
+    assert s["A_V"] == pytest.approx(sum(v["area"] for v in ref["voids"]) / area, rel=1e-10, abs=1e-12)
     assert s["E_G"] == pytest.approx(ref["energy"] / len(rad), rel=1e-12)
     assert s["pressure"] == pytest.approx(ref["virial"] / (2 * area), rel=1e-12)
     assert s["psi_O"] == pytest.approx(sum(v["z"] == 3 for v in ref["voids"]) / len(ref["voids"]))
@@ -243,7 +282,9 @@ def test_analysis_matches_reference(which):
 def test_radial_counts_with_cells_match_brute_force(box, edges_kind):
     """Many disks and a short range, so the radial kernel uses its cell grid (with the
     periodic shift per cell, or the minimum image along a side too short for it)."""
-    pos, rad, b = random_configuration(400, 4, phi=1.0, box=box)
+    ny = 6 if box[1] < 0.1 else 20  # rows; nx columns keep the lattice close to equilateral
+    nx = int(round(box[0] / box[1] * ny * np.sqrt(3) / 2))
+    pos, rad, b = jittered_crystal(nx, ny, 4, box=box)
     if edges_kind == "uniform":
         edges = np.linspace(0.0, 3.0, 61)
     else:
@@ -305,11 +346,12 @@ def _check_identities(res, box):
     assert s["N_C"] - 2 * s["N_V"] == 2 * s["N_G"]
     if "fictitious" in res.observables:  # every fictitious contact made by the triangulation
         assert res.histograms["fictitious_length"].sum() == s["N_F"]
-    assert s["A_G"] + s["A_V"] == pytest.approx(box[0] * box[1], rel=1e-12)
+    assert s["A_G"] + s["A_V"] == pytest.approx(1.0, rel=1e-12)
+    assert s["area_G"] + s["area_V"] == pytest.approx(box[0] * box[1], rel=1e-12)
     assert 1 / s["z_g_mean"] + 1 / s["z_v_mean"] == pytest.approx(0.5, rel=1e-13)
     assert np.all(res.z_g[~res.rattler] >= 3) and s["z_g_mean"] <= 6 and s["N_V"] <= 2 * s["N_G"]
     assert np.all(res.z_v >= 3)
-    assert 0 < s["A_G"] < box[0] * box[1]
+    assert 0 < s["A_G"] < 1
     assert s["N"] == s["N_G"] + s["N_R"]
 
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import kernels
+from reference import ref_nonrattlers
 from kernels.jamming import DEFAULTS, STATUS_CODES, Packing, species_counts
 
 
@@ -18,19 +19,6 @@ def ref_contacts(pos, rad, box):
     s = rad[:, None] + rad[None, :]
     i, j = np.nonzero(np.triu(r < s, 1))
     return i, j, r[i, j], s[i, j]
-
-
-def ref_nonrattlers(n, i, j):
-    alive = np.ones(n, bool)
-    while True:
-        deg = np.zeros(n, int)
-        m = alive[i] & alive[j]
-        np.add.at(deg, i[m], 1)
-        np.add.at(deg, j[m], 1)
-        drop = alive & (deg < 3)
-        if not drop.any():
-            return alive
-        alive &= ~drop
 
 
 def ref_check(p):
@@ -46,7 +34,7 @@ def ref_check(p):
     net = np.zeros((n, 2))
     np.add.at(net, i, -fv)
     np.add.at(net, j, fv)
-    keep = ref_nonrattlers(n, i, j)
+    keep = ref_nonrattlers(n, i, j, d)
     m = keep[i] & keep[j]
     resid = np.max(np.hypot(net[keep, 0], net[keep, 1])) / np.mean(f[m])
     return e, resid, int(keep.sum()), int(m.sum())

@@ -10,10 +10,13 @@ from functools import lru_cache
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial import Delaunay
 
 from kernels.network import contact_bonds, network, rattlers
 from kernels.triangulate import triangulate_polygon
+from reference import in_closed_half_plane, ref_nonrattlers
 
 RATIO = 1.4  # sigma_A / sigma_B (PHYSICS.md)
 
@@ -87,6 +90,24 @@ def random_configuration(n, seed, phi=0.85, box=(1.0, 1.0)):
     return rng.random((n, 2)) * box, rad, box
 
 
+def jittered_crystal(nx, ny, seed, box=None, poly=0.05, jitter=0.03, overlap=0.15):
+    """A generic network with every grain load-bearing: a triangular crystal with its
+    centres moved by ``jitter`` lattice spacings (normal), radii ``0.5 a (1 + overlap)``
+    times ``1 + poly U(-1, 1)`` (all distinct), stretched into ``box`` if given. No two
+    contact angles coincide, and every grain keeps contacts all around (unlike random
+    overlapping disks, which erode completely under the half-plane rattler rule)."""
+    rng = np.random.default_rng([11, nx, ny, seed])
+    pos, rad, b = triangular_crystal(nx, ny, overlap=overlap)
+    pos = pos + jitter * (1.0 / nx) * rng.standard_normal(pos.shape)
+    rad = rad * (1.0 + poly * rng.uniform(-1.0, 1.0, rad.size))
+    if box is not None:
+        box = np.asarray(box, dtype=float)
+        pos = pos * (box / b)
+        rad = rad * np.sqrt(box.prod() / b.prod())
+        b = box
+    return pos % b, rad, b
+
+
 def triangular_crystal(nx, ny, overlap=1e-6, a=None):
     """Triangular crystal of equal disks, nx per row, ny rows (even), fitting its box."""
     assert ny % 2 == 0
@@ -131,7 +152,8 @@ def reference_network(pos, rad, box, remove_rattlers=True, exponent=2.0):
         while changed:
             changed = False
             for g in sorted(alive):
-                if sum(1 for h in nbrs[g] if h in alive) < 3:
+                ang = [math.atan2(d[1], d[0]) for h, d in nbrs[g].items() if h in alive]
+                if len(ang) < 3 or in_closed_half_plane(ang):
                     alive.remove(g)
                     changed = True
     rot = {}
@@ -211,12 +233,13 @@ def _cases():
     return [
         ("packing", *compressed_packing(48, 0)),
         ("packing-rect", *compressed_packing(40, 1, box=(1.0, 0.7))),
-        ("random", *random_configuration(60, 0)),
-        ("random-dense", *random_configuration(50, 1, phi=1.1)),
+        ("random", *random_configuration(60, 0)),  # erodes completely
+        ("jittered", *jittered_crystal(8, 6, 0)),
+        ("jittered-rect", *jittered_crystal(7, 8, 1, box=(1.0, 1.3))),
     ]
 
 
-@pytest.mark.parametrize("case", range(4))
+@pytest.mark.parametrize("case", range(5))
 def test_kernels_match_reference(case):
     name, pos, rad, box = _cases()[case]
     net = network(pos, rad, box)
@@ -264,16 +287,125 @@ def test_contact_is_strict_and_minimum_image():
     assert (dx[0], dy[0]) == (0.1875, 0.0)
 
 
+def _bonds(pairs, angles_deg):
+    """Bond arrays from (i, j) pairs and the direction of each bond seen from i."""
+    t = np.radians(np.asarray(angles_deg, dtype=float))
+    i, j = np.array(pairs).T
+    return i, j, np.cos(t), np.sin(t)
+
+
+def _crystal_core(nx=6, ny=6):
+    """A periodic triangular crystal: every grain has 6 contacts 60 degrees apart, no
+    rattler. Returns (n, bi, bj, dx, dy, positions, box)."""
+    pos, rad, box = triangular_crystal(nx, ny)
+    bi, bj, dx, dy = contact_bonds(pos, rad, box)
+    return len(rad), bi, bj, dx, dy, pos, box
+
+
+def _attach(core, new_bonds):
+    """Append bonds (i, j, angle in degrees seen from i) to a crystal core."""
+    n, bi, bj, dx, dy = core[:5]
+    i, j, ex, ey = _bonds([(a, b) for a, b, _ in new_bonds], [t for _, _, t in new_bonds])
+    return (np.concatenate([bi, i]), np.concatenate([bj, j]),
+            np.concatenate([dx, ex]), np.concatenate([dy, ey]))
+
+
 def test_rattler_removal_is_iterative():
-    # a chain hanging off a triangle-rich core: removal cascades
-    bi = np.array([0, 0, 0, 1, 1, 2, 3, 4])
-    bj = np.array([1, 2, 3, 2, 3, 3, 4, 5])
-    mask = rattlers(6, bi, bj)
-    # 5 (1 contact) goes, then 4 (1 left) goes; 0..3 form K4 (3 contacts each)
+    # a chain hanging off a K4 whose bonds point in all directions (as on a torus)
+    pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3), (3, 4), (4, 5)]
+    angles = [0, 60, 210, 120, 330, 90, 10, 20]
+    mask = rattlers(6, *_bonds(pairs, angles))
+    # 5 (1 contact) goes, then 4 (1 left) goes; each of 0..3 keeps 3 contacts spread over
+    # more than 180 degrees
     assert mask.tolist() == [False, False, False, False, True, True]
     # removing one K4 bond leaves two disks with 2 contacts, which takes the rest down
-    mask = rattlers(4, np.array([0, 0, 0, 1, 1]), np.array([1, 2, 3, 2, 3]))
+    mask = rattlers(4, *_bonds(pairs[:5], angles[:5]))
     assert mask.tolist() == [True, True, True, True]
+
+
+@pytest.mark.parametrize("angles, rattler", [
+    ((0, 85, 170), True),          # three contacts within 170 degrees: an open half-plane
+    ((0, 90, 180), True),          # two collinear contacts: exactly 180, a closed half-plane
+    ((0, 179.9999, 90), True),     # just inside 180, listed in another order
+    ((0, 100, 200), False),        # spread over 200 degrees: no half-plane holds them
+    ((0, 120, 240), False),
+    ((0, 90, 180, 270), False),    # a square: every line through the centre has one on each side
+    ((0, 45, 90, 135, 180), True), # five contacts, still a closed half-plane
+])
+def test_half_plane_rattlers(angles, rattler):
+    core = _crystal_core()
+    n = core[0]
+    grain = n  # the new grain, bonded to three or more distinct crystal grains
+    new = [(grain, k, t) for k, t in enumerate(angles)]
+    mask = rattlers(n + 1, *_attach(core, new))
+    assert bool(mask[grain]) is rattler
+    assert not mask[:n].any()  # the crystal itself keeps all its grains
+    # the slow reference agrees
+    bi, bj, dx, dy = _attach(core, new)
+    ref = ref_nonrattlers(n + 1, bi, bj, np.stack([dx, dy], 1))
+    assert np.array_equal(~ref, mask)
+
+
+def test_removal_exposes_a_half_plane_rattler():
+    """Grain Y has its contacts in a half-plane and goes; grain X then has three contacts
+    left within 135 degrees (no longer 3 spread over more than 180) and goes too, although
+    it still has three of them."""
+    core = _crystal_core()
+    n = core[0]
+    X, Y = n, n + 1
+    new = [(X, 0, 0), (X, 1, 90), (X, 2, 135), (X, Y, 225),   # X: 4 contacts, spread OK
+           (Y, 3, 0), (Y, 4, 20)]                              # Y: X at 45 and these two
+    bi, bj, dx, dy = _attach(core, new)
+    mask = rattlers(n + 2, bi, bj, dx, dy)
+    assert mask[X] and mask[Y] and not mask[:n].any()
+    # without Y's half-plane problem (a contact at 200 degrees as well) both stay
+    bi2, bj2, dx2, dy2 = _attach(core, new + [(Y, 5, 200)])
+    mask2 = rattlers(n + 2, bi2, bj2, dx2, dy2)
+    assert not mask2.any()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(4, 24), st.data())
+def test_rattlers_match_reference_and_ignore_order(n, data):
+    """Random bond graphs with random directions: the kernel equals the slow angle-sorting
+    reference, and relabelling disks or reordering bonds gives the same rattlers."""
+    m = data.draw(st.integers(0, 4 * n))
+    pairs = set()
+    for _ in range(m):
+        i = data.draw(st.integers(0, n - 1))
+        j = data.draw(st.integers(0, n - 1))
+        if i != j:
+            pairs.add((min(i, j), max(i, j)))
+    pairs = sorted(pairs)
+    # directions on a 10-degree lattice: many exact collinear and half-plane ties
+    ang = [10 * data.draw(st.integers(0, 35)) for _ in pairs]
+    if pairs:
+        bi, bj, dx, dy = _bonds(pairs, ang)
+    else:
+        bi = bj = np.empty(0, np.int64)
+        dx = dy = np.empty(0)
+    got = rattlers(n, bi, bj, dx, dy)
+    ref = ref_nonrattlers(n, bi, bj, np.stack([dx, dy], 1) if pairs else np.empty((0, 2)))
+    assert np.array_equal(got, ~ref)
+    perm = np.array(data.draw(st.permutations(range(n))))
+    order = np.array(data.draw(st.permutations(range(len(pairs)))), dtype=np.int64)
+    pi, pj = perm[bi[order]], perm[bj[order]]
+    flip = pi > pj  # keep i < j: swap the ends and reverse the direction
+    qi = np.where(flip, pj, pi)
+    qj = np.where(flip, pi, pj)
+    sgn = np.where(flip, -1.0, 1.0)
+    got2 = rattlers(n, qi, qj, sgn * dx[order], sgn * dy[order])
+    assert np.array_equal(got2[perm], got)
+
+
+def test_finite_cluster_has_no_load_bearing_grain():
+    """Repulsive disks alone cannot balance forces: the outermost grain of any finite
+    cluster has all its contacts in a half-plane, so the whole cluster erodes."""
+    pos, rad, _ = triangular_crystal(4, 4)
+    big = np.array([50.0, 50.0])
+    bi, bj, dx, dy = contact_bonds(pos + 10.0, rad, big)
+    assert len(bi) > 0
+    assert rattlers(len(rad), bi, bj, dx, dy).all()
 
 
 def _three_disks(radii):
@@ -386,6 +518,10 @@ def test_wrappers_reject_bad_input():
     with pytest.raises(ValueError, match="positions"):
         contact_bonds(np.zeros((3, 3)), np.full(3, 0.1), (1.0, 1.0))
     with pytest.raises(ValueError, match="indices"):
-        rattlers(3, np.array([0]), np.array([3]))
+        rattlers(3, np.array([0]), np.array([3]), np.array([1.0]), np.array([0.0]))
+    with pytest.raises(ValueError, match="one displacement per bond"):
+        rattlers(3, np.array([0]), np.array([1]), np.array([1.0, 2.0]), np.array([0.0]))
+    with pytest.raises(ValueError, match="angle_tolerance"):
+        rattlers(3, np.array([0]), np.array([1]), np.array([1.0]), np.array([0.0]), angle_tolerance=-1)
     with pytest.raises(ValueError, match="points"):
         triangulate_polygon(np.zeros((2, 2)))
