@@ -269,3 +269,90 @@ def test_paper_search_is_bounded():
     scale = p.radii[0] / r0[0]
     assert np.exp(-2 * 0.01) <= scale < 1.0
     assert scale == pytest.approx(1 / np.prod(1 + 0.01 * 0.5 ** np.arange(60)), rel=1e-12)
+
+
+SPEC = """\
+name: t
+seed: 11
+grid: {N_G: [16], E_G: [1.0e-6], seeds: 1}
+variants: [{name: halving, search: halving}]
+"""
+
+
+def test_settings_are_protocol_keys_and_part_of_the_task_identity():
+    from campaign.errors import UserError
+    from campaign.spec import parse_spec
+    from campaign.tasks import expand
+
+    ids = {t.variant: t.id for t in expand(parse_spec(SPEC))}
+    # ids computed by the code before the minimiser settings existed: unchanged
+    assert ids == {"default": "d07a19fe1150827a7f171e7cdaa17e5b",
+                   "halving": "a110b2c54f6da5e93fb0b8fc5f2ed544"}
+    more = SPEC.replace("]\n", ", {name: cg, minimizer: cg}, {name: paper, minimizer: cg, stop: energy, "
+                              "search: paper}, {name: paper-1e-20, minimizer: cg, stop: energy, search: paper, "
+                              "energy_tolerance: 1.0e-20}, {name: forced, stop: force, search: paper}]\n")
+    spec = parse_spec(more)
+    tasks = {t.variant: t for t in expand(spec)}
+    assert tasks["default"].id == ids["default"] and tasks["halving"].id == ids["halving"]
+    assert len({t.id for t in tasks.values()}) == len(tasks)
+    assert tasks["paper"].payload()["protocol"] == {"window": 0.1, "force_tolerance": 1e-6, "minimizer": "cg",
+                                                    "stop": "energy", "search": "paper"}
+    assert tasks["paper-1e-20"].payload()["protocol"]["energy_tolerance"] == 1e-20
+    # an explicit default stop rule is the default: same packings, same id
+    same = parse_spec(SPEC.replace("search: halving}", "search: halving, stop: force}"))
+    assert {t.variant: t.id for t in expand(same)} == ids
+    # a variant that goes back to force stopping drops the inherited energy tolerance
+    base = parse_spec(SPEC.replace("variants: [{name: halving, search: halving}]",
+                                   "protocol: {minimizer: cg, stop: energy, energy_tolerance: 1.0e-18}\n"
+                                   "variants: [{name: forces, stop: force}]"))
+    assert "energy_tolerance" not in base.variants[1].protocol_dict
+    with pytest.raises(UserError, match=r"protocol\.stop: unknown stop rule 'energies'"):
+        parse_spec(SPEC + "protocol: {stop: energies}\n")
+    with pytest.raises(UserError, match=r"protocol\.minimizer: unknown minimizer 'lbfgs'"):
+        parse_spec(SPEC + "protocol: {minimizer: lbfgs}\n")
+    with pytest.raises(UserError, match=r"protocol\.energy_tolerance: value -1e-16 out of range"):
+        parse_spec(SPEC + "protocol: {minimizer: cg, stop: energy, energy_tolerance: -1.0e-16}\n")
+    # the worker hands the effective protocol to jam(): every key is a jam() setting
+    from kernels.jamming import DEFAULTS
+    for t in tasks.values():
+        assert set(t.payload()["protocol"]) <= set(DEFAULTS)
+
+
+RUN_SPEC = """\
+name: minimizers
+seed: 5
+grid: {N_G: [16, 32], E_G: [1.0e-3, 1.0e-5], seeds: 3}
+protocol: {window: 0.1, force_tolerance: 1.0e-6}
+variants:
+  - {name: cg, minimizer: cg}
+  - {name: paper, minimizer: cg, stop: energy, search: paper}
+observables: [scalars, connectivity]
+output: out.h5
+"""
+
+
+def test_a_campaign_with_minimizer_variants_runs_and_reduces(tmp_path, capsys):
+    # the real kernels through the engine, then the trade table of the reducer
+    import csv
+
+    import h5py
+
+    from campaign import cli
+
+    spec = tmp_path / "s.yaml"
+    spec.write_text(RUN_SPEC)
+    out = tmp_path / "o.h5"
+    assert cli.main(["validate", str(spec)]) == 0
+    rc = cli.main(["run", str(spec), "--out", str(out), "--launcher", "inline", "--quiet"])
+    assert rc == 0, capsys.readouterr().err
+    with h5py.File(out, "r") as f:
+        assert (f["tasks/status"][...] == 1).all()
+        resid = f["scalars/force_residual"][...]
+    assert np.all(np.isfinite(resid))
+    assert cli.main(["reduce", str(out), "--out", str(tmp_path / "red"), "--boot", "0"]) == 0
+    text = capsys.readouterr().out
+    assert "| cg |" in text and "| paper |" in text
+    rows = {r["variant"]: r for r in csv.DictReader(open(tmp_path / "red" / "variants.csv"))}
+    assert set(rows) == {"default", "cg", "paper"}
+    assert int(rows["cg"]["n_pairs"]) == int(rows["paper"]["n_pairs"]) == 12
+    assert float(rows["cg"]["cost_ratio_fe"]) > 0
