@@ -14,6 +14,11 @@ For each N (default 256, 1024, 4096):
   and 1e-16), median over seeds, with force evaluations and O'Hern iterations. The
   force tolerance is the default 1e-6, or the first decade above the float64 floor
   (``kernels.jamming.energy_floor``) where 1e-6 is refused (N = 4096 at 1e-16).
+  With ``--minimizers fire cg`` every packing is made with each minimiser in turn
+  (same N, E, seed, one after the other, so that both see the same machine load) and
+  a second table gives the ratios of the medians, CG / FIRE. ``paper`` is the paper's
+  literal protocol: CG stopped by the energy-change rule, Delta halved after every
+  minimisation (``MINIMIZERS``).
 
 Prints a table and, with ``--json FILE``, writes every measurement as JSON. For the
 one-core comparison run it pinned to one CPU, e.g. ``taskset -c 0`` (XLA then uses
@@ -21,6 +26,8 @@ one thread, numba kernels are serial anyway).
 
     python benchmarks/bench_jam.py --json bench.json
     python benchmarks/bench_jam.py --sizes 256 1024 --energies 1e-6 --seeds 2   # quick
+    python benchmarks/bench_jam.py --no-steps --sizes 256 1024 --energies 1e-6 1e-12 1e-16 \
+        --seeds 5 --minimizers fire cg paper                                    # docs/MINIMIZERS.md
 """
 
 import argparse
@@ -145,6 +152,14 @@ def _jaxmd_child(n, seed, steps):
     return 0
 
 
+#: jam() settings of each minimiser label of ``--minimizers``
+MINIMIZERS = {
+    "fire": {},
+    "cg": {"minimizer": "cg"},
+    "paper": {"minimizer": "cg", "stop": "energy", "search": "paper"},
+}
+
+
 def _jam_time(n, e, seed, **settings):
     import kernels
 
@@ -178,6 +193,9 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=2000, help="FIRE steps per step-cost sample")
     ap.add_argument("--no-jax", action="store_true", help="skip the JAX MD comparison")
     ap.add_argument("--no-jam", action="store_true", help="skip the time-to-jam part")
+    ap.add_argument("--no-steps", action="store_true", help="skip the per-step cost part")
+    ap.add_argument("--minimizers", nargs="+", default=["fire"], choices=sorted(MINIMIZERS),
+                    help="jam with each of these (fire, cg, paper); ratios to the first")
     ap.add_argument("--json", metavar="FILE", help="write all measurements as JSON")
     args = ap.parse_args(argv)
 
@@ -185,7 +203,8 @@ def main(argv=None):
 
     import kernels
 
-    kernels.jam(64, 1e-4, 0)  # load or compile the numba cache outside the timings
+    for m in args.minimizers:  # load or compile the numba cache outside the timings
+        kernels.jam(64, 1e-4, 0, **MINIMIZERS[m])
     have_jax = False
     if not args.no_jax:
         try:
@@ -208,7 +227,7 @@ def main(argv=None):
         results["machine"]["jax"] = jax.__version__
         results["machine"]["jax_md"] = md.version("jax-md")
 
-    for n in args.sizes:
+    for n in ([] if args.no_steps else args.sizes):
         ours, theirs, overflow = [], [], False
         for seed in range(args.seeds):
             c, pos, rad, box, skin = _our_step_cost(n, seed, args.steps)
@@ -230,35 +249,59 @@ def main(argv=None):
         for e in args.energies:
             for n in args.sizes:
                 tol = _tolerance_for(n, e)
-                runs = [_jam_time(n, e, seed, force_tolerance=tol) for seed in range(args.seeds)]
-                row = dict(n=n, energy=e, force_tolerance=tol,
-                           median_seconds=statistics.median(r["seconds"] for r in runs),
-                           median_force_evaluations=statistics.median(
-                               r["force_evaluations"] for r in runs),
-                           median_iterations=statistics.median(r["iterations"] for r in runs),
-                           converged=sum(r["status"] == "converged" for r in runs),
-                           runs=runs)
-                results["time_to_jam"].append(row)
-                print(f"jam N={n} E={e:g} tol={tol:g}: median {row['median_seconds']:.2f} s, "
-                      f"{row['converged']}/{len(runs)} converged", flush=True)
+                runs = {m: [] for m in args.minimizers}
+                for seed in range(args.seeds):
+                    for m in args.minimizers:
+                        runs[m].append(_jam_time(n, e, seed, force_tolerance=tol,
+                                                 **MINIMIZERS[m]))
+                for m in args.minimizers:
+                    rs = runs[m]
+                    row = dict(n=n, energy=e, force_tolerance=tol, minimizer=m,
+                               median_seconds=statistics.median(r["seconds"] for r in rs),
+                               median_force_evaluations=statistics.median(
+                                   r["force_evaluations"] for r in rs),
+                               median_iterations=statistics.median(r["iterations"] for r in rs),
+                               median_residual=statistics.median(r["force_residual"] for r in rs),
+                               converged=sum(r["status"] == "converged" for r in rs),
+                               runs=rs)
+                    results["time_to_jam"].append(row)
+                    print(f"jam N={n} E={e:g} tol={tol:g} {m}: median {row['median_seconds']:.2f} s, "
+                          f"{row['median_force_evaluations']:.0f} force evaluations, "
+                          f"{row['converged']}/{len(rs)} converged", flush=True)
 
-    print()
-    print("| N | ours per step (us) | JAX MD per step (us) | ratio |")
-    print("|---:|---:|---:|---:|")
+    if results["step_cost"]:
+        print()
+        print("| N | ours per step (us) | JAX MD per step (us) | ratio |")
+        print("|---:|---:|---:|---:|")
     for r in results["step_cost"]:
         j = f"{r['jaxmd_us']:.1f}" if r["jaxmd_us"] else "n/a"
         s = f"{r['speedup']:.1f}x" if r["speedup"] else "n/a"
         print(f"| {r['n']} | {r['ours_us']:.1f} | {j} | {s} |")
     if results["time_to_jam"]:
         print()
-        print("| N | E | force tolerance | median time to jam (s) | median force evaluations | "
-              "median iterations | converged |")
-        print("|---:|---:|---:|---:|---:|---:|---:|")
+        print("| N | E | force tolerance | minimizer | median time to jam (s) | "
+              "median force evaluations | median iterations | median force residual | converged |")
+        print("|---:|---:|---:|---|---:|---:|---:|---:|---:|")
         for r in results["time_to_jam"]:
-            print(f"| {r['n']} | {r['energy']:g} | {r['force_tolerance']:g} | "
-                  f"{r['median_seconds']:.2f} | "
+            print(f"| {r['n']} | {r['energy']:g} | {r['force_tolerance']:g} | {r['minimizer']} | "
+                  f"{r['median_seconds']:.3f} | "
                   f"{r['median_force_evaluations']:.0f} | {r['median_iterations']:.0f} | "
-                  f"{r['converged']}/{len(r['runs'])} |")
+                  f"{r['median_residual']:.2g} | {r['converged']}/{len(r['runs'])} |")
+        if len(args.minimizers) > 1:
+            base = args.minimizers[0]
+            ref = {(r["n"], r["energy"]): r for r in results["time_to_jam"]
+                   if r["minimizer"] == base}
+            print()
+            print(f"| N | E | minimizer | force evaluations / {base} | seconds / {base} |")
+            print("|---:|---:|---|---:|---:|")
+            for r in results["time_to_jam"]:
+                if r["minimizer"] == base:
+                    continue
+                b = ref[(r["n"], r["energy"])]
+                fe = r["median_force_evaluations"] / b["median_force_evaluations"]
+                sec = r["median_seconds"] / b["median_seconds"]
+                r["ratio_force_evaluations"], r["ratio_seconds"] = fe, sec
+                print(f"| {r['n']} | {r['energy']:g} | {r['minimizer']} | {fe:.2f} | {sec:.2f} |")
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(results, fh, indent=2)

@@ -33,9 +33,11 @@ from kernels.names import HISTOGRAMS, OBSERVABLES  # noqa: F401 - re-exported
 #: protocol keys a spec may set (forwarded to ``kernels.jam`` as keyword arguments)
 PROTOCOL_DEFAULTS = {"window": 0.1, "force_tolerance": 1e-6}
 PROTOCOL_KEYS = ("window", "force_tolerance", "search_tolerance", "phi_start", "max_search", "max_steps",
-                 "minimizer", "search", "delta", "skin", "start")
-MINIMIZERS = ("fire",)
-SEARCH_RULES = ("secant", "halving")
+                 "minimizer", "search", "delta", "skin", "start", "stop", "energy_tolerance")
+MINIMIZERS = ("fire", "cg")
+SEARCH_RULES = ("secant", "halving", "paper")
+#: what ends a minimisation: the force residual, or (cg only) the paper's energy-change rule
+STOPS = ("force", "energy")
 #: where each packing's search starts: "random" (independent packings, the paper's protocol) or
 #: "ladder" (the same seed's packing at the next higher energy of the grid, decompressed)
 STARTS = ("random", "ladder")
@@ -465,9 +467,10 @@ def _protocol(c, value, path, allow, base=None):
         "skin": dict(lo=0, hi=10, lo_open=True),
         "max_search": dict(lo=1, hi=10**9, integer=True),
         "max_steps": dict(lo=1, hi=10**12, integer=True),
+        "energy_tolerance": dict(lo=0, hi=1, lo_open=True),
     }
     choices = {"search": ("search rule", SEARCH_RULES), "start": ("start", STARTS),
-               "minimizer": ("minimizer", MINIMIZERS)}
+               "minimizer": ("minimizer", MINIMIZERS), "stop": ("stop rule", STOPS)}
     for k, v in m.items():
         if k in checks:
             x = c.number(v, path + (k,), **checks[k])
@@ -482,6 +485,16 @@ def _protocol(c, value, path, allow, base=None):
                 out[k] = x
     if out.get("start") == "random":
         del out["start"]  # the default: independent packings keep their ids
+    if out.get("stop") == "force":
+        del out["stop"]  # the default: packings keep their ids
+    if out.get("stop") == "energy" and out.get("minimizer", "fire") != "cg":
+        c.err(path + ("stop",), "stop 'energy' counts conjugate-gradient steps: it needs minimizer 'cg', "
+                                f"got minimizer {out.get('minimizer', 'fire')!r}")
+    if out.get("stop") != "energy" and "energy_tolerance" in out:
+        if "energy_tolerance" in m:
+            c.err(path + ("energy_tolerance",), "energy_tolerance is only used with stop 'energy'; "
+                                                f"got stop {out.get('stop', 'force')!r}")
+        del out["energy_tolerance"]  # inherited by a variant that stops on forces: unused
     return out
 
 

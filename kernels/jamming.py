@@ -3,7 +3,8 @@
 ``jam(n, energy, seed, **settings)`` places ``n`` disks uniformly at random in the
 periodic box (from ``numpy.random.Generator(PCG64(SeedSequence(seed)))``), scales
 the radii to ``phi_start`` and runs the O'Hern search of ``kernels.protocol`` with
-the FIRE 2.0 minimiser of ``kernels.fire`` until the energy per disk ``E_G`` lies in
+the FIRE 2.0 minimiser of ``kernels.fire`` (or the conjugate-gradient minimiser of
+``kernels.cg``) until the energy per disk ``E_G`` lies in
 ``[energy, energy (1 + window)]`` with the forces on non-rattlers balanced to
 ``force_tolerance`` (relative to the mean contact force). The result is a frozen
 ``Packing``; identical arguments give bit-identical arrays.
@@ -18,8 +19,7 @@ import numpy as np
 from kernels.cells import _candidate_pairs_core
 from kernels.fire import _contacts_core, _nonrattler_mask_core
 from kernels.potential import ALPHA_RANGE, check_exponent
-from kernels.protocol import (SEARCH_HALVING, SEARCH_NAMES, SEARCH_SECANT, STATUS_NAMES,
-                              _ohern_core)
+from kernels.protocol import (MINIMIZER_NAMES, SEARCH_NAMES, STATUS_NAMES, _ohern_core)
 
 DEFAULT_SPECIES = ((0.5, 1.4), (0.5, 1.0))
 
@@ -35,6 +35,8 @@ DEFAULTS = dict(
     max_search=200,
     max_steps=2_000_000,
     minimizer="fire",
+    stop="force",
+    energy_tolerance=1e-16,
     search="secant",
     delta=0.01,
     skin=0.3,
@@ -44,6 +46,9 @@ DEFAULTS = dict(
 ENERGY_STEP = 1e-1
 
 STATUS_CODES = {name: code for code, name in enumerate(STATUS_NAMES)}
+
+#: stopping rules of a minimisation (``stop``)
+STOP_RULES = ("force", "energy")
 
 
 @dataclass(frozen=True, eq=False)
@@ -252,10 +257,18 @@ def jam(n, energy, seed, start=None, **settings):
     phi_start : packing fraction of the random initial state; default 0.86, above
         jamming for the default mixture (phi_J ~ 0.84), so the search shrinks.
     max_search : bound on the minimisations of the search; default 200.
-    max_steps : bound on FIRE steps per minimisation; default 2,000,000.
-    minimizer : "fire" (FIRE 2.0), the only one.
-    search : "secant" (default) or "halving" (plain O'Hern Delta halving); see
-        ``kernels.protocol``.
+    max_steps : bound on FIRE steps (CG iterations) per minimisation; default 2,000,000.
+    minimizer : "fire" (FIRE 2.0, default) or "cg" (Polak-Ribiere+ conjugate
+        gradients, ``kernels.cg``; the paper's minimiser).
+    stop : "force" (default): every minimisation stops on the force residual
+        (``search_tolerance``, then ``force_tolerance`` in the window). "energy" (needs
+        ``minimizer="cg"``): the paper's literal rule, a minimisation stops once one CG
+        step changes the energy per disk by less than ``energy_tolerance``; the force
+        residual is then only recorded, not bounded.
+    energy_tolerance : the paper's tolerance for ``stop="energy"``; default 1e-16.
+    search : "secant" (default), "halving" (plain O'Hern Delta halving at each
+        reversal) or "paper" (Delta halved after every minimisation, the paper's
+        literal rule); see ``kernels.protocol``.
     delta : first relative radius step Delta (and the largest step); default 0.01.
     skin : Verlet skin in units of the mean diameter; default 0.3.
 
@@ -285,11 +298,21 @@ def jam(n, energy, seed, start=None, **settings):
     phi_start = _positive_float("phi_start", opt["phi_start"], upper=1.0)
     max_search = _positive_int("max_search", opt["max_search"])
     max_steps = _positive_int("max_steps", opt["max_steps"])
-    if opt["minimizer"] != "fire":
-        raise ValueError(f"minimizer: expected 'fire', got {opt['minimizer']!r}")
+    if opt["minimizer"] not in MINIMIZER_NAMES:
+        raise ValueError(f"minimizer: expected one of {list(MINIMIZER_NAMES)}, "
+                         f"got {opt['minimizer']!r}")
+    minimizer = MINIMIZER_NAMES.index(opt["minimizer"])
+    if opt["stop"] not in STOP_RULES:
+        raise ValueError(f"stop: expected one of {list(STOP_RULES)}, got {opt['stop']!r}")
+    if opt["stop"] == "energy" and opt["minimizer"] != "cg":
+        raise ValueError(f"stop: expected 'force' with minimizer {opt['minimizer']!r} (the energy "
+                         "rule counts conjugate-gradient steps: use minimizer='cg'), got 'energy'")
+    e_tol = _positive_float("energy_tolerance", opt["energy_tolerance"])
+    if opt["stop"] == "force":
+        e_tol = 0.0
     if opt["search"] not in SEARCH_NAMES:
         raise ValueError(f"search: expected one of {list(SEARCH_NAMES)}, got {opt['search']!r}")
-    rule = SEARCH_SECANT if opt["search"] == "secant" else SEARCH_HALVING
+    rule = SEARCH_NAMES.index(opt["search"])
     delta = _positive_float("delta", opt["delta"], upper=1.0)
     skin = _positive_float("skin", opt["skin"], upper=1.0)
     if start is None:
@@ -315,7 +338,7 @@ def jam(n, energy, seed, start=None, **settings):
 
     status, scale, e_tot, virial, residual, iterations, nforce = _ohern_core(
         positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search, max_steps,
-        skin, delta, rule, max_radius, ENERGY_STEP)
+        skin, delta, rule, max_radius, ENERGY_STEP, minimizer, e_tol)
     radii = radii0 * scale
     area = float(box[0] * box[1])
     pi, pj = _candidate_pairs_core(positions, radii, box, 0.0)

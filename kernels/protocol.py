@@ -28,6 +28,21 @@ positions from the previous minimum, so they produce the same kind of packing:
   ``lambda_J``), so the rule keeps no bracket from older states; every step is
   limited to a factor ``(1 + delta)``.
 
+* ``SEARCH_PAPER`` (the paper's literal rule, "we reduce the step size Delta by
+  half after every step of energy minimization"): the same factors ``(1 + Delta)``,
+  but ``Delta`` halves after *every* minimisation, whatever the direction. The k-th
+  rescaling uses ``delta0 / 2^(k-1)``, so the radii can move by at most a factor
+  ``prod (1 + delta0 2^-k) ~ exp(2 delta0)`` (2 % for the default 0.01) either way
+  from the start: the search is a bisection of that interval. When the jamming point
+  of the (rearranging) packing lies outside it, the steps shrink below the float64
+  resolution of the scale factor after about 50 minimisations and the search ends
+  with ``max_search`` (or earlier at the ``max_search`` bound).
+
+Minimiser (``minimizer``): FIRE 2.0 (``kernels.fire``) or Polak-Ribiere+ conjugate
+gradients (``kernels.cg``). With CG, ``e_tol > 0`` replaces the force tolerances of
+every minimisation by the paper's energy-change rule (no polish step); the final force
+residual is still returned.
+
 Intermediate minimisations stop at the looser ``search_tolerance`` or as soon as
 the energy falls below ``E_min / 2`` (FIRE hardly ever climbs back: the packing is
 treated as below the window). When
@@ -44,6 +59,7 @@ Jitted core usable from other numba code: ``_ohern_core`` (see its docstring).
 import numpy as np
 from numba import njit
 
+from kernels.cg import _cg_core
 from kernels.fire import BELOW, CONVERGED, MAX_STEPS, _fire_core
 from kernels.space import _wrap_core
 
@@ -58,7 +74,12 @@ E_FIRST_GUESS = 1e-8
 
 SEARCH_HALVING = 0
 SEARCH_SECANT = 1
-SEARCH_NAMES = ("halving", "secant")
+SEARCH_PAPER = 2
+SEARCH_NAMES = ("halving", "secant", "paper")
+
+MIN_FIRE = 0
+MIN_CG = 1
+MINIMIZER_NAMES = ("fire", "cg")
 
 # status codes of _ohern_core
 ST_CONVERGED = 0
@@ -90,6 +111,17 @@ def _dt_for(radii, alpha, e_per_disk):
 
 
 @njit(cache=True)
+def _minimize(minimizer, positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort, e_tol):
+    """One minimisation at fixed radii with FIRE 2.0 (``MIN_FIRE``) or conjugate
+    gradients (``MIN_CG``; ``e_tol > 0``: the paper's energy-change rule). The CG line
+    search starts at ``1 / k``, the step matching FIRE's ``dt0 = DT_FACTOR / sqrt(k)``."""
+    if minimizer == MIN_CG:
+        return _cg_core(positions, radii, box, alpha, tol, max_steps, skin,
+                        (dt0 / DT_FACTOR) ** 2, e_abort, e_tol)
+    return _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort)
+
+
+@njit(cache=True)
 def _spatial_order(positions, box, cell):
     """Permutation sorting disks by cell (row-major cells about ``cell`` wide, then
     index): neighbours in space become neighbours in memory. Deterministic."""
@@ -111,7 +143,7 @@ def _spatial_order(positions, box, cell):
 
 @njit(cache=True)
 def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search,
-                max_steps, skin_factor, delta0, rule, max_radius, energy_step):
+                max_steps, skin_factor, delta0, rule, max_radius, energy_step, minimizer, e_tol):
     """Run the O'Hern search in place.
 
     ``positions`` (n, 2): initial positions, overwritten by the final ones (wrapped).
@@ -121,7 +153,9 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
     relative radius step (and the largest step of the secant rule). ``rule``:
     ``SEARCH_HALVING`` or ``SEARCH_SECANT``. ``max_radius``: the largest radius
     allowed (stops with ``too_dense`` beyond it). ``energy_step``: the secant rule
-    lowers the energy by at most this factor per minimisation.
+    lowers the energy by at most this factor per minimisation. ``minimizer``:
+    ``MIN_FIRE`` or ``MIN_CG``; ``e_tol`` > 0 (CG only): every minimisation stops on
+    the energy-change rule instead of the force tolerances (no polish).
 
     Returns ``(status, scale, energy_total, virial, residual, iterations,
     force_evaluations)``; the final radii are ``scale * radii0``. Internally the disks
@@ -172,8 +206,8 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
             radii[i] = scale * rad0[i]
         skin = skin_factor * mean_d * scale
         dt0 = _dt_for(radii, alpha, e_guess)
-        st, steps, nf, e, w, res, nc = _fire_core(pos, radii, box, alpha, search_tol,
-                                                  max_steps, skin, dt0, abort)
+        st, steps, nf, e, w, res, nc = _minimize(minimizer, pos, radii, box, alpha, search_tol,
+                                                 max_steps, skin, dt0, abort, e_tol)
         nforce += nf
         if it == 1:
             # the random start has relaxed: reorder the disks by cell
@@ -182,10 +216,10 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
             rad0 = rad0[perm].copy()
             radii = radii[perm].copy()
             order = order[perm].copy()
-        if st == CONVERGED and e_min <= e / n <= e_max and search_tol > tol:
+        if st == CONVERGED and e_min <= e / n <= e_max and search_tol > tol and e_tol == 0.0:
             # polish to the final tolerance at the same radii
-            st, steps, nf, e, w, res, nc = _fire_core(pos, radii, box, alpha, tol,
-                                                      max_steps, skin, dt0, abort)
+            st, steps, nf, e, w, res, nc = _minimize(minimizer, pos, radii, box, alpha, tol,
+                                                     max_steps, skin, dt0, abort, 0.0)
             nforce += nf
         e_last = e
         w_last = w
@@ -206,14 +240,16 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
             status = ST_MAX_SEARCH
             break
         direction = 1 if (st == BELOW or eg < e_min) else -1
-        if rule == SEARCH_HALVING:
-            if last_dir != 0 and direction != last_dir:
+        if rule == SEARCH_HALVING or rule == SEARCH_PAPER:
+            if rule == SEARCH_HALVING and last_dir != 0 and direction != last_dir:
                 delta *= 0.5
             last_dir = direction
             if direction > 0:
                 new = scale * (1.0 + delta)
             else:
                 new = scale / (1.0 + delta)
+            if rule == SEARCH_PAPER:
+                delta *= 0.5  # after every minimisation, whatever the direction
         else:
             if st == CONVERGED and eg > 0.0:
                 # a jammed minimum: refit g = slope (scale - scale_J)

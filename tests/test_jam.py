@@ -155,7 +155,7 @@ def test_bounds_give_a_status_not_a_wrong_packing():
     ((64, 1e-6, 0), dict(max_search=0), r"max_search: expected an integer >= 1, got 0"),
     ((64, 1e-6, 0), dict(max_steps=1.5), r"max_steps: expected an integer >= 1"),
     ((64, 1e-6, 0), dict(skin=0), r"skin: expected"),
-    ((64, 1e-6, 0), dict(minimizer="cg"), r"minimizer: expected 'fire', got 'cg'"),
+    ((64, 1e-6, 0), dict(minimizer="bfgs"), r"minimizer: expected one of \['fire', 'cg'\], got 'bfgs'"),
     ((64, 1e-6, 0), dict(search="newton"), r"search: expected one of"),
     ((64, 1e-6, 0), dict(temperature=1), r"settings: expected names among"),
     ((64, 1e-6, -1), {}, r"seed: expected a non-negative int"),

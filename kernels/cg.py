@@ -1,0 +1,385 @@
+"""Nonlinear conjugate-gradient energy minimiser (Polak-Ribiere+, numba).
+
+The minimiser the paper names ("non-linear conjugate-gradient"), next to FIRE 2.0
+(``kernels.fire``); the O'Hern search (``kernels.protocol``) calls either.
+
+Directions: ``d <- F + beta d`` with ``beta = max(0, F.(F - F_old) / F_old.F_old)``
+(Polak-Ribiere+, ``F`` the net forces, minus the gradient). The direction restarts at
+steepest descent (``d = F``) every ``RESTART_EVERY`` iterations, when ``d`` is not a
+descent direction (``F.d <= 0``), and after a line search that had to stop at the
+displacement cap or fell back to a shorter step.
+
+Line search along ``d`` from ``x``, on ``phi(t) = E(x + t d)``: a bracketing secant
+search on the *directional derivative* ``phi'(t) = -F(x + t d).d``. The potential is
+one-sided, so ``phi`` is piecewise smooth (C1 for alpha = 2: ``phi''`` jumps where a
+contact opens or closes); ``phi'`` is nearly linear between such events and the secant
+step through two derivatives is exact for a quadratic. A step ``t`` is accepted when
+
+* ``|phi'(t)| <= SIGMA |phi'(0)|`` (strong Wolfe curvature condition), and
+* ``phi(t) <= phi(0) + C1 t phi'(0)`` (Armijo), or, when the two energies differ by
+  less than their float64 resolution ``eps_E``, ``phi(t) <= phi(0) + eps_E``.
+
+The second branch is the "approximate Wolfe" idea of Hager and Zhang (SIAM J. Optim.
+16, 170 (2005)): near a minimum at ``E_G ~ 1e-16`` energy differences between line
+search points are far below rounding, while forces are still accurate, so the
+derivative decides. With ``SIGMA < 1 - 2 C1`` the curvature condition implies the
+Armijo condition of the local quadratic model. The resolution of a computed total
+energy is taken as ``eps_E = E_ROUND eps max(Lx, Ly) sum_contacts |f|`` (each pair
+energy inherits the rounding of its overlap, ``eps L`` from coordinates of size ``L``,
+times its force). Hence the guarantee: **across an accepted step the computed
+energy never rises by more than eps_E, and it falls by at least C1 t |phi'(0)| whenever
+the fall is resolved.** A line search that finds no acceptable step within
+``LS_MAX`` evaluations takes no step and restarts from steepest descent; two such
+failures in a row end the minimisation with status ``STALLED``.
+
+No disk moves more than ``DISP_CAP`` times the Verlet skin in one trial point (which
+also keeps coordinates within a quarter box of the wrapped ones, as the force loop
+needs). The Verlet list is rebuilt at any trial point where a disk is more than half
+the skin away from the list's reference positions.
+
+Stopping rules (``e_tol``):
+
+* ``e_tol = 0`` (default): the rattler-aware force residual of ``kernels.fire``
+  (``_residual_core``) below ``tol``, as FIRE.
+* ``e_tol > 0``: the paper's literal rule, "an energy minimum to within a desired
+  tolerance (10^-16 in our case)", read as: stop as soon as one accepted CG step
+  changes the energy per disk by less than ``e_tol`` (absolute, ``|Delta E| / n``).
+  Nothing guarantees force balance then: the final force residual is still computed
+  and returned, and it is usually far above ``tol`` (see docs/MINIMIZERS.md).
+
+Both rules also stop on ``max_steps`` CG iterations and on an energy below
+``e_abort`` (status ``BELOW``). Status codes and the returned tuple are FIRE's.
+
+Jitted core, same calling convention as ``kernels.fire._fire_core`` but for the
+line search's first step and the energy rule:
+``_cg_core(positions, radii, box, alpha, tol, max_steps, skin, step0, e_abort, e_tol)``.
+Checked wrapper: ``minimize(...) -> FireResult``.
+"""
+
+import numpy as np
+from numba import njit
+
+from kernels.cells import _as_radii, _candidate_pairs_core
+from kernels.fire import (BELOW, CHECK_EVERY, CONVERGED, MAX_STEPS, STALLED, STATUS_NAMES,
+                          FireResult, _residual_core, _wrap_inplace, default_timestep)
+from kernels.potential import (_energy_forces_core, _energy_forces_rows, _pair_inv_sigma,
+                               _rows_from_pairs, check_exponent)
+from kernels.space import _as_box, _as_positions, _wrap_core
+
+SIGMA = 0.1  # strong Wolfe curvature parameter
+C1 = 1e-4  # Armijo parameter
+LS_MAX = 30  # force evaluations per line search before it counts as failed
+RESTART_EVERY = 1000  # iterations between forced steepest-descent restarts
+DISP_CAP = 0.5  # largest displacement of any disk in one trial point, in units of the skin
+E_ROUND = 8.0  # eps_E = E_ROUND * eps * max(Lx, Ly) * sum of contact forces
+EPS = np.finfo(np.float64).eps
+FAILS_MAX = 2  # consecutive failed line searches that end the minimisation (STALLED)
+
+
+@njit(cache=True)
+def _dot(a, b):
+    s = 0.0
+    for i in range(a.shape[0]):
+        s += a[i, 0] * b[i, 0] + a[i, 1] * b[i, 1]
+    return s
+
+
+@njit(cache=True)
+def _max_norm2(a):
+    m = 0.0
+    for i in range(a.shape[0]):
+        v = a[i, 0] * a[i, 0] + a[i, 1] * a[i, 1]
+        if v > m:
+            m = v
+    return m
+
+
+@njit(cache=True)
+def _max_disp2(a, b):
+    m = 0.0
+    for i in range(a.shape[0]):
+        dx = a[i, 0] - b[i, 0]
+        dy = a[i, 1] - b[i, 1]
+        v = dx * dx + dy * dy
+        if v > m:
+            m = v
+    return m
+
+
+@njit(cache=True)
+def _wrap_with(positions, ref, box):
+    """Fold ``positions`` into the box and shift ``ref`` by the same lattice vectors
+    (so that a Verlet list built at ``ref`` stays valid)."""
+    for i in range(positions.shape[0]):
+        for k in range(2):
+            L = box[k]
+            s = L * np.floor(positions[i, k] / L)
+            if s != 0.0:
+                positions[i, k] -= s
+                ref[i, k] -= s
+
+
+@njit(cache=True)
+def _cg_core(positions, radii, box, alpha, tol, max_steps, skin, step0, e_abort, e_tol):
+    """Minimise the total energy in place (``positions`` is overwritten).
+
+    ``tol``: force-residual tolerance (used when ``e_tol == 0``); ``max_steps``: bound
+    on CG iterations (line searches); ``skin``: Verlet skin (absolute length);
+    ``step0``: first trial step of the first line search (displacement = step0 * F,
+    about 1/stiffness of a contact); ``e_abort``: stop with status ``BELOW`` once the
+    total energy is below it (0 disables); ``e_tol``: > 0 selects the energy-change
+    rule (per disk, absolute) instead of the force residual.
+
+    Returns ``(status, steps, force_evaluations, energy, virial, residual,
+    n_contacts)`` as ``_fire_core``.
+    """
+    n = positions.shape[0]
+    lmax = max(box[0], box[1])
+    frc = np.empty((n, 2))
+    ftr = np.empty((n, 2))
+    d = np.empty((n, 2))
+    trial = np.empty((n, 2))
+    scratch = np.empty((n, 2))
+    _wrap_inplace(positions, box)
+    ref = positions.copy()
+    pi, pj = _candidate_pairs_core(positions, radii, box, skin)
+    inv_s = _pair_inv_sigma(radii, pi, pj)
+    start, nbr = _rows_from_pairs(n, pi, pj)
+    half2 = 0.25 * skin * skin
+    cap = DISP_CAP * skin
+    energy, virial, nc, fsum = _energy_forces_rows(positions, box, start, nbr, inv_s, alpha, frc)
+    nforce = 1
+    for i in range(n):
+        d[i, 0] = frc[i, 0]
+        d[i, 1] = frc[i, 1]
+    restart = True
+    since_restart = 0
+    t_prev = step0
+    g_prev = 0.0
+    fails = 0
+    status = MAX_STEPS
+    residual = np.inf
+    step = 0
+    e_change = np.inf
+    while True:
+        if e_abort > 0.0 and energy < e_abort:
+            status = BELOW
+            residual = -1.0
+            break
+        if nc == 0:
+            status = CONVERGED
+            residual = 0.0
+            break
+        ff = _dot(frc, frc)
+        if ff == 0.0:
+            status = CONVERGED
+            residual = _residual_core(positions, radii, box, pi, pj, alpha, scratch)[0]
+            break
+        if e_tol > 0.0:
+            if e_change < e_tol * n:
+                status = CONVERGED
+                residual = _residual_core(positions, radii, box, pi, pj, alpha, scratch)[0]
+                break
+        else:
+            mean_f = fsum / nc
+            bound = np.sqrt(_max_norm2(frc)) / mean_f if mean_f > 0.0 else 0.0
+            if bound < tol or step % CHECK_EVERY == 0 or step >= max_steps:
+                residual = _residual_core(positions, radii, box, pi, pj, alpha, scratch)[0]
+                if residual < tol:
+                    status = CONVERGED
+                    break
+        if step >= max_steps:
+            status = MAX_STEPS
+            if e_tol > 0.0:
+                residual = _residual_core(positions, radii, box, pi, pj, alpha, scratch)[0]
+            break
+        step += 1
+
+        # ---- direction: d = F (restart) or PR+ update done after the previous step
+        g0 = -_dot(frc, d)
+        if restart or since_restart >= RESTART_EVERY or g0 >= 0.0:
+            for i in range(n):
+                d[i, 0] = frc[i, 0]
+                d[i, 1] = frc[i, 1]
+            g0 = -ff
+            since_restart = 0
+            restart = False
+        since_restart += 1
+        steepest = since_restart == 1
+
+        # ---- line search on phi(t) = E(x + t d), phi'(t) = -F(x + t d).d
+        _wrap_with(positions, ref, box)
+        dmax = np.sqrt(_max_norm2(d))
+        t_cap = cap / dmax
+        if g_prev < 0.0:
+            t = t_prev * g_prev / g0  # Nocedal-Wright: same first-order change as last time
+        else:
+            t = step0
+        if t > t_cap:
+            t = t_cap
+        e_res = E_ROUND * EPS * lmax * fsum
+        t_lo = 0.0
+        g_lo = g0
+        t_hi = -1.0
+        g_hi = 0.0
+        hi_secant = False
+        t_last = 0.0
+        g_last = g0
+        accepted = False
+        at_cap = False
+        e_t = energy
+        w_t = virial
+        nc_t = nc
+        fs_t = fsum
+        for ls in range(LS_MAX):
+            for i in range(n):
+                trial[i, 0] = positions[i, 0] + t * d[i, 0]
+                trial[i, 1] = positions[i, 1] + t * d[i, 1]
+            if _max_disp2(trial, ref) > half2:
+                pi, pj = _candidate_pairs_core(trial, radii, box, skin)
+                inv_s = _pair_inv_sigma(radii, pi, pj)
+                start, nbr = _rows_from_pairs(n, pi, pj)
+                for i in range(n):
+                    ref[i, 0] = trial[i, 0]
+                    ref[i, 1] = trial[i, 1]
+            e_t, w_t, nc_t, fs_t = _energy_forces_rows(trial, box, start, nbr, inv_s, alpha, ftr)
+            nforce += 1
+            g_t = -_dot(ftr, d)
+            ok_energy = e_t <= energy + C1 * t * g0 or abs(e_t - energy) <= e_res
+            if ok_energy and abs(g_t) <= SIGMA * (-g0):
+                accepted = True
+                break
+            if ok_energy and g_t < 0.0 and t >= t_cap:
+                # still descending at the largest step allowed: take it, then restart
+                accepted = True
+                at_cap = True
+                break
+            if g_t >= 0.0 or not ok_energy:
+                t_hi = t
+                g_hi = g_t
+                # secant only across a sign change of phi'; a rise while phi' < 0 bisects
+                hi_secant = g_t >= 0.0 and ok_energy
+            else:
+                t_lo = t
+                g_lo = g_t
+            if t_hi < 0.0:
+                # no bracket yet: extrapolate with the secant of the last two derivatives
+                t_new = 4.0 * t
+                if g_t > g_last:
+                    t_sec = t - g_t * (t - t_last) / (g_t - g_last)
+                    t_new = min(max(t_sec, 1.05 * t), 10.0 * t)
+                if t_new > t_cap:
+                    t_new = t_cap
+            else:
+                w = t_hi - t_lo
+                t_new = t_lo + 0.5 * w
+                if hi_secant and g_hi > g_lo:
+                    t_sec = t_lo - g_lo * w / (g_hi - g_lo)
+                    t_new = min(max(t_sec, t_lo + 0.01 * w), t_hi - 0.01 * w)
+            t_last = t
+            g_last = g_t
+            t = t_new
+        if not accepted and t_lo > 0.0:
+            # fall back to the longest step known to descend, if it lowered the energy
+            t = t_lo
+            for i in range(n):
+                trial[i, 0] = positions[i, 0] + t * d[i, 0]
+                trial[i, 1] = positions[i, 1] + t * d[i, 1]
+            if _max_disp2(trial, ref) > half2:
+                pi, pj = _candidate_pairs_core(trial, radii, box, skin)
+                inv_s = _pair_inv_sigma(radii, pi, pj)
+                start, nbr = _rows_from_pairs(n, pi, pj)
+                for i in range(n):
+                    ref[i, 0] = trial[i, 0]
+                    ref[i, 1] = trial[i, 1]
+            e_t, w_t, nc_t, fs_t = _energy_forces_rows(trial, box, start, nbr, inv_s, alpha, ftr)
+            nforce += 1
+            if e_t <= energy + C1 * t * g0 or abs(e_t - energy) <= e_res:
+                accepted = True
+                at_cap = True  # not a Wolfe step: restart the directions
+        if not accepted:
+            fails += 1
+            restart = True
+            g_prev = 0.0
+            if fails >= FAILS_MAX and steepest:
+                status = STALLED
+                residual = _residual_core(positions, radii, box, pi, pj, alpha, scratch)[0]
+                break
+            continue
+        fails = 0
+        # ---- accept: PR+ direction for the next iteration
+        ff_new = _dot(ftr, ftr)
+        fy = ff_new - _dot(ftr, frc)
+        beta = fy / ff if fy > 0.0 else 0.0
+        for i in range(n):
+            positions[i, 0] = trial[i, 0]
+            positions[i, 1] = trial[i, 1]
+            frc[i, 0] = ftr[i, 0]
+            frc[i, 1] = ftr[i, 1]
+            d[i, 0] = ftr[i, 0] + beta * d[i, 0]
+            d[i, 1] = ftr[i, 1] + beta * d[i, 1]
+        e_change = abs(e_t - energy)
+        energy = e_t
+        virial = w_t
+        nc = nc_t
+        fsum = fs_t
+        t_prev = t
+        g_prev = g0
+        if at_cap:
+            restart = True
+            g_prev = 0.0
+    _wrap_inplace(positions, box)
+    return status, step, nforce, energy, virial, residual, nc
+
+
+def minimize(positions, radii, box, exponent=2.0, *, force_tolerance=1e-6, max_steps=100_000,
+             skin=None, step=None, energy_tolerance=None):
+    """Minimise the pair energy with Polak-Ribiere+ conjugate gradients (checked wrapper).
+
+    ``force_tolerance``: stop on the force residual (as ``kernels.fire.minimize``);
+    ``energy_tolerance`` (None: not used): stop instead once one CG step changes the
+    energy per disk by less than it (the paper's rule). ``max_steps`` bounds the CG
+    iterations. ``skin`` defaults to 0.3 times the mean diameter; ``step`` (the first
+    trial step, in units of length / force) to one over a contact's stiffness at the
+    starting energy.
+    """
+    pos = _as_positions(positions).copy()
+    rad = _as_radii(radii, pos.shape[0])
+    b = _as_box(box)
+    a = check_exponent(exponent)
+    tol = float(force_tolerance)
+    if not (np.isfinite(tol) and tol > 0):
+        raise ValueError(f"force_tolerance: expected a finite number > 0, got {force_tolerance!r}")
+    e_tol = 0.0
+    if energy_tolerance is not None:
+        e_tol = float(energy_tolerance)
+        if not (np.isfinite(e_tol) and e_tol > 0):
+            raise ValueError("energy_tolerance: expected None or a finite number > 0, got "
+                             f"{energy_tolerance!r}")
+    if int(max_steps) != max_steps or max_steps < 0:
+        raise ValueError(f"max_steps: expected an integer >= 0, got {max_steps!r}")
+    if skin is None:
+        skin = 0.6 * float(np.mean(rad))
+    if not (np.isfinite(skin) and skin > 0):
+        raise ValueError(f"skin: expected a finite number > 0, got {skin!r}")
+    if step is None:
+        pi, pj = _candidate_pairs_core(pos, rad, b, 0.0)
+        e0 = _energy_forces_core(pos, b, pi, pj, _pair_inv_sigma(rad, pi, pj), a,
+                                 np.empty_like(pos))[0]
+        step = first_step(default_timestep(rad, a, e0 / len(rad)))
+    if not (np.isfinite(step) and step > 0):
+        raise ValueError(f"step: expected a finite number > 0, got {step!r}")
+    res = _cg_core(pos, rad, b, a, tol, int(max_steps), float(skin), float(step), 0.0, e_tol)
+    status, steps, nforce, e, w, residual, nc = res
+    return FireResult(positions=_wrap_core(pos, b), energy=e, pressure=w / (2 * b[0] * b[1]),
+                      residual=residual, steps=steps, force_evaluations=nforce,
+                      status=STATUS_NAMES[status])
+
+
+def first_step(dt0):
+    """First line-search step from a FIRE time step: ``dt0 = DT_FACTOR / sqrt(k)``
+    (``kernels.protocol._dt_for``) gives ``1 / k``, the step that would relax one
+    contact of stiffness ``k`` exactly."""
+    from kernels.protocol import DT_FACTOR
+
+    return (dt0 / DT_FACTOR) ** 2
