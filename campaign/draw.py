@@ -51,6 +51,10 @@ VOID_COLOUR = "#ffffff"
 CONTACT_COLOUR = "#d62728"
 FICTITIOUS_COLOUR = "#d62728"
 NETWORK_COLOUR = "black"
+FORCE_COLOUR = "#6d3a0f"
+BOX_COLOUR = "#8e24aa"
+#: The largest force is drawn this many mean disk diameters wide.
+FORCE_WIDTH = 0.22
 
 
 @dataclass
@@ -365,9 +369,10 @@ def render(sc: Scene, *, title=None, ax=None, legend=True, scale=True, size=None
 
     def lines(prims, gid, colour, widths, style, z):
         for d, suffix in ((prims.primary, ""), (prims.images, "-images")):
-            segs = d.get("segments", np.empty((0, 2, 2))) if d else np.empty((0, 2, 2))
-            lw = widths if np.isscalar(widths) else (widths if suffix == "" else widths[d["index"]]
-                                                     if d else widths[:0])
+            segs = d["segments"] if d else np.empty((0, 2, 2))
+            lw = widths
+            if not np.isscalar(widths) and suffix:  # an image has its primary's width
+                lw = widths[d["index"]] if d else widths[:0]
             col = LineCollection(segs, colors=colour, linewidths=lw, linestyles=style, zorder=z,
                                  capstyle="round")
             col.set_gid(gid + suffix)
@@ -380,9 +385,9 @@ def render(sc: Scene, *, title=None, ax=None, legend=True, scale=True, size=None
     if "forces" in layers:
         f = sc.forces
         fmax = float(f.max()) if f.size and f.max() > 0 else 1.0
-        widths = 0.35 * d_pt * f / fmax
-        lines(sc.network, "forces", "#5b2c06", widths, "solid", 5.2)
-        handles.append(Line2D([], [], color="#5b2c06", lw=0.35 * d_pt * 0.5,
+        widths = FORCE_WIDTH * d_pt * f / fmax
+        lines(sc.network, "forces", FORCE_COLOUR, widths, "solid", 5.2)
+        handles.append(Line2D([], [], color=FORCE_COLOUR, lw=min(FORCE_WIDTH * d_pt * 0.5, 4.0),
                               label=f"contact force (width; max {fmax:.3g})"))
     if "fictitious" in layers:
         lines(sc.fictitious, "fictitious", FICTITIOUS_COLOUR, lw_net, (0, (3, 2)), 5.5)
@@ -397,8 +402,9 @@ def render(sc: Scene, *, title=None, ax=None, legend=True, scale=True, size=None
         handles.append(Line2D([], [], color=CONTACT_COLOUR, marker="o", ls="", ms=4, label="contact point"))
 
     # the box's edges, where images begin
-    ax.add_patch(plt.Rectangle((0, 0), Lx, Ly, fill=False, ec="0.2", lw=0.8, ls=(0, (6, 3)), zorder=7,
+    ax.add_patch(plt.Rectangle((0, 0), Lx, Ly, fill=False, ec=BOX_COLOUR, lw=1.4, ls=(0, (6, 3)), zorder=7,
                                gid="box"))
+    handles.append(Line2D([], [], color=BOX_COLOUR, lw=1.4, ls="--", label="box edge (images beyond)"))
     ax.set_xticks([])
     ax.set_yticks([])
     if title:
@@ -526,10 +532,12 @@ def read_source(path, *, task=None, index=None, fmt="auto", group="/", exponent=
     return Source(conf.positions, conf.radii, conf.box, conf.species, alpha, Path(path).name, Path(path).stem)
 
 
-def title_of(src: Source, sc: Scene, energy=None) -> str:
+def title_of(src: Source, sc: Scene) -> str:
     c = sc.counts
-    e = f", E_G = {energy:.3g}" if energy is not None else ""
-    return f"{src.label}\nN = {c['N']} disks, N_G = {c['N_G']} grains{e}"
+    x0, y0, x1, y1 = sc.window
+    whole = sc.window == (0.0, 0.0, float(sc.box[0]), float(sc.box[1]))
+    w = "" if whole else f"; window [{x0:.3g}, {x1:.3g}] x [{y0:.3g}, {y1:.3g}] of the box {sc.box[0]:g} x {sc.box[1]:g}"
+    return f"{src.label}\nN = {c['N']} disks, N_G = {c['N_G']} grains{w}"
 
 
 def gallery(path, out, *, dpi=90):
