@@ -215,7 +215,7 @@ def scene(positions, radii, box, species=None, *, exponent=2.0, region=None, lay
             labels = ("disk",)
     else:
         kind = np.asarray(species, dtype=np.int64).copy()
-        labels = tuple(f"species {chr(65 + k) if k < 26 else k} (radius {rad[kind == k].max():.3g})"
+        labels = tuple(f"species {chr(65 + k) if k < 26 else k} (radius {np.max(rad[kind == k], initial=0):.3g})"
                        for k in range(int(kind.max()) + 1))
     kind[rattler] = -1
     disks = {"centres": pos, "radii": rad, "kind": kind}
@@ -261,7 +261,8 @@ def scene(positions, radii, box, species=None, *, exponent=2.0, region=None, lay
     b = (float(box[0]), float(box[1]))
     n_g = int(np.count_nonzero(~rattler))
     counts = {"N": int(rad.shape[0]), "N_G": n_g, "N_R": int(rattler.sum()), "contacts": int(one.size),
-              "N_V": int(nf), "N_F": int(fict["segments"].shape[0])}
+              "N_V": int(contractible.sum()), "N_F": int(fict["segments"].shape[0]),
+              "faces_not_drawn": int(nf - contractible.sum())}
     return Scene(
         box=box, window=window, layers=tuple(layers),
         disks=_with_images("disk", disks, b, window),

@@ -251,3 +251,14 @@ def test_bad_input_exits_2_with_a_message(stores, packing32, tmp_path, capsys):
     bad.write_text("1 1\n0.5 0.5 0.1\n0.2 nan 0.1\n")
     assert cli.main(["draw", str(bad)]) == 2
     assert "line 3" in capsys.readouterr().err
+
+
+def test_a_configuration_without_network_draws_its_rattlers(tmp_path):
+    """Tiny disks in a big box: no contact, every disk a rattler, nothing else to draw."""
+    pos = np.array([[0.1, 0.1], [0.5, 0.5], [0.7, 0.2]])
+    sc = draw.scene(pos, np.array([0.01, 0.01, 0.02]), (1.0, 1.0), layers=draw.LAYERS)
+    assert sc.counts == {"N": 3, "N_G": 0, "N_R": 3, "contacts": 0, "N_V": 0, "N_F": 0, "faces_not_drawn": 0}
+    arts = _by_gid(draw.render(sc))
+    assert _n(arts, "rattlers", "offsets") == 3 and _n(arts, "disks", "offsets") == 0
+    assert _n(arts, "grains", "paths") == _n(arts, "network", "segments") == 0
+    plt.close("all")
