@@ -28,6 +28,7 @@ only in a packing that fails its identities).
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -65,9 +66,6 @@ class Primitives:
     primary: dict
     images: dict = field(default_factory=dict)
 
-    def count(self) -> int:
-        return _count(self.primary)
-
 
 @dataclass
 class Scene:
@@ -83,17 +81,6 @@ class Scene:
     forces: np.ndarray  # (N_C/2,) pair force per network segment, in segment order
     species_labels: tuple  # label per disk kind >= 0
     counts: dict  # N, N_G, N_R, contacts, N_V, N_F of what is drawn (primaries)
-    info: str = ""
-
-
-def _count(d):
-    if "ptr" in d:
-        return int(d["ptr"].shape[0] - 1)
-    if "segments" in d:
-        return int(d["segments"].shape[0])
-    if "centres" in d:
-        return int(d["centres"].shape[0])
-    return int(d["points"].shape[0])
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -485,8 +472,6 @@ def read_source(path, *, task=None, index=None, fmt="auto", group="/", exponent=
     from campaign.configio import detect_format, read_configuration
 
     path = str(path)
-    import os
-
     if not os.path.exists(path):
         raise UserError(f"{path}: no such file (expected a configuration: text, .npz or HDF5, or a campaign store)")
     kind = detect_format(path) if fmt == "auto" else fmt
@@ -563,7 +548,9 @@ def gallery(path, out, *, dpi=90):
     best = sorted(best, key=lambda r: E[r])
     chosen = [best[0], best[len(best) // 2], best[-1]] if len(best) >= 3 else best
     chosen = list(dict.fromkeys(chosen))
-    plt = __import__("campaign.plots", fromlist=["_plt"])._plt()
+    from campaign.plots import _plt
+
+    plt = _plt()
     fig, axes = plt.subplots(1, len(chosen), figsize=(3.6 * len(chosen), 4.2), layout="constrained",
                              squeeze=False)
     for ax, r in zip(axes[0], chosen):
