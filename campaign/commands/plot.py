@@ -37,7 +37,20 @@ def main(args) -> int:
                                                    n_boot=args.boot, reference=args.reference))
     out = Path(args.out) if args.out else R.default_out_dir(args.files[0]) / "figures"
     written = plots.make_figures(red, out, dpi=args.dpi)
+    gallery = _gallery(args.files, out, args.dpi)
     for n in red.notes:
         print(n, file=sys.stderr)
     print(f"wrote {len(written)} figures to {out}/", file=sys.stderr)
+    if gallery is not None:
+        print(f"wrote {gallery} (one packing at three energies)", file=sys.stderr)
     return 0
+
+
+def _gallery(files, out, dpi):
+    """packing_gallery.png from the first file that keeps configurations (campaign.draw), or None."""
+    from campaign import draw
+
+    for f in files:
+        if draw.store_packings(f)[2].size:
+            return draw.gallery(f, out / "packing_gallery.png", dpi=dpi)
+    return None
