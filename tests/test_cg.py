@@ -10,38 +10,16 @@ from kernels import cg, fire
 from kernels.cg import E_ROUND
 from kernels.potential import energy, forces
 
+from reference import ref_nonrattlers
+from test_fire import random_dense
+from test_jam import ref_check, ref_contacts
+
 EPS = np.finfo(float).eps
 
 
-def random_dense(seed, n=64, phi=0.9):
-    rng = np.random.default_rng(seed)
-    box = np.array([1.0, 1.0])
-    pos = rng.random((n, 2))
-    rel = np.where(np.arange(n) < n // 2, 1.4, 1.0)
-    rad = rel * np.sqrt(phi / (np.pi * np.sum(rel ** 2)))
-    return pos, rad, box
-
-
-def ref_contacts(pos, rad, box):
-    d = pos[None, :, :] - pos[:, None, :]
-    d -= box * np.round(d / box)
-    r = np.hypot(d[..., 0], d[..., 1])
-    s = rad[:, None] + rad[None, :]
-    i, j = np.nonzero(np.triu(r < s, 1))
-    return i, j, r[i, j], s[i, j]
-
-
-def ref_nonrattlers(n, i, j):
-    alive = np.ones(n, bool)
-    while True:
-        deg = np.zeros(n, int)
-        m = alive[i] & alive[j]
-        np.add.at(deg, i[m], 1)
-        np.add.at(deg, j[m], 1)
-        drop = alive & (deg < 3)
-        if not drop.any():
-            return alive
-        alive &= ~drop
+def _disp(pos, box, i, j):
+    d = pos[j] - pos[i]
+    return d - box * np.round(d / box)
 
 
 def ref_hessian(pos, rad, box, alpha, keep, h):
@@ -82,8 +60,9 @@ def test_cg_reaches_the_fire_minimum(seed, alpha):
     assert a.status == b.status == "converged" and a.residual < 1e-10 and b.residual < 1e-10
     ia, ja, *_ = ref_contacts(a.positions, rad, box)
     ib, jb, *_ = ref_contacts(b.positions, rad, box)
-    keep = ref_nonrattlers(len(rad), ia, ja)
-    assert np.array_equal(keep, ref_nonrattlers(len(rad), ib, jb)) and keep.sum() > 30
+    keep = ref_nonrattlers(len(rad), ia, ja, _disp(a.positions, box, ia, ja))
+    assert np.array_equal(keep, ref_nonrattlers(len(rad), ib, jb, _disp(b.positions, box, ib, jb)))
+    assert keep.sum() > 30
     net_a = {(i, j) for i, j in zip(ia, ja) if keep[i] and keep[j]}
     net_b = {(i, j) for i, j in zip(ib, jb) if keep[i] and keep[j]}
     assert net_a == net_b
@@ -211,20 +190,8 @@ def test_bad_jam_settings(kw, match):
 
 
 def ref_packing_check(p):
-    pos, rad, box, a = p.positions, p.radii, p.box, p.exponent
-    n = len(pos)
-    i, j, r, s = ref_contacts(pos, rad, box)
-    e = np.sum((1 - r / s) ** a / a) / n
-    f = (1 - r / s) ** (a - 1) / s
-    d = pos[j] - pos[i]
-    d -= box * np.round(d / box)
-    fv = (f / r)[:, None] * d
-    net = np.zeros((n, 2))
-    np.add.at(net, i, -fv)
-    np.add.at(net, j, fv)
-    keep = ref_nonrattlers(n, i, j)
-    m = keep[i] & keep[j]
-    return e, np.max(np.hypot(net[keep, 0], net[keep, 1])) / np.mean(f[m])
+    e, resid, _, _ = ref_check(p)
+    return e, resid
 
 
 @pytest.mark.parametrize("n, target, search", [(64, 1e-4, "secant"), (128, 1e-10, "secant"),
