@@ -430,3 +430,29 @@ def test_files_with_different_bins_are_refused(tmp_path, capsys):
         e[...] = e[...] + 0.25
     assert cli.main(["reduce", str(tmp_path / "a.h5"), str(tmp_path / "b.h5")]) == 2
     assert "z_g" in capsys.readouterr().err
+
+
+def test_fit_energy_range_selects_the_cells_of_the_fits(tmp_path, capsys):
+    """--fit-energies LO HI: the scaling fits use exactly the cells in the range, and equal a
+    fit to those cells' means (the paper's fit range, docs/PAPER.md)."""
+    from campaign.fits import fit_power_law
+
+    camp = SyntheticCampaign(N=(64, 128), seeds=8)
+    path = tmp_path / "c.h5"
+    write_store(path, camp)
+    lo, hi = 1e-14, 1e-6
+    red = R.reduce_campaign(path, R.Settings(n_boot=0, fit_energies=(lo, hi)))
+    inside = [e for e in camp.E if lo <= e <= hi]
+    assert 4 <= len(inside) < len(camp.E)
+    assert any("E_G in [1e-14, 1e-06]" in n for n in red.notes)
+    c = red.cells
+    for row in red.rows:
+        assert row["n_cells"] == len(inside)
+        m = (c["N"] == row["N_G"]) & (c["E"] >= lo) & (c["E"] <= hi)
+        f = fit_power_law(c["mean_E_G"][m], c["mean_A_G"][m], c["sem_A_G"][m])
+        assert row["beta_E"] == pytest.approx(f.exponent, rel=1e-9)
+        assert row["A_G_star_E"] == pytest.approx(f.intercept, rel=1e-9)
+    full = R.reduce_campaign(path, R.Settings(n_boot=0))
+    assert all(r["n_cells"] == len(camp.E) for r in full.rows)
+    assert cli.main(["reduce", str(path), "--out", str(tmp_path / "o"), "--fit-energies", "1e-3", "1e-5"]) == 2
+    assert "--fit-energies expects 0 <= LO < HI" in capsys.readouterr().err

@@ -27,6 +27,10 @@ def configure(parser):
     parser.add_argument("--min-packings", type=int, default=3, metavar="K",
                         help="cells with fewer finished packings are left out of the fits "
                              "(default 3)")
+    parser.add_argument("--fit-energies", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                        help="fit the scaling laws to the cells with E_G in [LO, HI] only "
+                             "(default: every energy; '0 1e-5' gives the paper's exponents, "
+                             "see docs/PAPER.md)")
     parser.add_argument("--reference", default="default", metavar="VARIANT",
                         help="the variant every other one is compared with: cost ratio and deviations "
                              "(default: default, the spec's base protocol)")
@@ -46,6 +50,11 @@ def main(args) -> int:
     if args.in_place and len(args.files) != 1:
         raise UserError("--in-place needs exactly one FILE")
     settings = R.Settings(min_packings=args.min_packings, n_boot=args.boot, reference=args.reference)
+    if args.fit_energies is not None:
+        lo, hi = args.fit_energies
+        if not (lo >= 0 and hi > lo and lo < float("inf")):
+            raise UserError(f"--fit-energies expects 0 <= LO < HI, got {lo:g} {hi:g}")
+        settings.fit_energies = (lo, hi)
     if args.seed is not None:
         settings.boot_seed = args.seed
     red = R.reduce_campaign(args.files, settings)
