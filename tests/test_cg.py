@@ -323,3 +323,14 @@ def test_a_campaign_with_minimizer_variants_runs_and_reduces(tmp_path, capsys):
     assert set(rows) == {"default", "cg", "paper"}
     assert int(rows["cg"]["n_pairs"]) == int(rows["paper"]["n_pairs"]) == 12
     assert float(rows["cg"]["cost_ratio_fe"]) > 0
+
+
+def test_below_float64_resolution_the_minimisation_stalls_instead_of_running_on():
+    # a residual of 1e-15 is below the rounding noise of these forces (eps L / (x s) ~ 5e-14):
+    # the residual stops halving and the minimisation ends with "stalled", long before max_steps
+    from kernels.cg import STALL_MIN
+
+    pos, rad, box = random_dense(6, n=32, phi=0.9)
+    r = cg.minimize(pos, rad, box, force_tolerance=1e-15, max_steps=10 ** 7)
+    assert r.status == "stalled" and STALL_MIN <= r.steps < 10 * STALL_MIN
+    assert 1e-15 < r.residual < 1e-11
