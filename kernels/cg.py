@@ -6,8 +6,8 @@ The minimiser the paper names ("non-linear conjugate-gradient"), next to FIRE 2.
 Directions: ``d <- F + beta d`` with ``beta = max(0, min(F.(F - F_old), F.F) / F_old.F_old)``
 (Polak-Ribiere+ bounded by Fletcher-Reeves, the hybrid of Gilbert and Nocedal, SIAM J.
 Optim. 2, 21 (1992); ``F`` the net forces, minus the gradient). The bound matters near
-jamming: with the plain PR+ beta the same searches cost 1.1-1.7 times more force
-evaluations (docs/MINIMIZERS.md). The direction restarts at
+jamming: with the plain PR+ beta, packings of N = 1024 at E_G = 1e-12 cost 1-5 times
+more force evaluations (docs/MINIMIZERS.md). The direction restarts at
 steepest descent (``d = F``) every ``RESTART_EVERY`` iterations, when ``d`` is not a
 descent direction (``F.d <= 0``), and after a line search that had to stop at the
 displacement cap or fell back to a shorter step.
@@ -82,8 +82,8 @@ DISP_CAP = 0.5  # largest displacement of any disk in one trial point, in units 
 E_ROUND = 8.0  # eps_E = E_ROUND * eps * max(Lx, Ly) * sum of contact forces
 EPS = np.finfo(np.float64).eps
 FAILS_MAX = 2  # consecutive failed line searches that end the minimisation (STALLED)
-STALL_MIN = 10_000  # iterations without the force residual halving that end it (STALLED) ...
-STALL_PER_DISK = 10  # ... or this many per disk, whichever is larger
+STALL_MIN = 20_000  # iterations without the force residual halving that end it (STALLED) ...
+STALL_PER_DISK = 100  # ... or this many per disk, whichever is larger
 
 
 @njit(cache=True)

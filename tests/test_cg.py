@@ -110,12 +110,15 @@ def test_energy_rises_only_within_rounding_near_1e16():
     rad = p.radii * (1 + 2e-9)
     pos, box = np.array(p.positions), p.box
     full = cg.minimize(pos, rad, box, force_tolerance=1e-6)
-    assert full.status == "converged" and full.residual < 1e-6 and full.steps > 20
-    prev_e, prev_pos = energy(pos, rad, box), pos
-    for k in range(1, full.steps + 1):
-        r = cg.minimize(pos, rad, box, force_tolerance=1e-6, max_steps=k)
-        assert r.energy <= prev_e + energy_resolution(prev_pos, rad, box, 2.0)
-        prev_e, prev_pos = r.energy, r.positions
+    assert full.status == "converged" and full.residual < 1e-6 and full.steps > 100
+    # the first steps and the last ones (where the energy differences are below rounding)
+    for ks in (range(0, 40), range(full.steps - 60, full.steps + 1)):
+        prev = None
+        for k in ks:
+            r = cg.minimize(pos, rad, box, force_tolerance=1e-6, max_steps=k)
+            if prev is not None:
+                assert r.energy <= prev.energy + energy_resolution(prev.positions, rad, box, 2.0)
+            prev = r
     assert r.positions.tobytes() == full.positions.tobytes()
 
 
