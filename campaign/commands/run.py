@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import signal
 import socket
 import subprocess
 import sys
@@ -118,22 +119,31 @@ def _set_numba_cache(args):
 
 
 def main(args) -> int:
-    from campaign.comm import mpi_env_detected
+    from campaign.comm import launched_tasks, mpi_env_detected, split_launch_error
+    from campaign.errors import UserError
     from campaign.walltime import deadline
 
-    args.deadline = deadline(time.time(), args.time_limit)  # the allocation's clock starts now
+    # SLURM's USR1 warning may come while the tasks start and the kernels compile: remember it for
+    # the master (which then starts no task) instead of dying of it.
+    args.warned = []
+    signal.signal(signal.SIGUSR1, lambda signum, frame: args.warned.append(signum))
+    args.deadline = deadline(time.time(), args.time_limit)
     if args.margin < 0:
-        from campaign.errors import UserError
-
         raise UserError(f"--margin must be >= 0 seconds; got {args.margin:g}")
     _set_numba_cache(args)
     if args.task_function is None:
         args.task_function = os.environ.get("CAMPAIGN_TASK_FUNCTION") or "kernels"
-    use_mpi = args.launcher == "mpi" or (args.launcher == "auto" and mpi_env_detected())
+    split = launched_tasks()[0] > 1  # a launcher started several tasks: they must form one MPI world
+    use_mpi = args.launcher == "mpi" or (args.launcher == "auto" and (mpi_env_detected() or split))
+    if split and not use_mpi:
+        raise UserError(split_launch_error(1) + f" (--launcher {args.launcher} makes each task a master.)")
     if use_mpi:
         from mpi4py import MPI
 
         comm = MPI.COMM_WORLD
+        refused = split_launch_error(comm.Get_size())
+        if refused:
+            raise UserError(refused)
         if comm.Get_size() > 1:
             if comm.Get_rank() != 0:
                 return _mpi_worker(comm)
@@ -276,6 +286,8 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
             wall = Deadline(store, tasks, args.deadline, args.margin)
         master = Master(comm, store, tasks, retries=retries, depth=max(1, args.depth), progress=progress,
                         grace=args.grace, redo_failed=args.retry_failed, log=_log, can_dispatch=wall)
+        if getattr(args, "warned", None):
+            master._on_signal(signal.SIGUSR1, None)
         t0, cpu0 = time.monotonic(), time.process_time()
         outcome = master.run()
         cpu = time.process_time() - cpu0
