@@ -7,6 +7,7 @@ and review the diff.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -156,24 +157,40 @@ def _files(directory):
     return {p.name: p.read_bytes() for p in sorted(Path(directory).iterdir()) if p.is_file()}
 
 
-@pytest.mark.parametrize("launcher", ["auto", "mpi", "local"])
-@pytest.mark.parametrize("name", sorted(SPLIT_ENVIRONMENTS))
-def test_split_launch_is_refused_before_the_store(name, launcher, tmp_path):
-    """K > 1 tasks said by the launcher, a world of 1 seen by MPI: exit 2, the store byte for byte as it was."""
+@pytest.fixture(scope="module")
+def partly_done_store(tmp_path_factory):
+    """A real store, stopped by its wall time part-way (inline: one process, no workers)."""
     import sys
 
-    spec = tmp_path / "split.yaml"
+    directory = tmp_path_factory.mktemp("split")
+    spec = directory / "split.yaml"
     spec.write_text(SPLIT_SPEC)
+    out = directory / "split.h5"
+    first = subprocess.run([sys.executable, "-m", "campaign", "run", str(spec), "--out", str(out), "--quiet",
+                            "--launcher", "inline", "--time-limit", "1", "--margin", "0"],
+                           env=_run_env({"CAMPAIGN_SYNTHETIC_DELAY": "0.4"}), capture_output=True, text=True,
+                           timeout=120)
+    assert first.returncode == 0, first.stderr
+    return spec, out
+
+
+@pytest.mark.parametrize("name,launcher", [(name, "auto") for name in sorted(SPLIT_ENVIRONMENTS)]
+                         + [("srun without PMI", "mpi"), ("srun without PMI", "local")])
+def test_split_launch_is_refused_before_the_store(name, launcher, partly_done_store, tmp_path):
+    """K > 1 tasks said by the launcher, a world of 1 seen by MPI: exit 2, the store byte for byte as it was."""
+    import shutil
+    import sys
+
+    spec, original = partly_done_store
     store = tmp_path / "store"
-    store.mkdir()
-    out = store / "split.h5"
-    cmd = [sys.executable, "-m", "campaign", "run", str(spec), "--out", str(out), "--quiet", "--workers", "1"]
-    first = subprocess.run(cmd + ["--time-limit", "1"], env=_run_env({"CAMPAIGN_SYNTHETIC_DELAY": "0.6"}),
-                           capture_output=True, text=True, timeout=120)
-    assert first.returncode == 0, first.stderr  # a real, partly done store (stopped by its wall time)
+    shutil.copytree(original.parent, store, ignore=shutil.ignore_patterns("*.yaml"))
+    out = store / original.name
     before = _files(store)
-    assert out.name in before
-    got = subprocess.run(cmd + ["--launcher", launcher], env=_run_env(SPLIT_ENVIRONMENTS[name]),
+    status = json.loads(subprocess.run([sys.executable, "-m", "campaign", "status", str(out), "--json"],
+                                       env=_run_env({}), capture_output=True, text=True, check=True).stdout)
+    assert 0 < status["done"] < 3
+    got = subprocess.run([sys.executable, "-m", "campaign", "run", str(spec), "--out", str(out), "--quiet",
+                          "--workers", "1", "--launcher", launcher], env=_run_env(SPLIT_ENVIRONMENTS[name]),
                          capture_output=True, text=True, timeout=120)
     assert got.returncode == 2, got.stderr
     assert "split launch" in got.stderr and "srun --mpi=pmi2" in got.stderr and "Traceback" not in got.stderr

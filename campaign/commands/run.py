@@ -134,21 +134,32 @@ def main(args) -> int:
     if args.task_function is None:
         args.task_function = os.environ.get("CAMPAIGN_TASK_FUNCTION") or "kernels"
     split = launched_tasks()[0] > 1  # a launcher started several tasks: they must form one MPI world
-    use_mpi = args.launcher == "mpi" or (args.launcher == "auto" and (mpi_env_detected() or split))
-    if split and not use_mpi:
-        raise UserError(split_launch_error(1) + f" (--launcher {args.launcher} makes each task a master.)")
+    use_mpi = args.launcher == "mpi" or (args.launcher == "auto" and mpi_env_detected())
+    if split and not use_mpi:  # nothing connects them (srun without --mpi, or --launcher local/inline)
+        _refuse_split_launch(split_launch_error(1) + ("" if args.launcher == "auto" else
+                                                      f" (--launcher {args.launcher} makes each task a master.)"))
     if use_mpi:
         from mpi4py import MPI
 
         comm = MPI.COMM_WORLD
         refused = split_launch_error(comm.Get_size())
         if refused:
-            raise UserError(refused)
+            _refuse_split_launch(refused)
         if comm.Get_size() > 1:
             if comm.Get_rank() != 0:
                 return _mpi_worker(comm)
             return _mpi_master(args, comm, MPI)
     return _run(args, None, None)
+
+
+def _refuse_split_launch(message):
+    """Every task of a split launch says why and exits 2. srun --kill-on-bad-exit ends the step when
+    the first one exits; a second's pause lets the others reach this point and report too."""
+    from campaign.errors import UserError
+
+    if "SLURM_STEP_NUM_TASKS" in os.environ:
+        time.sleep(1.0)
+    raise UserError(message)
 
 
 def _mpi_worker(comm) -> int:
