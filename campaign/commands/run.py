@@ -43,7 +43,8 @@ def configure(parser):
                              "~/.cache/jamming-campaign/numba)")
     parser.add_argument("--time-limit", default=None, metavar="T",
                         help="wall time of this run, seconds or [D-]HH:MM:SS: tasks that would not finish "
-                             "before it (minus --margin) are not started, and the run exits 0, resumable "
+                             "before it (minus --margin) are not started, and the run exits 0, resumable; counted "
+                             "from CAMPAIGN_JOB_START (epoch seconds) when the batch script sets it "
                              "(SLURM_JOB_END_TIME, when set, limits it too)")
     parser.add_argument("--margin", type=float, default=60.0, metavar="SECONDS",
                         help="time kept free before the limit for collecting results and writing (default 60)")
@@ -274,7 +275,12 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
         if todo and hasattr(fn, "warm_up") and launcher != "inline":
             if sys.stderr.isatty() and not args.quiet:
                 _log(f"campaign: compiling the kernels (once; cached in {os.environ.get('NUMBA_CACHE_DIR')})")
+            t_warm, cpu_warm = time.monotonic(), time.process_time()
             fn.warm_up(context)
+            if not args.quiet:  # the per-node start-up cost a job of a chain pays (docs: slurm/README.md)
+                _log(f"campaign: kernels ready in {time.monotonic() - t_warm:.1f} s, "
+                     f"{time.process_time() - cpu_warm:.1f} s of CPU (compiled, or loaded from the numba "
+                     f"cache {os.environ.get('NUMBA_CACHE_DIR')})")
         if mpi_comm is not None:
             mpi_comm.bcast(context, root=0)
             state["sent"] = True
