@@ -40,12 +40,14 @@ free_port() {
     python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'
 }
 
-# pid recorded in $1 still runs a program named $2?
+# Does the pid recorded in the file $1 still run the daemon $2 of the cluster in directory $3
+# (its name, and the directory on its command line)?
 alive() {
     local pid
     [ -s "$1" ] || return 1
-    pid=$(cat "$1")
-    [ -n "$pid" ] && [ -r "/proc/$pid/comm" ] && [ "$(cat "/proc/$pid/comm")" = "$2" ]
+    pid=$(cat "$1" 2>/dev/null)
+    [ -n "$pid" ] && [ -r "/proc/$pid/comm" ] && [ "$(cat "/proc/$pid/comm" 2>/dev/null)" = "$2" ] &&
+        tr '\0' ' ' < "/proc/$pid/cmdline" 2>/dev/null | grep -qF -- "$3/"
 }
 
 stop() {
@@ -54,11 +56,11 @@ stop() {
     [ -f "$dir/testcluster" ] || die "$dir was not made by testcluster.sh start; not touching it"
     for name in slurmd slurmctld munged; do
         pidfile="$dir/run/$name.pid"
-        if alive "$pidfile" "$name"; then
+        if alive "$pidfile" "$name" "$dir"; then
             pid=$(cat "$pidfile")
             kill -TERM "$pid" 2>/dev/null || true
-            for i in $(seq 100); do alive "$pidfile" "$name" || break; sleep 0.1; done
-            if alive "$pidfile" "$name"; then kill -KILL "$pid" 2>/dev/null || true; fi
+            for i in $(seq 100); do alive "$pidfile" "$name" "$dir" || break; sleep 0.1; done
+            if alive "$pidfile" "$name" "$dir"; then kill -KILL "$pid" 2>/dev/null || true; fi
         fi
     done
     rm -rf "$dir"
@@ -130,7 +132,8 @@ EOF
         sleep 0.1
     done
     [ "$(sinfo -h -n localhost -o %T)" = idle ] || { echo "testcluster: the node did not become idle" >&2; false; }
-    alive "$dir/run/slurmctld.pid" slurmctld && alive "$dir/run/slurmd.pid" slurmd && alive "$dir/run/munged.pid" munged
+    alive "$dir/run/slurmctld.pid" slurmctld "$dir" && alive "$dir/run/slurmd.pid" slurmd "$dir" &&
+        alive "$dir/run/munged.pid" munged "$dir"
     trap - ERR
     echo "$dir"
 }
