@@ -159,7 +159,8 @@ def _files(directory):
 
 @pytest.fixture(scope="module")
 def partly_done_store(tmp_path_factory):
-    """A real store, stopped by its wall time part-way (inline: one process, no workers)."""
+    """A real store, stopped by its wall time part-way (inline: one process, no workers): the first
+    task (3 s) starts within the 2 s limit, no other fits after it."""
     import sys
 
     directory = tmp_path_factory.mktemp("split")
@@ -167,8 +168,8 @@ def partly_done_store(tmp_path_factory):
     spec.write_text(SPLIT_SPEC)
     out = directory / "split.h5"
     first = subprocess.run([sys.executable, "-m", "campaign", "run", str(spec), "--out", str(out), "--quiet",
-                            "--launcher", "inline", "--time-limit", "1", "--margin", "0"],
-                           env=_run_env({"CAMPAIGN_SYNTHETIC_DELAY": "0.4"}), capture_output=True, text=True,
+                            "--launcher", "inline", "--time-limit", "2", "--margin", "0"],
+                           env=_run_env({"CAMPAIGN_SYNTHETIC_DELAY": "3"}), capture_output=True, text=True,
                            timeout=120)
     assert first.returncode == 0, first.stderr
     return spec, out
@@ -188,7 +189,7 @@ def test_split_launch_is_refused_before_the_store(name, launcher, partly_done_st
     before = _files(store)
     status = json.loads(subprocess.run([sys.executable, "-m", "campaign", "status", str(out), "--json"],
                                        env=_run_env({}), capture_output=True, text=True, check=True).stdout)
-    assert 0 < status["done"] < 3
+    assert (status["done"], status["remaining"]) == (1, 2)
     got = subprocess.run([sys.executable, "-m", "campaign", "run", str(spec), "--out", str(out), "--quiet",
                           "--workers", "1", "--launcher", launcher], env=_run_env(SPLIT_ENVIRONMENTS[name]),
                          capture_output=True, text=True, timeout=120)

@@ -276,7 +276,7 @@ def test_split_launch_is_refused(tmp_path, jobs):
     script.write_text(text.replace("srun --mpi=pmi2 ", "srun "))
     store = tmp_path / "out.h5"
     _run([sys.executable, "-m", "campaign", "run", str(tmp_path / "spec.yaml"), "--out", str(store), "--launcher",
-          "inline", "--quiet", "--time-limit", "2", "--margin", "0"], {**env, "CAMPAIGN_SYNTHETIC_DELAY": "0.5"})
+          "inline", "--quiet", "--time-limit", "3", "--margin", "0"], {**env, "CAMPAIGN_SYNTHETIC_DELAY": "0.5"})
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.name.startswith("out.h5")}
     assert 0 < _status(store, env)["done"] < 20
     jobs.append(_submit(script, env))
