@@ -11,6 +11,7 @@ import json
 import os
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -161,8 +162,6 @@ def _files(directory):
 def partly_done_store(tmp_path_factory):
     """A real store, stopped by its wall time part-way (inline: one process, no workers): the first
     task (3 s) starts within the 2 s limit, no other fits after it."""
-    import sys
-
     directory = tmp_path_factory.mktemp("split")
     spec = directory / "split.yaml"
     spec.write_text(SPLIT_SPEC)
@@ -179,8 +178,6 @@ def partly_done_store(tmp_path_factory):
                          + [("srun without PMI", "mpi"), ("srun without PMI", "local")])
 def test_split_launch_is_refused_before_the_store(name, launcher, partly_done_store, tmp_path):
     """K > 1 tasks said by the launcher, a world of 1 seen by MPI: exit 2, the store byte for byte as it was."""
-    import shutil
-    import sys
 
     spec, original = partly_done_store
     store = tmp_path / "store"
@@ -199,8 +196,6 @@ def test_split_launch_is_refused_before_the_store(name, launcher, partly_done_st
 
 
 def test_one_task_or_one_world_is_not_a_split_launch(tmp_path):
-    import sys
-
     spec = tmp_path / "split.yaml"
     spec.write_text(SPLIT_SPEC)
     out = tmp_path / "one.h5"
