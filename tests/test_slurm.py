@@ -203,7 +203,7 @@ def test_one_task_or_one_world_is_not_a_split_launch(tmp_path):
                           "--workers", "1"], env=_run_env({"SLURM_STEP_NUM_TASKS": "1", "SLURM_NTASKS": "4"}),
                          capture_output=True, text=True, timeout=120)
     assert got.returncode == 0, got.stderr
-    from campaign.comm import launched_tasks, split_launch_error
+    from campaign.launch import launched_tasks, split_launch_error
 
     assert launched_tasks({}) == (1, None)
     assert launched_tasks({"SLURM_NTASKS": "8"})[0] == 1  # the allocation, not a step: one process

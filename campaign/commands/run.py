@@ -120,25 +120,29 @@ def _set_numba_cache(args):
 
 
 def main(args) -> int:
-    from campaign.comm import launched_tasks, mpi_env_detected, split_launch_error
-    from campaign.errors import UserError
-    from campaign.walltime import deadline
-
     # SLURM's USR1 warning may come while the tasks start and the kernels compile: remember it for
     # the master (which then starts no task) instead of dying of it.
     args.warned = []
     signal.signal(signal.SIGUSR1, lambda signum, frame: args.warned.append(signum))
+    from campaign.launch import launched_tasks, mpi_env_detected, split_launch_error
+
+    # First, before anything heavy is imported: a launcher started several tasks that must form one
+    # MPI world, and nothing connects them (srun without --mpi, or --launcher local/inline).
+    split = launched_tasks()[0] > 1
+    use_mpi = args.launcher == "mpi" or (args.launcher == "auto" and mpi_env_detected())
+    if split and not use_mpi:
+        _refuse_split_launch(split_launch_error(1) + ("" if args.launcher == "auto" else
+                                                      f" (--launcher {args.launcher} makes each task a master.)"))
+
+    from campaign.errors import UserError
+    from campaign.walltime import deadline
+
     args.deadline = deadline(time.time(), args.time_limit)
     if args.margin < 0:
         raise UserError(f"--margin must be >= 0 seconds; got {args.margin:g}")
     _set_numba_cache(args)
     if args.task_function is None:
         args.task_function = os.environ.get("CAMPAIGN_TASK_FUNCTION") or "kernels"
-    split = launched_tasks()[0] > 1  # a launcher started several tasks: they must form one MPI world
-    use_mpi = args.launcher == "mpi" or (args.launcher == "auto" and mpi_env_detected())
-    if split and not use_mpi:  # nothing connects them (srun without --mpi, or --launcher local/inline)
-        _refuse_split_launch(split_launch_error(1) + ("" if args.launcher == "auto" else
-                                                      f" (--launcher {args.launcher} makes each task a master.)"))
     if use_mpi:
         from mpi4py import MPI
 
@@ -155,11 +159,12 @@ def main(args) -> int:
 
 def _refuse_split_launch(message):
     """Every task of a split launch says why and exits 2. srun --kill-on-bad-exit ends the step when
-    the first one exits; a second's pause lets the others reach this point and report too."""
+    the first one exits; a pause lets the others (slower to start on a loaded node) reach this point
+    and report too."""
     from campaign.errors import UserError
 
     if "SLURM_STEP_NUM_TASKS" in os.environ:
-        time.sleep(1.0)
+        time.sleep(3.0)
     raise UserError(message)
 
 
