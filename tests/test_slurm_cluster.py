@@ -189,7 +189,9 @@ def _chain(tmp_path, jobs, *options):
     logs = [_log(tmp_path, "chain", j) for j in submitted]
     first = int(re.search(r"this run: (\d+) done", logs[0]).group(1))
     second = int(re.search(r"this run: (\d+) done", logs[1]).group(1))
-    assert "stopped (wall time)" in logs[0] and 0 < first < 20, logs[0]  # progress, then out of time
+    # Progress, then out of time; SLURM's warning (20 to 50 s into the job) may still reach the master
+    # while it collects its last tasks, and then names the stop.
+    assert re.search(r"stopped \((wall time|SIGUSR1)\)", logs[0]) and 0 < first < 20, logs[0]
     assert first + second == 20, logs[1]
     assert "this run: 0 done" in logs[2]  # nothing left: exits at once
     _assert_equals_local_run(tmp_path, env)
@@ -246,7 +248,7 @@ def test_status_from_outside_while_a_job_writes(tmp_path, jobs):
     out = tmp_path / "out.h5"
     jobs.append(_submit(script, env))
     _wait_running(jobs[0])
-    seen = []
+    seen, live = [], []
     while _job(jobs[0])["JobState"] not in FINAL:
         if out.exists():
             got = subprocess.run([sys.executable, "-m", "campaign", "status", str(out), "--json"], env=env,
@@ -254,12 +256,13 @@ def test_status_from_outside_while_a_job_writes(tmp_path, jobs):
             if got.returncode == 0:
                 status = json.loads(got.stdout)
                 seen.append(status["done"])
-                assert status["tasks"] == 20 and (status["live"] or status["done"] == 20), status
+                live.append(status["live"] and 0 < status["done"] < 20)
+                assert status["tasks"] == 20, status
                 assert status["done"] + status["running"] + status["remaining"] + status["failed"] == 20, status
             elif seen:  # once readable, it stays readable
                 raise AssertionError(got.stderr)
         time.sleep(0.3)
-    assert any(0 < d < 20 for d in seen), seen  # seen part-way
+    assert any(live), (seen, live)  # seen part-way, with the run saying it is writing
     assert seen == sorted(seen)
     assert _run([sys.executable, "-m", "campaign", "status", str(out)], env).returncode == 0
     assert _status(out, env)["done"] == 20
