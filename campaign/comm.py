@@ -23,12 +23,12 @@ Implementations:
 from __future__ import annotations
 
 import collections
-import os
 import socket
 import sys
 import time
 
 from campaign import worker as _worker
+from campaign.launch import mpi_env_detected  # noqa: F401 - where it used to live
 
 TAG_TASK, TAG_STOP, TAG_RESULT = 1, 2, 3
 
@@ -154,13 +154,6 @@ class LocalComm:
     def abort(self, code=1):
         self.close(abandon=True)
         raise SystemExit(code)
-
-
-def mpi_env_detected() -> bool:
-    """True when this process was started by an MPI launcher (mpiexec, srun with PMI)."""
-    keys = ("PMI_RANK", "PMI_SIZE", "PMIX_RANK", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS", "PMI_FD",
-            "HYDRA_CONTROL_FD")
-    return any(k in os.environ for k in keys)
 
 
 class _Backoff:

@@ -15,10 +15,19 @@ from pathlib import Path
 
 from campaign.errors import UserError
 
+# How the ranks are started; all of them must end up in one MPI world (`campaign run` refuses a
+# split launch). srun connects the tasks to the MPI library through the PMI it is told to use:
+# `--mpi=pmi2` for the MPICH wheel the package installs (SLURM ships with MpiDefault=none, which
+# connects nothing), `--mpi=pmix` for an MPI built against PMIx, none for a site MPI the cluster's
+# MpiDefault already serves. No cpu binding: it needs a task plugin not every cluster has.
 LAUNCHERS = {
-    "srun": "srun --kill-on-bad-exit=1 --cpu-bind=cores",
+    "srun": "srun --mpi=pmi2 --kill-on-bad-exit=1",
+    "srun-pmix": "srun --mpi=pmix --kill-on-bad-exit=1",
+    "srun-site": "srun --kill-on-bad-exit=1",
     "mpiexec": 'mpiexec -n "$SLURM_NTASKS"',
 }
+
+WARNING_SLACK = 30  # slurmctld's period of time-limit checks (PERIODIC_TIMEOUT), seconds
 
 _TIME = re.compile(r"^(?:(\d+)-)?(\d+):([0-5]\d):([0-5]\d)$")
 
@@ -59,7 +68,10 @@ class SlurmOptions:
         for flag, value in (("--partition", self.partition), ("--account", self.account)):
             if value is not None and not re.fullmatch(r"[A-Za-z0-9_.,:+-]+", value):
                 raise UserError(f"{flag} must be a plain SLURM name; got {value!r}")
-        parse_time(self.time)
+        seconds = parse_time(self.time)
+        for flag, value in (("--warn", self.warn_seconds), ("--margin", self.margin_seconds)):
+            if value is not None and not 0 <= value < seconds:
+                raise UserError(f"{flag} must be between 0 and the wall time ({seconds} s); got {value}")
         return self
 
     @property
@@ -68,12 +80,17 @@ class SlurmOptions:
 
     @property
     def warn(self) -> int:
-        # Enough for in-flight tasks to be collected and the file flushed; at most a tenth of the job.
-        return self.warn_seconds if self.warn_seconds is not None else min(300, max(30, self.seconds // 10))
+        # A tenth of the job, 10 to 300 s: time for the tasks in flight to be collected and the file
+        # flushed when the master's own clock was wrong (a changed limit).
+        return self.warn_seconds if self.warn_seconds is not None else min(300, max(10, self.seconds // 10))
 
     @property
     def margin(self) -> int:
-        return self.margin_seconds if self.margin_seconds is not None else self.warn
+        # The master plans to be done this long before the limit. SLURM checks time limits every
+        # WARNING_SLACK seconds and sends the warning at the first check within that much of it, so up
+        # to WARNING_SLACK seconds early: a margin of warn + WARNING_SLACK lets a run end by its own
+        # clock before the warning can interrupt it.
+        return self.margin_seconds if self.margin_seconds is not None else self.warn + WARNING_SLACK
 
 
 def _template() -> str:

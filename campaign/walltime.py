@@ -32,12 +32,26 @@ def parse_limit(text) -> float:
     return seconds
 
 
+def job_start(start: float, environ) -> float:
+    """When the allocation's clock started: ``CAMPAIGN_JOB_START`` (epoch seconds, set by the batch
+    script `campaign slurm` writes, as its first command) when it is set and not later than ``start``,
+    else ``start``. Everything between the two (srun starting the tasks, Python imports, MPI set-up)
+    is spent from the job's wall time, not added after it."""
+    try:
+        began = float(environ.get("CAMPAIGN_JOB_START", ""))
+    except ValueError:
+        return start
+    return began if math.isfinite(began) and began <= start else start
+
+
 def deadline(start: float, time_limit=None, environ=None) -> float | None:
-    """Epoch seconds at which the allocation ends, or None when nothing limits the run."""
+    """Epoch seconds at which the allocation ends, or None when nothing limits the run.
+
+    ``--time-limit`` counts from the job's start (``job_start``), not from this process's."""
     environ = os.environ if environ is None else environ
     candidates = []
     if time_limit is not None:
-        candidates.append(start + parse_limit(time_limit))
+        candidates.append(job_start(start, environ) + parse_limit(time_limit))
     end = environ.get("SLURM_JOB_END_TIME")
     if end:
         try:

@@ -7,9 +7,11 @@ and review the diff.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -60,7 +62,8 @@ def test_script_reflects_options(tmp_path, monkeypatch):
     assert "#SBATCH --nodes=3\n" in text and "#SBATCH --ntasks-per-node=5\n" in text
     assert "#SBATCH --time=1-02:03:04\n" in text and "#SBATCH --signal=USR1@77\n" in text
     assert "--partition" not in text and "--account" not in text
-    assert "--time-limit 1-02:03:04 --margin 77" in text
+    assert "--time-limit 1-02:03:04 --margin 107" in text  # the warning + SLURM's 30 s check period
+    assert "--time-limit 1-02:03:04 --margin 5\n" in _render(["--time", "1-02:03:04", "--margin", "5"], tmp_path)
     assert f"SPEC={PAPER}" in text and f"OUT={REPO / 'results' / 'paper.h5'}" in text
 
 
@@ -78,7 +81,8 @@ def test_parse_time_refuses(text):
 
 @pytest.mark.parametrize("kwargs", [{"nodes": 0}, {"ntasks_per_node": 0}, {"nodes": 1, "ntasks_per_node": 1},
                                     {"launcher": "aprun"}, {"partition": "a b"}, {"account": "x;rm"},
-                                    {"time": "soon"}])
+                                    {"time": "soon"}, {"time": "00:01:00", "warn_seconds": 60},
+                                    {"time": "00:01:00", "margin_seconds": -1}])
 def test_bad_options_refused(kwargs):
     with pytest.raises(UserError):
         SlurmOptions(**kwargs).checked()
@@ -122,3 +126,88 @@ def test_submit_without_sbatch_is_a_user_error(tmp_path, monkeypatch, capsys):
 def test_packaged_template_is_installed():
     from importlib import resources
     assert "{launch}" in resources.files("campaign").joinpath("templates/campaign.sbatch").read_text()
+
+
+# ---------------------------------------------------------------------------------- split launches
+
+SPLIT_SPEC = """\
+name: split
+seed: 3
+grid: {N_G: [16], E_G: [1.0e-3], seeds: 3}
+observables: [scalars]
+"""
+
+# What each launcher leaves in a task's environment when it started K tasks that MPI did not join.
+SPLIT_ENVIRONMENTS = {
+    "srun without PMI": {"SLURM_STEP_NUM_TASKS": "3", "SLURM_PROCID": "1", "SLURM_NTASKS": "3"},
+    "Hydra / PMI": {"PMI_SIZE": "4", "PMI_RANK": "2"},
+    "Open MPI": {"OMPI_COMM_WORLD_SIZE": "2", "OMPI_COMM_WORLD_RANK": "0"},
+}
+LAUNCH_VARIABLES = ("SLURM_STEP_NUM_TASKS", "SLURM_PROCID", "SLURM_NTASKS", "PMI_SIZE", "PMI_RANK", "PMI_FD",
+                    "PMI_PORT", "PMIX_RANK", "PMIX_SIZE", "OMPI_COMM_WORLD_SIZE", "OMPI_COMM_WORLD_RANK",
+                    "HYDRA_CONTROL_FD", "MPI_LOCALNRANKS")
+
+
+def _run_env(extra):
+    env = {k: v for k, v in os.environ.items() if k not in LAUNCH_VARIABLES}
+    env.update(CAMPAIGN_TASK_FUNCTION="synthetic", PYTHONPATH=str(REPO), **extra)
+    return env
+
+
+def _files(directory):
+    return {p.name: p.read_bytes() for p in sorted(Path(directory).iterdir()) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def partly_done_store(tmp_path_factory):
+    """A real store, stopped by its wall time part-way (inline: one process, no workers): the first
+    task (3 s) starts within the 2 s limit, no other fits after it."""
+    directory = tmp_path_factory.mktemp("split")
+    spec = directory / "split.yaml"
+    spec.write_text(SPLIT_SPEC)
+    out = directory / "split.h5"
+    first = subprocess.run([sys.executable, "-m", "campaign", "run", str(spec), "--out", str(out), "--quiet",
+                            "--launcher", "inline", "--time-limit", "2", "--margin", "0"],
+                           env=_run_env({"CAMPAIGN_SYNTHETIC_DELAY": "3"}), capture_output=True, text=True,
+                           timeout=120)
+    assert first.returncode == 0, first.stderr
+    return spec, out
+
+
+@pytest.mark.parametrize("name,launcher", [(name, "auto") for name in sorted(SPLIT_ENVIRONMENTS)]
+                         + [("srun without PMI", "mpi"), ("srun without PMI", "local")])
+def test_split_launch_is_refused_before_the_store(name, launcher, partly_done_store, tmp_path):
+    """K > 1 tasks said by the launcher, a world of 1 seen by MPI: exit 2, the store byte for byte as it was."""
+
+    spec, original = partly_done_store
+    store = tmp_path / "store"
+    shutil.copytree(original.parent, store, ignore=shutil.ignore_patterns("*.yaml"))
+    out = store / original.name
+    before = _files(store)
+    status = json.loads(subprocess.run([sys.executable, "-m", "campaign", "status", str(out), "--json"],
+                                       env=_run_env({}), capture_output=True, text=True, check=True).stdout)
+    assert (status["done"], status["remaining"]) == (1, 2)
+    got = subprocess.run([sys.executable, "-m", "campaign", "run", str(spec), "--out", str(out), "--quiet",
+                          "--workers", "1", "--launcher", launcher], env=_run_env(SPLIT_ENVIRONMENTS[name]),
+                         capture_output=True, text=True, timeout=120)
+    assert got.returncode == 2, got.stderr
+    assert "split launch" in got.stderr and "srun --mpi=pmi2" in got.stderr and "Traceback" not in got.stderr
+    assert _files(store) == before
+
+
+def test_one_task_or_one_world_is_not_a_split_launch(tmp_path):
+    spec = tmp_path / "split.yaml"
+    spec.write_text(SPLIT_SPEC)
+    out = tmp_path / "one.h5"
+    got = subprocess.run([sys.executable, "-m", "campaign", "run", str(spec), "--out", str(out), "--quiet",
+                          "--workers", "1"], env=_run_env({"SLURM_STEP_NUM_TASKS": "1", "SLURM_NTASKS": "4"}),
+                         capture_output=True, text=True, timeout=120)
+    assert got.returncode == 0, got.stderr
+    from campaign.launch import launched_tasks, split_launch_error
+
+    assert launched_tasks({}) == (1, None)
+    assert launched_tasks({"SLURM_NTASKS": "8"})[0] == 1  # the allocation, not a step: one process
+    assert launched_tasks({"SLURM_STEP_NUM_TASKS": "2", "PMI_SIZE": "64"})[0] == 64  # Hydra over srun proxies
+    assert launched_tasks({"PMI_SIZE": "x"})[0] == 1
+    assert split_launch_error(64, {"PMI_SIZE": "64"}) is None
+    assert split_launch_error(1, {"PMI_SIZE": "64"}) is not None

@@ -44,6 +44,15 @@ def test_parse_limit_refuses(text):
         parse_limit(text)
 
 
+def test_time_limit_counts_from_the_job_start():
+    """The batch script records its start: what srun, imports and MPI set-up take is spent, not added."""
+    assert deadline(1000.0, "60", {"CAMPAIGN_JOB_START": "990"}) == 1050.0
+    assert deadline(1000.0, "60", {"CAMPAIGN_JOB_START": "1010"}) == 1060.0  # a clock in the future: ignored
+    assert deadline(1000.0, "60", {"CAMPAIGN_JOB_START": "soon"}) == 1060.0
+    assert deadline(1000.0, None, {"CAMPAIGN_JOB_START": "990"}) is None
+    assert deadline(1000.0, "60", {"CAMPAIGN_JOB_START": "990", "SLURM_JOB_END_TIME": "1040"}) == 1040.0
+
+
 def test_deadline_is_the_earliest_limit():
     assert deadline(1000.0, None, {}) is None
     assert deadline(1000.0, "60", {}) == 1060.0
@@ -113,7 +122,7 @@ def test_slurm_script_body_runs_out_of_time_then_a_second_job_completes(tmp_path
     script = tmp_path / "job.sbatch"
     out = tmp_path / "out.h5"
     subprocess.run([sys.executable, "-m", "campaign", "slurm", str(spec), "--launcher", "mpiexec",
-                    "--nodes", "1", "--ntasks-per-node", "3", "--time", "00:10:00", "--warn", "1",
+                    "--nodes", "1", "--ntasks-per-node", "3", "--time", "00:10:00", "--warn", "1", "--margin", "1",
                     "--results", str(out), "--out", str(script)], env=_env(), check=True, capture_output=True)
     slurm = {"SLURM_JOB_ID": "4242", "SLURM_NTASKS": "3", "SLURM_JOB_NUM_NODES": "1", "TMPDIR": str(tmp_path),
              "CAMPAIGN_SYNTHETIC_DELAY": "0.5"}

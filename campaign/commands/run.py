@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import signal
 import socket
 import subprocess
 import sys
@@ -42,7 +43,8 @@ def configure(parser):
                              "~/.cache/jamming-campaign/numba)")
     parser.add_argument("--time-limit", default=None, metavar="T",
                         help="wall time of this run, seconds or [D-]HH:MM:SS: tasks that would not finish "
-                             "before it (minus --margin) are not started, and the run exits 0, resumable "
+                             "before it (minus --margin) are not started, and the run exits 0, resumable; counted "
+                             "from CAMPAIGN_JOB_START (epoch seconds) when the batch script sets it "
                              "(SLURM_JOB_END_TIME, when set, limits it too)")
     parser.add_argument("--margin", type=float, default=60.0, metavar="SECONDS",
                         help="time kept free before the limit for collecting results and writing (default 60)")
@@ -118,27 +120,52 @@ def _set_numba_cache(args):
 
 
 def main(args) -> int:
-    from campaign.comm import mpi_env_detected
+    # SLURM's USR1 warning may come while the tasks start and the kernels compile: remember it for
+    # the master (which then starts no task) instead of dying of it.
+    args.warned = []
+    signal.signal(signal.SIGUSR1, lambda signum, frame: args.warned.append(signum))
+    from campaign.launch import launched_tasks, mpi_env_detected, split_launch_error
+
+    # First, before anything heavy is imported: a launcher started several tasks that must form one
+    # MPI world, and nothing connects them (srun without --mpi, or --launcher local/inline).
+    split = launched_tasks()[0] > 1
+    use_mpi = args.launcher == "mpi" or (args.launcher == "auto" and mpi_env_detected())
+    if split and not use_mpi:
+        _refuse_split_launch(split_launch_error(1) + ("" if args.launcher == "auto" else
+                                                      f" (--launcher {args.launcher} makes each task a master.)"))
+
+    from campaign.errors import UserError
     from campaign.walltime import deadline
 
-    args.deadline = deadline(time.time(), args.time_limit)  # the allocation's clock starts now
+    args.deadline = deadline(time.time(), args.time_limit)
     if args.margin < 0:
-        from campaign.errors import UserError
-
         raise UserError(f"--margin must be >= 0 seconds; got {args.margin:g}")
     _set_numba_cache(args)
     if args.task_function is None:
         args.task_function = os.environ.get("CAMPAIGN_TASK_FUNCTION") or "kernels"
-    use_mpi = args.launcher == "mpi" or (args.launcher == "auto" and mpi_env_detected())
     if use_mpi:
         from mpi4py import MPI
 
         comm = MPI.COMM_WORLD
+        refused = split_launch_error(comm.Get_size())
+        if refused:
+            _refuse_split_launch(refused)
         if comm.Get_size() > 1:
             if comm.Get_rank() != 0:
                 return _mpi_worker(comm)
             return _mpi_master(args, comm, MPI)
     return _run(args, None, None)
+
+
+def _refuse_split_launch(message):
+    """Every task of a split launch says why and exits 2. srun --kill-on-bad-exit ends the step when
+    the first one exits; a pause lets the others (slower to start on a loaded node) reach this point
+    and report too."""
+    from campaign.errors import UserError
+
+    if "SLURM_STEP_NUM_TASKS" in os.environ:
+        time.sleep(3.0)
+    raise UserError(message)
 
 
 def _mpi_worker(comm) -> int:
@@ -253,7 +280,12 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
         if todo and hasattr(fn, "warm_up") and launcher != "inline":
             if sys.stderr.isatty() and not args.quiet:
                 _log(f"campaign: compiling the kernels (once; cached in {os.environ.get('NUMBA_CACHE_DIR')})")
+            t_warm, cpu_warm = time.monotonic(), time.process_time()
             fn.warm_up(context)
+            if not args.quiet:  # the per-node start-up cost a job of a chain pays (docs: slurm/README.md)
+                _log(f"campaign: kernels ready in {time.monotonic() - t_warm:.1f} s, "
+                     f"{time.process_time() - cpu_warm:.1f} s of CPU (compiled, or loaded from the numba "
+                     f"cache {os.environ.get('NUMBA_CACHE_DIR')})")
         if mpi_comm is not None:
             mpi_comm.bcast(context, root=0)
             state["sent"] = True
@@ -276,6 +308,8 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
             wall = Deadline(store, tasks, args.deadline, args.margin)
         master = Master(comm, store, tasks, retries=retries, depth=max(1, args.depth), progress=progress,
                         grace=args.grace, redo_failed=args.retry_failed, log=_log, can_dispatch=wall)
+        if getattr(args, "warned", None):
+            master._on_signal(signal.SIGUSR1, None)
         t0, cpu0 = time.monotonic(), time.process_time()
         outcome = master.run()
         cpu = time.process_time() - cpu0

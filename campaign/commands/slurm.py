@@ -19,10 +19,15 @@ def configure(p):
     p.add_argument("--time", default="24:00:00", help="wall time per job, [D-]HH:MM:SS (default 24:00:00)")
     p.add_argument("--partition", help="SLURM partition")
     p.add_argument("--account", help="SLURM account")
-    p.add_argument("--launcher", choices=("srun", "mpiexec"), default="srun",
-                   help="start the ranks with srun (default) or the MPI library's mpiexec")
+    p.add_argument("--launcher", choices=("srun", "srun-pmix", "srun-site", "mpiexec"), default="srun",
+                   help="start the ranks with srun --mpi=pmi2 (default; the MPICH the package installs), "
+                        "srun --mpi=pmix, srun with the cluster's default MPI plugin (a site MPI), or the MPI "
+                        "library's mpiexec (see slurm/README.md)")
     p.add_argument("--warn", type=int, metavar="SECONDS",
-                   help="ask SLURM for USR1 this long before the limit (default: a tenth of --time, 30 to 300 s)")
+                   help="ask SLURM for USR1 this long before the limit (default: a tenth of --time, 10 to 300 s)")
+    p.add_argument("--margin", type=int, metavar="SECONDS",
+                   help="the master starts no task that would end later than this before the limit "
+                        "(default: the warning plus 30 s, SLURM's time-limit check period)")
     p.add_argument("--results", metavar="FILE", help="the campaign's HDF5 file (default: the spec's output)")
     p.add_argument("--out", metavar="FILE", help="write the script here instead of standard output")
     p.add_argument("--chain", type=int, metavar="M",
@@ -38,7 +43,7 @@ def main(args) -> int:
     results = Path(args.results or spec.output or f"results/{spec.name}.h5")
     options = SlurmOptions(nodes=args.nodes, ntasks_per_node=args.ntasks_per_node, time=args.time,
                            partition=args.partition, account=args.account, launcher=args.launcher,
-                           warn_seconds=args.warn)
+                           warn_seconds=args.warn, margin_seconds=args.margin)
     text = render_script(name=spec.name, spec=Path(args.spec), out=results, tasks=spec.n_tasks, options=options)
     if (args.chain or args.submit) and not args.out:
         raise UserError("--chain and --submit need --out FILE: the jobs submit the script file")

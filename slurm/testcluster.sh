@@ -1,0 +1,145 @@
+#!/usr/bin/env bash
+# A single-node SLURM on this machine, for the test suite (tests/test_slurm_cluster.py) and for trying
+# the generated batch scripts by hand. Needs root (the daemons and the jobs run as root).
+#
+#   dir=$(slurm/testcluster.sh start)          # prints the cluster's directory once the node is idle
+#   export SLURM_CONF=$dir/slurm.conf CAMPAIGN_TEST_SLURM=$dir/slurm.conf
+#   sinfo; sbatch ...; squeue ...
+#   slurm/testcluster.sh stop "$dir"           # stops exactly the daemons that start started
+#
+# `start` installs Debian's packages when they are missing (apt-get update, then slurmctld, slurmd,
+# slurm-client and munge), writes its own slurm.conf and munge key into a new temporary directory
+# (state, spool, logs and pid files live there too), starts munged, slurmctld and slurmd without
+# systemd, and waits until the node is idle. The configuration is SLURM as shipped where it matters
+# to the scripts (MpiDefault=none) and needs no cgroups (proctrack/linuxproc, task/none). The node
+# declares CPUS (default 4) CPUs whatever the machine has, so that 3-rank jobs run on 2 cores.
+# Only addresses on this machine are used (127.0.0.1, free ports chosen at start).
+# `stop` signals the pids recorded by `start` (after checking that each still runs the daemon it was),
+# waits for them to exit and removes the directory. Both commands are idempotent.
+set -euo pipefail
+
+CPUS=${CPUS:-4}
+
+die() { echo "testcluster: $*" >&2; exit 1; }
+
+install_packages() {
+    local missing=()
+    command -v munged >/dev/null || missing+=(munge)
+    command -v slurmctld >/dev/null || missing+=(slurmctld)
+    command -v slurmd >/dev/null || missing+=(slurmd)
+    command -v sbatch >/dev/null || missing+=(slurm-client)
+    [ ${#missing[@]} -eq 0 ] && return 0
+    [ "$(id -u)" -eq 0 ] || die "missing ${missing[*]}; install them (apt-get install ${missing[*]}) or run as root"
+    echo "testcluster: installing ${missing[*]}" >&2
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get update -qq >&2
+    apt-get install -y -qq --no-install-recommends munge slurmctld slurmd slurm-client >&2
+}
+
+free_port() {
+    python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'
+}
+
+# Does the pid recorded in the file $1 still run the daemon $2 of the cluster in directory $3
+# (its name, and the directory on its command line)?
+alive() {
+    local pid
+    [ -s "$1" ] || return 1
+    pid=$(cat "$1" 2>/dev/null)
+    [ -n "$pid" ] && [ -r "/proc/$pid/comm" ] && [ "$(cat "/proc/$pid/comm" 2>/dev/null)" = "$2" ] &&
+        tr '\0' ' ' < "/proc/$pid/cmdline" 2>/dev/null | grep -qF -- "$3/"
+}
+
+stop() {
+    local dir=$1 name pidfile pid i
+    [ -d "$dir" ] || return 0
+    [ -f "$dir/testcluster" ] || die "$dir was not made by testcluster.sh start; not touching it"
+    for name in slurmd slurmctld munged; do
+        pidfile="$dir/run/$name.pid"
+        if alive "$pidfile" "$name" "$dir"; then
+            pid=$(cat "$pidfile")
+            kill -TERM "$pid" 2>/dev/null || true
+            for i in $(seq 100); do alive "$pidfile" "$name" "$dir" || break; sleep 0.1; done
+            if alive "$pidfile" "$name" "$dir"; then kill -KILL "$pid" 2>/dev/null || true; fi
+        fi
+    done
+    rm -rf "$dir"
+}
+
+start() {
+    install_packages
+    [ "$(id -u)" -eq 0 ] || die "the test cluster runs its daemons and jobs as root; run it as root"
+    local dir host ctld_port slurmd_port i
+    dir=$(mktemp -d "${TMPDIR:-/tmp}/campaign-slurm.XXXXXX")
+    touch "$dir/testcluster"
+    trap 'echo "testcluster: start failed; logs follow" >&2; tail -n 30 "$dir"/log/* >&2 || true; stop "$dir"' ERR
+    mkdir -p "$dir/run" "$dir/log" "$dir/state" "$dir/spool" "$dir/munge"
+    chmod 700 "$dir/munge"
+    head -c 1024 /dev/urandom > "$dir/munge/munge.key"
+    chmod 400 "$dir/munge/munge.key"
+    munged --force --socket="$dir/munge/munge.socket" --key-file="$dir/munge/munge.key" \
+        --pid-file="$dir/run/munged.pid" --log-file="$dir/log/munged.log" --seed-file="$dir/munge/munged.seed"
+    for i in $(seq 50); do [ -S "$dir/munge/munge.socket" ] && break; sleep 0.1; done
+    munge -n --socket="$dir/munge/munge.socket" | unmunge --socket="$dir/munge/munge.socket" >/dev/null
+
+    ctld_port=$(free_port)
+    slurmd_port=$(free_port)
+    while [ "$slurmd_port" = "$ctld_port" ]; do slurmd_port=$(free_port); done
+    cat > "$dir/slurm.conf" <<EOF
+# written by slurm/testcluster.sh
+ClusterName=campaigntest
+SlurmctldHost=localhost(127.0.0.1)
+SlurmctldPort=$ctld_port
+SlurmdPort=$slurmd_port
+SlurmUser=root
+SlurmdUser=root
+AuthType=auth/munge
+CredType=cred/munge
+AuthInfo=socket=$dir/munge/munge.socket
+StateSaveLocation=$dir/state
+SlurmdSpoolDir=$dir/spool/%n
+SlurmctldPidFile=$dir/run/slurmctld.pid
+SlurmdPidFile=$dir/run/slurmd.pid
+SlurmctldLogFile=$dir/log/slurmctld.log
+SlurmdLogFile=$dir/log/slurmd.log
+SlurmctldDebug=info
+SlurmdDebug=info
+MpiDefault=none
+ProctrackType=proctrack/linuxproc
+TaskPlugin=task/none
+JobAcctGatherType=jobacct_gather/none
+AccountingStorageType=accounting_storage/none
+JobCompType=jobcomp/none
+SchedulerType=sched/backfill
+SchedulerParameters=sched_min_interval=100000
+SelectType=select/cons_tres
+SelectTypeParameters=CR_Core
+SlurmdParameters=config_overrides
+ReturnToService=2
+MinJobAge=600
+KillWait=10
+InactiveLimit=0
+MailProg=/bin/true
+NodeName=localhost NodeHostname=localhost NodeAddr=127.0.0.1 CPUs=$CPUS RealMemory=1000 State=UNKNOWN
+PartitionName=debug Nodes=localhost Default=YES MaxTime=INFINITE State=UP
+EOF
+    export SLURM_CONF=$dir/slurm.conf
+    slurmctld -f "$dir/slurm.conf"
+    for i in $(seq 100); do scontrol ping >/dev/null 2>&1 && break; sleep 0.1; done
+    slurmd -f "$dir/slurm.conf" -N localhost
+    for i in $(seq 300); do
+        [ "$(sinfo -h -n localhost -o %T 2>/dev/null)" = idle ] && break
+        sleep 0.1
+    done
+    [ "$(sinfo -h -n localhost -o %T)" = idle ] || { echo "testcluster: the node did not become idle" >&2; false; }
+    alive "$dir/run/slurmctld.pid" slurmctld "$dir" && alive "$dir/run/slurmd.pid" slurmd "$dir" &&
+        alive "$dir/run/munged.pid" munged "$dir"
+    trap - ERR
+    echo "$dir"
+}
+
+case "${1:-}" in
+    start) start ;;
+    stop) [ $# -eq 2 ] || die "usage: $0 stop DIR"; stop "$2" ;;
+    *) die "usage: $0 start | $0 stop DIR" ;;
+esac

@@ -1,0 +1,309 @@
+"""The scripts `campaign slurm` writes, run by a real SLURM.
+
+These tests need a running cluster: ``slurm/testcluster.sh start`` (as root; it installs Debian's
+packages when they are missing) starts a single-node one and prints its directory; point
+``CAMPAIGN_TEST_SLURM`` at its ``slurm.conf``. ``.ci/run`` does both, so every CI run exercises
+SLURM; elsewhere these tests skip. Once the variable is set, a cluster that does not answer is a
+failure, not a skip.
+
+Every test ends with the store equal (tasks, scalars, histograms) to one uninterrupted local run
+of the same spec. Jobs are one minute long (SLURM's granularity), on 3 ranks (a master, two
+workers); the default margin (the 10 s warning plus SLURM's 30 s check period) leaves each job
+about 20 s to dispatch in, so a campaign of about 25 s of work needs two jobs. Most tests use the
+synthetic task function (a pure function of the task, with a set delay) to make that timing
+deterministic; ``test_short_job_with_cached_kernels`` runs the real kernels.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_kill_resume import SKIP_DATASETS, _contents
+
+pytestmark = pytest.mark.slurm
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+CONF = os.environ.get("CAMPAIGN_TEST_SLURM")
+ENABLE = ("no SLURM cluster to test against: start one with `dir=$(slurm/testcluster.sh start)` (as root) and "
+          "set CAMPAIGN_TEST_SLURM=$dir/slurm.conf (.ci/run does both)")
+FINAL = ("COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "NODE_FAIL", "OUT_OF_MEMORY", "PREEMPTED", "DEADLINE")
+LAUNCH_VARIABLES = ("SLURM_STEP_NUM_TASKS", "SLURM_PROCID", "SLURM_NTASKS", "SLURM_JOB_ID", "PMI_SIZE", "PMI_RANK",
+                    "PMI_FD", "PMIX_RANK", "OMPI_COMM_WORLD_SIZE", "HYDRA_CONTROL_FD", "MPI_LOCALNRANKS")
+
+# 20 tasks; at 2.5 s each, 25 s of work for two workers: more than one 1-minute job can dispatch.
+CHAIN_SPEC = """\
+name: chain
+seed: 11
+grid: {N_G: [16, 32], E_G: [1.0e-3, 1.0e-6], seeds: 5}
+observables: [scalars, contact_angles, connectivity]
+"""
+# 20 tasks of 1 s: 10 s of work, one job.
+ONE_JOB_SPEC = CHAIN_SPEC.replace("name: chain", "name: onejob")
+
+
+def _env(**extra):
+    env = {k: v for k, v in os.environ.items() if k not in LAUNCH_VARIABLES}
+    env.update({"SLURM_CONF": CONF, "PATH": f"{BIN}:{env['PATH']}", "PYTHONPATH": str(ROOT),
+                "CAMPAIGN_TASK_FUNCTION": "synthetic", **extra})
+    return env
+
+
+def _run(cmd, env, cwd=None, check=True, timeout=60):
+    got = subprocess.run(cmd, env=env, cwd=cwd, capture_output=True, text=True, timeout=timeout)
+    if check and got.returncode != 0:
+        raise AssertionError(f"{cmd} exited {got.returncode}:\n{got.stdout}\n{got.stderr}")
+    return got
+
+
+def _job(job_id) -> dict:
+    text = _run(["scontrol", "show", "job", "-o", str(job_id)], _env()).stdout
+    return dict(tok.split("=", 1) for tok in text.split() if "=" in tok)
+
+
+def _wait(job_ids, timeout=150.0):
+    """Wait until every job has ended; their final records."""
+    t0 = time.monotonic()
+    while True:
+        jobs = {j: _job(j) for j in job_ids}
+        if all(job["JobState"] in FINAL for job in jobs.values()):
+            return jobs
+        assert time.monotonic() - t0 < timeout, f"jobs still not finished after {timeout:.0f} s: {jobs}"
+        time.sleep(0.5)
+
+
+def _wait_running(job_id, timeout=60.0):
+    t0 = time.monotonic()
+    while _job(job_id)["JobState"] == "PENDING":
+        assert time.monotonic() - t0 < timeout, f"job {job_id} still pending: {_job(job_id)}"
+        time.sleep(0.2)
+
+
+def _status(out, env) -> dict:
+    return json.loads(_run([sys.executable, "-m", "campaign", "status", str(out), "--json"], env).stdout)
+
+
+def _wait_done(out, env, at_least, job_id, timeout=60.0):
+    """Poll the store from outside until it holds ``at_least`` finished tasks (the job still running)."""
+    t0 = time.monotonic()
+    while True:
+        if out.exists():
+            try:
+                if _status(out, env)["done"] >= at_least:
+                    return
+            except AssertionError:
+                pass  # the store is being created
+        assert _job(job_id)["JobState"] in ("PENDING", "RUNNING"), _job(job_id)
+        assert time.monotonic() - t0 < timeout
+        time.sleep(0.2)
+
+
+def _log(tmp_path, name, job_id) -> str:
+    return (tmp_path / f"{name}-{job_id}.out").read_text()
+
+
+def _script(tmp_path, spec_text, env, *options, chain=None):
+    """`campaign slurm` as a user runs it: the spec, a script file, 3 ranks, 1 minute; with chain=M,
+    --chain M --submit. Returns the script path and the submitted job ids."""
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(spec_text)
+    script = tmp_path / "job.sbatch"
+    cmd = [sys.executable, "-m", "campaign", "slurm", str(spec), "--nodes", "1", "--ntasks-per-node", "3",
+           "--time", "00:01:00", "--results", str(tmp_path / "out.h5"), "--out", str(script), *options]
+    if chain:
+        cmd += ["--chain", str(chain), "--submit"]
+    got = _run(cmd, env, cwd=tmp_path)
+    return script, re.findall(r"^submitted (\d+)", got.stdout, re.M)
+
+
+def _submit(script, env):
+    return _run(["sbatch", "--parsable", str(script)], env, cwd=script.parent).stdout.strip().split(";")[0]
+
+
+def _local_run(tmp_path, env):
+    """One uninterrupted local run of the spec (inline: no workers, no MPI) into ref.h5."""
+    ref = tmp_path / "ref.h5"
+    if not ref.exists():
+        _run([sys.executable, "-m", "campaign", "run", str(tmp_path / "spec.yaml"), "--out", str(ref), "--launcher",
+              "inline", "--quiet"], {**env, "CAMPAIGN_SYNTHETIC_DELAY": ""}, timeout=600)
+    return ref
+
+
+def _assert_equals_local_run(tmp_path, env):
+    """The store equals one uninterrupted local run of the same spec: every dataset but the timings."""
+    got, got_attrs = _contents(tmp_path / "out.h5")
+    want, want_attrs = _contents(_local_run(tmp_path, env))
+    assert sorted(got) == sorted(want)
+    for name in want:
+        if name not in SKIP_DATASETS and not name.endswith("_seconds"):
+            np.testing.assert_array_equal(got[name], want[name], err_msg=name)
+    assert got_attrs.keys() == want_attrs.keys()
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    if not CONF:
+        pytest.skip(ENABLE)
+    if not Path(CONF).is_file():
+        pytest.fail(f"CAMPAIGN_TEST_SLURM={CONF} is not a file; did slurm/testcluster.sh start fail?")
+    t0 = time.monotonic()
+    while True:
+        got = subprocess.run(["sinfo", "-h", "-o", "%T"], env=_env(), capture_output=True, text=True)
+        if got.returncode == 0 and got.stdout.split() and all(s in ("idle", "mixed", "allocated")
+                                                               for s in got.stdout.split()):
+            return CONF
+        if time.monotonic() - t0 > 30:
+            pytest.fail(f"the SLURM cluster of {CONF} does not answer or has no usable node: "
+                        f"{got.stdout}{got.stderr}")
+        time.sleep(0.5)
+
+
+@pytest.fixture
+def jobs(cluster):
+    """Job ids a test submitted; whatever still runs at its end is cancelled."""
+    ids = []
+    yield ids
+    if ids:
+        subprocess.run(["scancel", *ids], env=_env(), capture_output=True)
+
+
+def _chain(tmp_path, jobs, *options):
+    env = _env(CAMPAIGN_SYNTHETIC_DELAY="2.5")
+    _, submitted = _script(tmp_path, CHAIN_SPEC, env, *options, chain=3)
+    jobs += submitted
+    assert len(submitted) == 3
+    for before, after in zip(submitted, submitted[1:]):  # really queued behind each other
+        assert _job(after)["Dependency"].startswith(f"afterany:{before}"), _job(after)
+    done = _wait(submitted)
+    for j in submitted:
+        assert (done[j]["JobState"], done[j]["ExitCode"]) == ("COMPLETED", "0:0"), (_log(tmp_path, "chain", j),
+                                                                                   done[j])
+    logs = [_log(tmp_path, "chain", j) for j in submitted]
+    first = int(re.search(r"this run: (\d+) done", logs[0]).group(1))
+    second = int(re.search(r"this run: (\d+) done", logs[1]).group(1))
+    # Progress, then out of time; SLURM's warning (20 to 50 s into the job) may still reach the master
+    # while it collects its last tasks, and then names the stop.
+    assert re.search(r"stopped \((wall time|SIGUSR1)\)", logs[0]) and 0 < first < 20, logs[0]
+    assert first + second == 20, logs[1]
+    assert "this run: 0 done" in logs[2]  # nothing left: exits at once
+    _assert_equals_local_run(tmp_path, env)
+
+
+def test_generated_chain_runs_on_slurm(tmp_path, jobs):
+    """1. The script exactly as written (srun --mpi=pmi2), --chain 3 --submit, on a two-job campaign."""
+    _chain(tmp_path, jobs)
+
+
+def test_generated_chain_runs_on_slurm_with_mpiexec(tmp_path, jobs):
+    """2. The same with --launcher mpiexec (the MPICH wheel's Hydra, inside the allocation)."""
+    _chain(tmp_path, jobs, "--launcher", "mpiexec")
+
+
+def test_cancelled_job_then_resubmitted(tmp_path, jobs):
+    """3. scancel of a running job (SIGTERM, SIGKILL 10 s later), then the same script again."""
+    env = _env(CAMPAIGN_SYNTHETIC_DELAY="1")
+    script, _ = _script(tmp_path, ONE_JOB_SPEC, env)
+    out = tmp_path / "out.h5"
+    jobs.append(_submit(script, env))
+    _wait_done(out, env, 4, jobs[0])
+    _run(["scancel", jobs[0]], env)
+    assert _wait(jobs[:1])[jobs[0]]["JobState"] == "CANCELLED"
+    assert 0 < _status(out, env)["done"] < 20
+    jobs.append(_submit(script, env))
+    assert _wait(jobs[1:])[jobs[1]]["ExitCode"] == "0:0", _log(tmp_path, "onejob", jobs[1])
+    assert _status(out, env)["done"] == 20
+    _assert_equals_local_run(tmp_path, env)
+
+
+def test_warning_signal_stops_cleanly(tmp_path, jobs):
+    """4. SLURM's warning (USR1, sent by hand with scancel --signal) in the middle of a run."""
+    env = _env(CAMPAIGN_SYNTHETIC_DELAY="1")
+    script, _ = _script(tmp_path, ONE_JOB_SPEC, env)
+    out = tmp_path / "out.h5"
+    jobs.append(_submit(script, env))
+    _wait_done(out, env, 4, jobs[0])
+    _run(["scancel", "--signal=USR1", jobs[0]], env)
+    first = _wait(jobs[:1])[jobs[0]]
+    log = _log(tmp_path, "onejob", jobs[0])
+    assert (first["JobState"], first["ExitCode"]) == ("COMPLETED", "0:0"), log
+    assert "stopped (SIGUSR1)" in log and "Resume with" in log
+    assert 0 < _status(out, env)["done"] < 20
+    jobs.append(_submit(script, env))
+    assert _wait(jobs[1:])[jobs[1]]["ExitCode"] == "0:0"
+    _assert_equals_local_run(tmp_path, env)
+
+
+def test_status_from_outside_while_a_job_writes(tmp_path, jobs):
+    """5. campaign status FILE, from outside the job, while the job writes the file."""
+    env = _env(CAMPAIGN_SYNTHETIC_DELAY="1")
+    script, _ = _script(tmp_path, ONE_JOB_SPEC, env)
+    out = tmp_path / "out.h5"
+    jobs.append(_submit(script, env))
+    _wait_running(jobs[0])
+    seen, live = [], []
+    while _job(jobs[0])["JobState"] not in FINAL:
+        if out.exists():
+            got = subprocess.run([sys.executable, "-m", "campaign", "status", str(out), "--json"], env=env,
+                                 capture_output=True, text=True, timeout=60)
+            if got.returncode == 0:
+                status = json.loads(got.stdout)
+                seen.append(status["done"])
+                live.append(status["live"] and 0 < status["done"] < 20)
+                assert status["tasks"] == 20, status
+                assert status["done"] + status["running"] + status["remaining"] + status["failed"] == 20, status
+            elif seen:  # once readable, it stays readable
+                raise AssertionError(got.stderr)
+        time.sleep(0.3)
+    assert any(live), (seen, live)  # seen part-way, with the run saying it is writing
+    assert seen == sorted(seen)
+    assert _run([sys.executable, "-m", "campaign", "status", str(out)], env).returncode == 0
+    assert _status(out, env)["done"] == 20
+    _assert_equals_local_run(tmp_path, env)
+
+
+def test_split_launch_is_refused(tmp_path, jobs):
+    """6. srun without PMI (SLURM's MpiDefault=none) starts three worlds of one: every task exits 2, the
+    store untouched."""
+    env = _env()
+    script, _ = _script(tmp_path, ONE_JOB_SPEC, env)
+    text = script.read_text()
+    assert "srun --mpi=pmi2 " in text
+    script.write_text(text.replace("srun --mpi=pmi2 ", "srun "))
+    store = tmp_path / "out.h5"
+    _run([sys.executable, "-m", "campaign", "run", str(tmp_path / "spec.yaml"), "--out", str(store), "--launcher",
+          "inline", "--quiet", "--time-limit", "3", "--margin", "0"], {**env, "CAMPAIGN_SYNTHETIC_DELAY": "0.5"})
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.name.startswith("out.h5")}
+    assert 0 < _status(store, env)["done"] < 20
+    jobs.append(_submit(script, env))
+    job = _wait(jobs)[jobs[0]]
+    log = _log(tmp_path, "onejob", jobs[0])
+    assert (job["JobState"], job["ExitCode"]) == ("FAILED", "2:0"), log
+    assert log.count("split launch") == 3 and "srun --mpi=pmi2" in log and "Traceback" not in log
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.name.startswith("out.h5")} == before
+
+
+def test_short_job_with_cached_kernels(tmp_path, jobs):
+    """The real kernels in a 1-minute job: with the kernels already compiled in the job's NUMBA_CACHE_DIR
+    (here by the local reference run), the job finishes the campaign."""
+    env = _env(CAMPAIGN_TASK_FUNCTION="kernels",
+               NUMBA_CACHE_DIR=os.environ.get("NUMBA_CACHE_DIR") or str(tmp_path / "numba"))
+    spec_text = ("name: kernels\nseed: 4\ngrid: {N_G: [16, 32], E_G: [1.0e-3, 1.0e-6], seeds: 2}\n"
+                 "observables: [scalars, contact_angles, connectivity]\n")
+    script, _ = _script(tmp_path, spec_text, env)
+    t0 = time.monotonic()
+    _local_run(tmp_path, env)  # compiles the kernels into NUMBA_CACHE_DIR, when they are not there yet
+    warm = time.monotonic() - t0
+    jobs.append(_submit(script, env))
+    job = _wait(jobs)[jobs[0]]
+    log = _log(tmp_path, "kernels", jobs[0])
+    assert (job["JobState"], job["ExitCode"]) == ("COMPLETED", "0:0"), log
+    assert "this run: 8 done" in log, (log, f"local warm-up run {warm:.1f} s")
+    _assert_equals_local_run(tmp_path, env)
