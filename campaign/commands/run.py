@@ -205,6 +205,8 @@ def _mpi_master(args, comm, MPI) -> int:
 
 
 def _run(args, mpi_comm, MPI, state=None) -> int:
+    import numpy as np
+
     from campaign.comm import InlineComm, LocalComm, MPIComm
     from campaign.errors import UserError
     from campaign.master import Master
@@ -247,8 +249,7 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
     comm = None
     outcome = None
     try:
-        todo = int(sum(1 for t in tasks if store.status[t.index] == 0 or
-                       (args.retry_failed and store.status[t.index] == 2)))
+        todo = int(np.count_nonzero((store.status == 0) | ((store.status == 2) if args.retry_failed else False)))
         context["warm_up"] = bool(todo)
         if todo and hasattr(fn, "warm_up") and launcher != "inline":
             if sys.stderr.isatty() and not args.quiet:
@@ -304,7 +305,7 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
             resume = "mpiexec -n K " + resume
         from campaign.walltime import fit_from_store
 
-        pending = [t for t in tasks if store.status[t.index] == 0]
+        pending = [tasks[i] for i in np.flatnonzero(store.status == 0)]
         hours = fit_from_store(store, tasks).total_seconds(pending) / 3600.0
         _log(f"campaign: stopped ({outcome['stopped']}); {counts['pending']} task(s) left, about {hours:.3g} "
              f"core-hours. Resume with: {resume}")

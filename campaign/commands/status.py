@@ -25,17 +25,12 @@ def main(args) -> int:
 
     s = read_summary(args.file)
     status = s["status"]
-    variant = s["variant"].astype(str)
-    N, E = s["N"], s["E"]
+    cells = _cells(s["variant"], s["N"], s["E"])
     groups = []
-    seen = {}
-    for i in range(len(status)):
-        key = (variant[i], int(N[i]), float(E[i]))
-        if key not in seen:
-            seen[key] = len(groups)
-            groups.append([key, 0, 0, 0])
-        g = groups[seen[key]]
-        g[1 + {DONE: 0, FAILED: 1, PENDING: 2}[int(status[i])]] += 1
+    for (v, n, e), rows in cells:
+        st = status[rows] if isinstance(rows, np.ndarray) else status[rows[0]:rows[1]]
+        groups.append([(v, n, e), int(np.count_nonzero(st == DONE)), int(np.count_nonzero(st == FAILED)),
+                       int(np.count_nonzero(st == PENDING))])
     totals = {"done": int(np.sum(status == DONE)), "failed": int(np.sum(status == FAILED)),
               "pending": int(np.sum(status == PENDING)), "tasks": int(len(status))}
     live = read_sidecar(args.file)
@@ -54,15 +49,18 @@ def main(args) -> int:
         except (ValueError, IndexError, TypeError):
             pass
     failures = []
-    tid = s["id"].astype(str)
-    for i in np.flatnonzero(status == FAILED):
-        rec = s["failures"].get(tid[i], {})
-        failures.append({"id": tid[i], "variant": variant[i], "N": int(N[i]), "E": float(E[i]),
-                         "seed": int(s["seed"][i]), "attempts": int(s["attempts"][i]),
-                         "host": s["host"][i].decode(errors="replace"), "rank": int(s["rank"][i]),
-                         "message": str(rec.get("message", s["error"][i].decode(errors="replace"))),
+    fr = s["failed"]
+    variant = s["variant"]
+    for k, i in enumerate(s["failed_rows"]):
+        tid = fr["id"][k].decode()
+        rec = s["failures"].get(tid, {})
+        failures.append({"id": tid, "variant": variant[i].decode(errors="replace"), "N": int(s["N"][i]),
+                         "E": float(s["E"][i]), "seed": int(fr["seed"][k]), "attempts": int(fr["attempts"][k]),
+                         "host": fr["host"][k].decode(errors="replace"), "rank": int(fr["rank"][k]),
+                         "message": str(rec.get("message", fr["error"][k].decode(errors="replace"))),
                          "traceback": str(rec.get("traceback", ""))})
-    remaining_hours, learnt_from = _remaining_core_hours(attrs, status, s["wall"])
+    remaining_hours, learnt_from = _remaining_core_hours(attrs, status, s["wall"], cells, s["variant"],
+                                                         s["N"], s["E"])
     if args.json:
         print(json.dumps({"file": str(args.file), "name": str(attrs.get("name", "")), "live": active,
                           **state, "tasks": totals["tasks"], "remaining_core_hours": remaining_hours,
@@ -94,18 +92,69 @@ def main(args) -> int:
     return 0
 
 
-def _remaining_core_hours(attrs, status, wall):
-    """Core-hours of the unfinished tasks by the cost model learnt from the finished ones."""
+def _cells(variant, N, E):
+    """((variant, N, E), (first, end)) for each run of equal keys; rows are in canonical order,
+    so a cell is one run (a cell met again later gets its rows as an index array)."""
+    import numpy as np
+
+    T = len(N)
+    if T == 0:
+        return []
+    change = np.flatnonzero((variant[1:] != variant[:-1]) | (N[1:] != N[:-1]) | (E[1:] != E[:-1])) + 1
+    starts = np.r_[0, change]
+    ends = np.r_[change, T]
+    out, seen = [], {}
+    for a, b in zip(starts.tolist(), ends.tolist()):
+        key = (variant[a].decode(errors="replace") if isinstance(variant[a], bytes) else str(variant[a]),
+               int(N[a]), float(E[a]))
+        if key in seen:  # not canonical order (a file written by other means): merge
+            k = seen[key]
+            prev = out[k][1]
+            prev = np.arange(*prev) if isinstance(prev, tuple) else prev
+            out[k] = (key, np.r_[prev, np.arange(a, b)])
+        else:
+            seen[key] = len(out)
+            out.append((key, (a, b)))
+    return out
+
+
+#: At most this many finished rows teach the cost model shown by status (evenly spaced).
+FIT_ROWS = 20000
+
+
+def _remaining_core_hours(attrs, status, wall, cells=None, variant=None, N=None, E=None):
+    """Core-hours of the unfinished tasks by the cost model learnt from the finished ones.
+
+    Per cell, not per task: the tasks of a (variant, N, E) cell cost the same, so the sum
+    over the unfinished tasks is the count per cell times the cell's estimate.
+    """
+    import numpy as np
+
+    from campaign.costmodel import CostModel
     from campaign.errors import UserError
     from campaign.spec import parse_spec
-    from campaign.tasks import expand
-    from campaign.walltime import remaining_seconds
 
     try:
-        tasks = expand(parse_spec(str(attrs["spec_yaml"]), "the file's spec"))
+        spec = parse_spec(str(attrs["spec_yaml"]), "the file's spec")
     except (KeyError, UserError):
         return None, 0
-    if len(tasks) != len(status):
+    if spec.n_tasks != len(status) or cells is None:
         return None, 0
-    seconds, n = remaining_seconds(tasks, status, wall)
-    return seconds / 3600.0, n
+    protocols = {v.name: dict(v.protocol) for v in spec.variants}
+    done = np.flatnonzero(status == 1)
+    if len(done) > FIT_ROWS:
+        done = done[np.linspace(0, len(done) - 1, FIT_ROWS).astype(np.int64)]
+    vnames = [x.decode(errors="replace") for x in variant[done]]
+    if any(v not in protocols for v in vnames):
+        return None, 0
+    if len(done):
+        model = CostModel.fit(N[done], E[done], wall[done], [protocols[v] for v in vnames])
+    else:
+        model = CostModel.prior()
+    total = 0.0
+    for (v, n, e), rows in cells:
+        st = status[rows] if isinstance(rows, np.ndarray) else status[rows[0]:rows[1]]
+        left = int(np.count_nonzero(st != 1))
+        if left and v in protocols:
+            total += left * float(model.seconds(n, e, [protocols[v]])[0])
+    return total / 3600.0, model.n_points
