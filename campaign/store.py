@@ -340,7 +340,7 @@ class Store:
             if meta.get("type") == "checkpoint":
                 checkpoint = meta
         self._init_state()
-        salvage_from = None
+        salvage_from = rebuilt = None
         touched = {int(m["index"]) // self.B for m, _ in records[1:] if m.get("type") == "task"}
         if self.path.exists():
             problem = self._check_file(spec_hash, touched)
@@ -357,10 +357,7 @@ class Store:
                 salvage_from = problem
         if salvage_from is not None or not self.path.exists():
             self._create_file(salvage=salvage_from is not None)
-            lost = int(checkpoint.get("committed", 0)) - self.n_final()
-            if lost > 0:
-                self.log(f"campaign: {lost} finished task(s) were only in the {'damaged part of the' if salvage_from else 'missing'} "
-                         "store; they are pending again and will be run again")
+            rebuilt = "the damaged part of the" if salvage_from else "the missing"
         self.f = h5py.File(self.path, "r+", locking=False, rdcc_nbytes=CHUNK_CACHE)
         self.have_configs = set(self.f["configurations"].keys()) if "configurations" in self.f else set()
         self.have_failures = set(self.f["failures"].keys()) if "failures" in self.f else set()
@@ -380,6 +377,10 @@ class Store:
             if self.staged_bytes > BUFFER_BYTES:
                 self._write_blocks(list(self.staged))
         del records
+        lost = int(checkpoint.get("committed", 0)) - self.n_final()
+        if rebuilt and lost > 0:
+            self.log(f"campaign: at least {lost} finished task(s) were only in {rebuilt} store; they are "
+                     "pending again and will be run again")
         if self.journal.damaged:
             n_lost = sum(k for _, _, k in self.journal.damaged)
             n_bytes = sum(n for _, n, _ in self.journal.damaged)
@@ -459,6 +460,7 @@ class Store:
         self.staged: dict[int, dict[int, tuple]] = {}   # block -> row -> (meta, arrays)
         self.staged_since: dict[int, float] = {}        # block -> when its first staged row came
         self.staged_bytes = 0
+        self.in_journal: set[int] = set()               # rows with a record in the journal
         self.last_flush = time.monotonic()
 
     def n_final(self) -> int:
@@ -490,7 +492,7 @@ class Store:
         if tmp.exists():
             tmp.unlink()
         T = self.T
-        with h5py.File(tmp, "w", locking=False, libver=("v110", "v110")) as f:
+        with h5py.File(tmp, "w", locking=False) as f:
             g = f.create_group("tasks")
             cols = {"id": "S32", "variant": f"S{VARIANT_LEN}", "N": np.int64, "E": np.float64, "seed": np.int64}
             for name, dt in cols.items():
@@ -652,6 +654,7 @@ class Store:
         self.wall[i] = meta["wall"]
         if meta.get("host") and int(meta.get("rank", -1)) >= 0:
             self.hosts.add(meta["host"])
+        self.in_journal.add(i)
         b = i // self.B
         blk = self.staged.setdefault(b, {})
         if not blk:
@@ -737,8 +740,15 @@ class Store:
         for b in blocks:
             rows = self.staged[b]
             lo, hi = b * self.B, min((b + 1) * self.B, self.T)
+            final = np.flatnonzero(self.status[lo:hi] != PENDING) + lo
+            kept = [int(i) for i in final if i not in rows]
+            # rewriting a chunk that holds committed rows: a write cut by SIGKILL could take them
+            # with it, so each of them must have a record in the journal first
+            missing = [i for i in kept if i not in self.in_journal]
+            if missing:
+                self._rejournal(lo, hi, missing)
             idx = np.fromiter(rows, np.int64, len(rows)) - lo
-            whole = len(rows) == hi - lo  # every row of the block is new: no need to read the chunk
+            whole = not kept  # no committed row to keep: no need to read the chunks
             values = [self._row_values(m, a) for m, a in rows.values()]
             names = set()
             for v in values:
@@ -790,6 +800,35 @@ class Store:
         if not self.staged:
             self.staged_bytes = 0
 
+    def _rejournal(self, lo, hi, rows):
+        """Append records, rebuilt from the store, for committed ``rows`` of block [lo, hi)."""
+        f = self.f
+        cols = {n: f[f"tasks/{n}"][lo:hi] for n in ROW_FIELDS}
+        scal = {n: f[f"scalars/{n}"][lo:hi] for n in sorted(self.scalar_names)}
+        hist = {h: f[f"histograms/{h}/counts"][lo:hi] for h in self.edges}
+        for i in rows:
+            k = i - lo
+            t = self.tasks[i]
+            status = int(self.status[i])
+            meta = {"type": "task", "index": i, "id": t.id, "status": status,
+                    "attempts": int(cols["attempts"][k]), "wall": float(cols["wall"][k]),
+                    "rank": int(cols["rank"][k]), "host": cols["host"][k].decode(errors="replace"),
+                    "message": cols["error"][k].decode(errors="replace"), "traceback": "", "run_id": None}
+            arrays = {}
+            if status == DONE:
+                meta["scalars"] = {n: float(v[k]) for n, v in scal.items() if not np.isnan(v[k])}
+                arrays = {"h/" + h: c[k] for h, c in hist.items()}
+            elif t.id in self.have_failures:
+                a = f[f"failures/{t.id}"].attrs
+                meta["message"], meta["traceback"] = str(a.get("message", "")), str(a.get("traceback", ""))
+            if t.id in self.have_configs:
+                g = f[f"configurations/{t.id}"]
+                for key in ("positions", "radii", "box", "species"):
+                    arrays["c/" + key] = g[key][()]
+            self.journal.append(meta, arrays)
+            self.in_journal.add(i)
+        self.journal.sync()
+
     def checkpoint(self):
         """Everything staged into the store, the store made durable, then the journal cut back
         to its header: from here on the store alone holds every finished task."""
@@ -803,6 +842,7 @@ class Store:
         recs = [(header, None)] + [({"type": "run", "run": r}, None) for r in self.runs]
         recs.append(({"type": "checkpoint", "committed": self.n_final(), "time": _now()}, None))
         self.journal.rewrite(recs)
+        self.in_journal = set()
         self.last_flush = time.monotonic()
 
     def _write_root_attrs(self):

@@ -196,17 +196,20 @@ def test_checkpoint_leaves_only_the_header_in_the_journal(tmp_path):
     assert recs[-1][0]["committed"] == len(tasks)
 
 
-def test_salvage_keeps_every_readable_block_and_counts_the_lost_rows(tmp_path, monkeypatch):
-    """A store damaged where a killed run was writing (here: one compressed chunk of a block
-    the journal touches) is salvaged block by block: the damaged block's committed rows
-    are lost, said so, and pending again; everything else is kept."""
+def test_a_chunk_torn_while_rewriting_a_block_loses_nothing(tmp_path, monkeypatch):
+    """Adding a row to a block whose other rows were checkpointed rewrites their compressed
+    chunks; those rows are put back into the journal first. Tear such a chunk (as a SIGKILL
+    in the middle of the write would): the store is salvaged block by block and the journal
+    gives back every row of the torn block."""
     import campaign.store as S
 
     monkeypatch.setattr(S, "BLOCK_ROWS", 4)
     spec, tasks, fn, ctx, edges = _setup()
     out = tmp_path / "s.h5"
     _fill(out, spec, tasks, fn, ctx, edges, [0, 1, 4, 5, 8, 9])  # blocks 0, 1, 2; checkpointed
-    _fill_killed(out, spec, tasks, fn, ctx, edges, [6])           # block 1 again, in the journal
+    _fill_killed(out, spec, tasks, fn, ctx, edges, [6])           # block 1 rewritten, then killed
+    recs, _ = read_journal((tmp_path / "s.h5.journal").read_bytes())
+    assert sorted(m["index"] for m, _ in recs if m["type"] == "task") == [4, 5, 6]
     with h5py.File(out, "r") as f:
         info = f["histograms/alpha_v/counts"].id.get_chunk_info_by_coord((4, 0))
     with open(out, "r+b") as fh:
@@ -214,11 +217,8 @@ def test_salvage_keeps_every_readable_block_and_counts_the_lost_rows(tmp_path, m
         fh.write(b"\xff" * info.size)
     logged = []
     st = Store(out, spec, tasks, edges, log=logged.append)
-    assert any("salvaging" in m for m in logged)
-    assert any(m.startswith("campaign: 2 finished task(s) were only in the damaged part") for m in logged)
-    assert [int(i) for i in np.flatnonzero(st.status != PENDING)] == [0, 1, 6, 8, 9]
-    for i in (4, 5):  # run again: the same rows come back
-        st.record(i, _summary(fn, tasks[i], ctx, fail=(i % 7 == 3)), attempts=1)
+    assert any("salvaging" in m for m in logged) and not any("run again" in m for m in logged)
+    assert [int(i) for i in np.flatnonzero(st.status != PENDING)] == [0, 1, 4, 5, 6, 8, 9]
     st.close()
     ref = tmp_path / "ref.h5"
     _fill(ref, spec, tasks, fn, ctx, edges, [0, 1, 4, 5, 6, 8, 9])
@@ -232,7 +232,7 @@ def test_lost_store_after_a_checkpoint_is_counted_and_rerun(tmp_path):
     out.unlink()
     logged = []
     st = Store(out, spec, tasks, edges, log=logged.append)
-    assert any(m.startswith("campaign: 3 finished task(s) were only in the missing store") for m in logged)
+    assert any(m.startswith("campaign: at least 3 finished task(s) were only in the missing store") for m in logged)
     assert not any(st.finished(i) for i in range(len(tasks)))
     st.close()
 
