@@ -106,6 +106,16 @@ def provenance(launcher, n_workers, mpi=None) -> dict:
             "argv": sys.argv[:], "pid": os.getpid()}
 
 
+def _peak_rss_mb() -> float:
+    """This process's peak resident memory so far (MB), as the kernel counts it."""
+    try:
+        import resource
+
+        return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)  # kB on Linux
+    except (ImportError, OSError):
+        return float("nan")
+
+
 def _set_numba_cache(args):
     if args.numba_cache:
         os.environ["NUMBA_CACHE_DIR"] = str(Path(args.numba_cache).expanduser().resolve())
@@ -285,7 +295,8 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
         comm = None
         counts = store.counts_by_status()
         store.close(completed=outcome["done"], failed=outcome["failed"], stopped=outcome["stopped"],
-                    seconds=round(time.monotonic() - t0, 3), master_cpu_seconds=round(cpu, 3))
+                    seconds=round(time.monotonic() - t0, 3), master_cpu_seconds=round(cpu, 3),
+                    master_peak_rss_mb=_peak_rss_mb())
     except BaseException:
         if comm is not None:
             try:
