@@ -51,8 +51,8 @@ def _learnt_remaining(spec, tasks):
         return None
     try:
         s = read_summary(spec.output)
-    except UserError:
-        return None
+    except UserError as exc:
+        return f"exists but cannot be resumed: {exc}"
     if s["attrs"].get("spec_hash") != spec.hash or len(s["status"]) != len(tasks):
         return "exists, written by a different spec"
     seconds, n = remaining_seconds(tasks, s["status"], s["wall"])
