@@ -62,7 +62,7 @@ BUFFER_BYTES = 96 << 20  # staged rows beyond this are written whether their blo
 JOURNAL_BYTES = 64 << 20  # checkpoint when the journal grows past this
 BLOCK_ROWS = 256        # rows per chunk of every per-task dataset
 COMPRESSION = dict(compression="gzip", compression_opts=1, shuffle=True)
-CHUNK_CACHE = 16 << 20  # HDF5 chunk cache per dataset (a block of the widest histogram fits)
+CHUNK_CACHE = 1 << 20  # HDF5 chunk cache per open dataset (whole blocks are written; little to cache)
 
 
 def _fill(name):
@@ -359,6 +359,7 @@ class Store:
             self._create_file(salvage=salvage_from is not None)
             rebuilt = "the damaged part of the" if salvage_from else "the missing"
         self.f = h5py.File(self.path, "r+", locking=False, rdcc_nbytes=CHUNK_CACHE)
+        self._datasets = {}
         self.have_configs = set(self.f["configurations"].keys()) if "configurations" in self.f else set()
         self.have_failures = set(self.f["failures"].keys()) if "failures" in self.f else set()
         self.scalar_names = set(self.f["scalars"].keys())
@@ -459,6 +460,7 @@ class Store:
         self.hosts = set()
         self.staged: dict[int, dict[int, tuple]] = {}   # block -> row -> (meta, arrays)
         self.staged_since: dict[int, float] = {}        # block -> when its first staged row came
+        self.block_bytes: dict[int, int] = {}           # block -> bytes staged
         self.staged_bytes = 0
         self.in_journal: set[int] = set()               # rows with a record in the journal
         self.last_flush = time.monotonic()
@@ -660,10 +662,10 @@ class Store:
         if not blk:
             self.staged_since[b] = time.monotonic()
         old = blk.get(i)
-        if old is not None:
-            self.staged_bytes -= _nbytes(old[1])
+        size = _nbytes(arrays) + 512 - (0 if old is None else _nbytes(old[1]) + 512)
         blk[i] = (meta, arrays)
-        self.staged_bytes += _nbytes(arrays) + 512
+        self.staged_bytes += size
+        self.block_bytes[b] = self.block_bytes.get(b, 0) + size
 
     def _merge_run(self, run):
         for k, r in enumerate(self.runs):
@@ -692,12 +694,12 @@ class Store:
             blocks = [b for b in self.staged if self._block_complete(b) or now - self.staged_since[b] >= HOLD_SECONDS]
             if self.staged_bytes > BUFFER_BYTES:
                 rest = sorted((b for b in self.staged if b not in set(blocks)), key=self.staged_since.get)
-                size = self.staged_bytes - sum(_nbytes_block(self.staged[b]) for b in blocks)
+                size = self.staged_bytes - sum(self.block_bytes[b] for b in blocks)
                 for b in rest:
                     if size <= BUFFER_BYTES // 2:
                         break
                     blocks.append(b)
-                    size -= _nbytes_block(self.staged[b])
+                    size -= self.block_bytes[b]
         if blocks:
             self.journal.sync()  # the journal is durable before the store changes
             self._write_blocks(blocks)
@@ -733,6 +735,14 @@ class Store:
             return res
         return out
 
+    def _dataset(self, name):
+        """(dataset, fill value, dtype, row shape), looked up once (h5py lookups are slow)."""
+        got = self._datasets.get(name)
+        if got is None:
+            ds = self.f[name]
+            got = self._datasets[name] = (ds, ds.fillvalue, ds.dtype, tuple(ds.shape[1:]))
+        return got
+
     def _write_blocks(self, blocks):
         """Data of the staged rows of ``blocks`` first, flush, then their status, flush."""
         f = self.f
@@ -760,16 +770,17 @@ class Store:
             columns = [f"tasks/{n}" for n in ROW_FIELDS] + [f"scalars/{n}" for n in sorted(self.scalar_names)]
             columns += [f"histograms/{h}/counts" for h in self.edges]
             for name in columns:
-                ds = f[name]
+                ds, fill, dtype, shape = self._dataset(name)
                 if whole:
-                    block = np.full((hi - lo,) + ds.shape[1:], ds.fillvalue, dtype=ds.dtype)
+                    block = np.full((hi - lo,) + shape, fill, dtype=dtype)
                 else:
                     block = ds[lo:hi]
-                for k, v in zip(idx, values):
-                    x = v.get(name)
-                    if x is None:
-                        x = ds.fillvalue
-                    block[k] = x
+                col = [v.get(name) for v in values]
+                if shape:  # histogram rows
+                    zero = np.zeros(shape, dtype)
+                    block[idx] = np.stack([zero if x is None else x for x in col])
+                else:
+                    block[idx] = np.array([fill if x is None else x for x in col], dtype=dtype)
                 ds[lo:hi] = block
             for i, (meta, arrays) in sorted(rows.items()):
                 tid = self.tasks[i].id
@@ -790,11 +801,12 @@ class Store:
                     self.have_failures.add(tid)
         f.flush()
         # ... then the commit marker
-        status = f["tasks/status"]
+        status = self._dataset("tasks/status")[0]
         for b in blocks:
             lo, hi = b * self.B, min((b + 1) * self.B, self.T)
             status[lo:hi] = self.status[lo:hi]
-            self.staged_bytes -= _nbytes_block(self.staged.pop(b))
+            self.staged.pop(b)
+            self.staged_bytes -= self.block_bytes.pop(b)
             self.staged_since.pop(b, None)
         f.flush()
         if not self.staged:
@@ -894,10 +906,6 @@ class Store:
 
 def _nbytes(arrays) -> int:
     return sum(a.nbytes for a in arrays.values()) if arrays else 0
-
-
-def _nbytes_block(rows) -> int:
-    return sum(_nbytes(a) + 512 for _, a in rows.values())
 
 
 def _now() -> str:
