@@ -681,7 +681,8 @@ class Store:
 
     def maybe_flush(self):
         now = time.monotonic()
-        if self.staged_bytes > BUFFER_BYTES or (self.staged and now - self.last_flush >= FLUSH_SECONDS):
+        if (self.staged_bytes > BUFFER_BYTES or self.journal.size > JOURNAL_BYTES
+                or (self.staged and now - self.last_flush >= FLUSH_SECONDS)):
             self.flush()
 
     def flush(self, force=False):
