@@ -761,10 +761,10 @@ class Store:
             idx = np.fromiter(rows, np.int64, len(rows)) - lo
             whole = not kept  # no committed row to keep: no need to read the chunks
             values = [self._row_values(m, a) for m, a in rows.values()]
-            names = set()
+            keys = set()
             for v in values:
-                names.update(k for k in v if k.startswith("scalars/"))
-            for name in sorted(names):
+                keys.update(v.keys())
+            for name in sorted(k for k in keys if k.startswith("scalars/")):
                 if name[8:] not in self.scalar_names:
                     f["scalars"].create_dataset(name[8:], dtype=np.float64, **self._dataset_kwargs((self.T,), np.nan))
                     self.scalar_names.add(name[8:])
