@@ -19,7 +19,10 @@ scheduler and the wall-time model need them). A finished task's scalars and
 histograms wait in a staging buffer only until the block of rows they belong to is
 complete (or ``HOLD_SECONDS`` have passed, or the buffer passes ``BUFFER_BYTES``),
 then go to disk: data first, ``flush``, then the status column, ``flush`` again.
-Writing whole blocks keeps each compressed chunk written about once.
+Writing whole blocks keeps each compressed chunk written about once. A chunk rewritten
+whole could lose its committed rows to a write cut by SIGKILL, so before a block is
+written again, its committed rows that are no longer in the journal are appended to it
+again (from the store).
 
 On every start the journal is replayed into the store (idempotent: a row is a pure
 function of its last record). A damaged journal keeps every intact record (a record
