@@ -940,14 +940,11 @@ def open_store(path):
     return f
 
 
-SUMMARY_FIELDS = ("status", "variant", "N", "E", "wall")
-
-
-def read_summary(path, fields=SUMMARY_FIELDS):
-    """What ``campaign status`` shows: the given task columns (all rows), the root
-    attributes, and every failed row's details (id, seed, attempts, host, rank, error,
-    and the failure record). Read-only; retries a few times if it catches the file in
-    the middle of a flush. Memory: the given columns plus the failed rows.
+def read_summary(path, fields=TASK_FIELDS):
+    """The task table's columns ``fields`` (all rows), the root attributes and the failure
+    records, read-only. Retries a few times if it catches the file in the middle of a flush.
+    Memory grows with the tasks (the error column alone is 512 bytes a task): ``campaign
+    status`` reads the table in blocks instead; ask for the columns you need.
     """
     last = None
     for attempt in range(5):
@@ -955,17 +952,6 @@ def read_summary(path, fields=SUMMARY_FIELDS):
             with open_store(path) as f:
                 out = {k: f[f"tasks/{k}"][:] for k in fields}
                 out["attrs"] = {k: f.attrs[k] for k in f.attrs}
-                status = out["status"] if "status" in out else f["tasks/status"][:]
-                failed = np.flatnonzero(status == FAILED)
-                rows = {}
-                for k in ("id", "seed", "attempts", "host", "rank", "error"):
-                    ds = f[f"tasks/{k}"]
-                    parts = [ds[lo:lo + 65536][failed[(failed >= lo) & (failed < lo + 65536)] - lo]
-                             for lo in range(0, len(status), 65536)
-                             if np.any((failed >= lo) & (failed < lo + 65536))]
-                    rows[k] = np.concatenate(parts) if parts else np.zeros(0, ds.dtype)
-                out["failed_rows"] = failed
-                out["failed"] = rows
                 out["failures"] = {}
                 if "failures" in f:
                     for tid in f["failures"]:

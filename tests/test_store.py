@@ -414,6 +414,10 @@ def test_a_store_of_the_old_format_is_refused_by_every_command(tmp_path, capsys)
         assert cli.main(argv) == 2, argv
         err = capsys.readouterr().err
         assert "store format 1" in err and "Run the spec again into a new file" in err and "Traceback" not in err
+    # validate checks the spec (exit 0) and says why its output cannot be resumed
+    (tmp_path / "o.yaml").write_text(SPEC + f"output: {out}\n")
+    assert cli.main(["validate", str(tmp_path / "o.yaml")]) == 0
+    assert "exists but cannot be resumed" in capsys.readouterr().out
     # --new replaces it
     assert cli.main(["run", str(tmp_path / "s.yaml"), "--out", str(out), "--task-function", "synthetic",
                      "--launcher", "inline", "--new"]) == 0
