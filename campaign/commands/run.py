@@ -210,6 +210,8 @@ def _mpi_master(args, comm, MPI) -> int:
     except BaseException:  # noqa: BLE001 - a master fault aborts the whole job instead of hanging it
         traceback.print_exc()
         _log("campaign run: internal error on the MPI master; aborting the job")
+        sys.stderr.flush()
+        time.sleep(0.5)  # let the launcher forward the message before MPI_Abort tears the job down
         comm.Abort(1)
     return 1
 
