@@ -82,11 +82,14 @@ def throughput(tmp: Path, n_tasks: int, launcher: str) -> dict:
             "master_cpu_seconds": cpu, "tasks_per_master_cpu_second": done / cpu}
 
 
-def _timed_child(cmd, env, timeout=3600):
-    """Run ``cmd``; its wall seconds and peak resident memory (MB, from wait4)."""
+def _timed_child(cmd, env, timeout=3600, usage_out=None):
+    """Run ``cmd``; its wall seconds and peak resident memory (MB, from wait4). ``usage_out``
+    (a dict) receives its CPU seconds, its own and its reaped children's (local workers)."""
     t0 = time.monotonic()
     p = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     _, status, usage = os.wait4(p.pid, 0)
+    if usage_out is not None:
+        usage_out["cpu_seconds"] = usage.ru_utime + usage.ru_stime
     wall = time.monotonic() - t0
     p.returncode = os.waitstatus_to_exitcode(status)
     err = p.stderr.read().decode(errors="replace")
@@ -118,8 +121,9 @@ def scale(tmp: Path, n_tasks: int, workers: int = 2) -> dict:
 
     th = threading.Thread(target=watch, daemon=True)
     th.start()
+    cpu = {}
     wall, _ = _timed_child([sys.executable, "-m", "campaign", "run", str(spec), "--out", str(out), "--quiet",
-                            "--new", "--workers", str(workers)], env)
+                            "--new", "--workers", str(workers)], env, usage_out=cpu)
     peak["stop"] = True
     th.join()
     with h5py.File(out, "r") as f:
@@ -137,6 +141,9 @@ def scale(tmp: Path, n_tasks: int, workers: int = 2) -> dict:
             "master_cpu_seconds": float(run["master_cpu_seconds"]),
             "tasks_per_master_cpu_second": done / float(run["master_cpu_seconds"]),
             "master_peak_rss_mb": float(run["master_peak_rss_mb"]),
+            "cpu_ms_per_task_all": 1e3 * cpu["cpu_seconds"] / done,
+            "cpu_ms_per_task_master": 1e3 * float(run["master_cpu_seconds"]) / done,
+            "machine_share": cpu["cpu_seconds"] / wall,
             "file_mb": out.stat().st_size / 1e6, "journal_peak_mb": peak["journal"] / 1e6,
             "journal_end_mb": journal.stat().st_size / 1e6,
             "status_seconds": float(np.median([x[0] for x in status_s])),
@@ -206,6 +213,9 @@ def main(argv=None) -> int:
                     ("tasks per second (master loop; shared cores: a lower bound)",
                      f"{r['tasks_per_second']:,.0f} ({r['tasks']} tasks in {r['loop_seconds']:.0f} s)", ">= 2000"),
                     ("tasks per second of master CPU", f"{r['tasks_per_master_cpu_second']:,.0f}", "-"),
+                    ("CPU per task, master / master and workers (whole run)",
+                     f"{r['cpu_ms_per_task_master']:.3f} ms / {r['cpu_ms_per_task_all']:.3f} ms "
+                     f"(the run got {r['machine_share']:.2f} cores on average)", "-"),
                     ("store size", f"{r['file_mb']:,.0f} MB", "-"),
                     ("journal size, largest during the run / at the end",
                      f"{r['journal_peak_mb']:,.1f} MB / {r['journal_end_mb']:.3f} MB", "-"),
