@@ -132,6 +132,8 @@ def _check_arrays(path, pos, rad, box, species):
     if pos.ndim != 2 or pos.shape[1] != 2:
         raise UserError(f"{path}: array 'positions': expected shape (n, 2), got {pos.shape}")
     n = pos.shape[0]
+    if n == 0:
+        raise UserError(f"{path}: array 'positions' is empty; expected at least 2 disks")
     if rad.shape != (n,):
         raise UserError(f"{path}: array 'radii': expected shape ({n},) to match 'positions', got {rad.shape}")
     if box.shape == ():
@@ -219,8 +221,9 @@ def _check_geometry(path, pos, rad, box, where):
     n = pos.shape[0]
     if n < 2:
         raise UserError(f"{path}: expected at least 2 disks, got {n}")
-    lo = -OUTSIDE_LIMIT * box
-    hi = (1.0 + OUTSIDE_LIMIT) * box
+    with np.errstate(over="ignore"):  # a box near the float64 limit: the bounds go to inf, harmlessly
+        lo = -OUTSIDE_LIMIT * box
+        hi = (1.0 + OUTSIDE_LIMIT) * box
     outside = np.flatnonzero(np.any((pos < lo) | (pos >= hi), axis=1))
     if outside.size:
         k = outside[0]

@@ -30,6 +30,8 @@ import signal
 import time
 from collections import deque
 
+import numpy as np
+
 from campaign.store import DONE, FAILED, PENDING
 from campaign.tasks import task_cost
 
@@ -41,24 +43,34 @@ class Master:
         self.retries, self.depth, self.progress = retries, depth, progress
         self.can_dispatch, self.grace = can_dispatch, grace
         self.log = log or (lambda msg: None)
-        todo = [t for t in tasks if store.status[t.index] == PENDING
-                or (redo_failed and not store.status[t.index] == DONE)]
-        todo_set = {t.index for t in todo}
+        T = len(tasks)
+        status = np.asarray(store.status)
+        todo = (status == PENDING) | ((status == FAILED) if redo_failed else False)
+        self.costs = np.fromiter((task_cost(t) for t in tasks), np.float64, T)
         self.children = {}
+        parent = np.full(T, -1, np.int64)
         for t in tasks:
             if t.parent is not None:
                 self.children.setdefault(t.parent, []).append(t.index)
+                parent[t.index] = t.parent
         self.configs = {}  # parent index -> its configuration, while its children need it
         self._woken = False  # a child became ready: offer it to every worker
         # a task runs once its parent is done; a parent that failed for good fails its chain below
-        self.blocked = {t.index for t in todo if t.parent is not None and store.status[t.parent] != DONE}
-        self.queue = [(-task_cost(t), t.index) for t in todo if t.index not in self.blocked]
-        heapq.heapify(self.queue)
-        self.cost_remaining = sum(task_cost(t) for t in todo)
-        self.attempts = {}
+        has_parent = parent >= 0
+        waits = np.zeros(T, bool)
+        waits[has_parent] = status[parent[has_parent]] != DONE
+        self.blocked = set(np.flatnonzero(todo & waits).tolist())
+        # the queue: the ready tasks most expensive first (ties in canonical order), as one array,
+        # plus a small heap for retries and children that became ready
+        ready = np.flatnonzero(todo & ~waits)
+        self.order = ready[np.lexsort((ready, -self.costs[ready]))]
+        self.head = 0
+        self.extra = []
+        self.cost_remaining = float(self.costs[todo].sum())
+        self.attempts = np.zeros(T, np.int32)
         self.n_done = self.n_failed = 0
-        self._orphans = [t.index for t in tasks if t.index in self.blocked and t.parent not in todo_set
-                         and store.status[t.parent] == FAILED]
+        self._orphans = [int(i) for i in sorted(self.blocked) if not todo[parent[i]]
+                         and status[parent[i]] == FAILED]
         self.in_flight = {w: deque() for w in range(1, comm.n_workers + 1)}
         self.alive = set(self.in_flight) - set(getattr(comm, "dead", ()))
         self.stop_reason = None      # why dispatching stopped early (signal name, wall time, ...)
@@ -89,6 +101,30 @@ class Master:
                 pass
         return old
 
+    # ---- the queue
+    def _queued(self):
+        return len(self.order) - self.head + len(self.extra)
+
+    def _peek(self):
+        """The next task to dispatch (index), or None."""
+        best = self.extra[0] if self.extra else None
+        if self.head < len(self.order):
+            i = int(self.order[self.head])
+            if best is None or (-self.costs[i], i) < best:
+                return i
+        return None if best is None else best[1]
+
+    def _pop(self):
+        i = self._peek()
+        if self.extra and self.extra[0][1] == i:
+            heapq.heappop(self.extra)
+        else:
+            self.head += 1
+        return i
+
+    def _push(self, i):
+        heapq.heappush(self.extra, (-float(self.costs[i]), int(i)))
+
     # ---- scheduling
     def _depth(self):
         """Tasks kept at a worker: ``depth``, more when tasks are so short that a worker
@@ -98,22 +134,22 @@ class Master:
         depth = self.depth
         if self.mean_wall is not None and self.mean_wall > 0:
             depth = max(depth, min(16, 1 + int(0.02 / self.mean_wall)))
-        if len(self.queue) < depth * len(self.alive):
+        if self._queued() < depth * len(self.alive):
             return 1
         return depth
 
     def _dispatch(self, w):
         q = self.in_flight[w]
         depth = self._depth()
-        while len(q) < depth and self.queue and self.stop_reason is None:
-            i = self.queue[0][1]
+        while len(q) < depth and self._queued() and self.stop_reason is None:
+            i = self._peek()
             task = self.tasks[i]
             if self.can_dispatch is not None and not self.can_dispatch(task, [self.tasks[j] for j in q]):
                 self.stop_reason = "wall time"
                 self.log("\ncampaign: the next task would not fit in the time left; no new tasks")
                 return
-            heapq.heappop(self.queue)
-            attempt = self.attempts.get(i, 0) + 1
+            self._pop()
+            attempt = int(self.attempts[i]) + 1
             self.attempts[i] = attempt
             payload = task.payload()
             payload["attempt"] = attempt
@@ -150,7 +186,7 @@ class Master:
             cfg = summary.get("configuration") if summary["ok"] else None
             if summary["ok"] and cfg is not None:
                 self.configs[i] = cfg
-                heapq.heappush(self.queue, (-task_cost(self.tasks[c]), c))
+                self._push(c)
                 self._woken = True
             elif summary["ok"]:
                 self._fail(c, f"its ladder parent (task {self.tasks[i].id}) returned no configuration")
@@ -158,7 +194,7 @@ class Master:
                 self._fail(c, f"its ladder parent (task {self.tasks[i].id}) failed")
 
     def _outcome(self, i, attempt, summary):
-        cost = task_cost(self.tasks[i])
+        cost = float(self.costs[i])
         if summary["ok"] or attempt > self.retries:
             self.store.record(i, summary, attempt)
             self.cost_remaining -= cost
@@ -168,7 +204,7 @@ class Master:
                 self.n_failed += 1
             self._release(i, summary)
             return 1, cost
-        heapq.heappush(self.queue, (-cost, i))  # retry later
+        self._push(i)  # retry later
         return 0, 0.0
 
     def _running(self):
@@ -232,7 +268,7 @@ class Master:
                         summary = {"id": self.tasks[i].id, "ok": False, "scalars": {}, "histograms": {},
                                    "configuration": None, "wall": float("nan"), "rank": w, "host": "",
                                    "error": err}
-                        f, c = self._outcome(i, self.attempts[i], summary)
+                        f, c = self._outcome(i, int(self.attempts[i]), summary)
                         finished, cost = finished + f, cost + c
                     if not self.alive:
                         self.stop_reason = self.stop_reason or "no worker left"
@@ -245,7 +281,7 @@ class Master:
             self._tick(force=True)
             return {"done": self.n_done, "failed": self.n_failed, "abandoned": abandoned,
                     "stopped": self.stop_reason,
-                    "remaining": len(self.queue) + abandoned + len(self.blocked)}
+                    "remaining": self._queued() + abandoned + len(self.blocked)}
         finally:
             for sig, handler in old.items():
                 signal.signal(sig, handler)

@@ -146,6 +146,27 @@ class Finished:
                                     "run is writing the file, try again in a moment") from None
 
 
+def _failed_errors(f, status, block=65536):
+    """The error column (decoded) with the failed rows' messages, read block by block
+    (the column is 512 bytes a row; only failed rows have one)."""
+    err = np.full(len(status), "", dtype=object)
+    failed = np.flatnonzero(status == STATUS_FAILED)
+    if not failed.size or "error" not in _column_names(f):
+        return err
+    t = f["tasks"]
+    for lo in range(0, len(status), block):
+        rows = failed[(failed >= lo) & (failed < lo + block)]
+        if rows.size:
+            data = (t["error"][lo:lo + block] if hasattr(t, "keys") else t[lo:lo + block]["error"])
+            err[rows] = _decode(np.asarray(data)[rows - lo])
+    return err
+
+
+def _column_names(f):
+    t = f["tasks"]
+    return set(t.keys()) if hasattr(t, "keys") else set(t.dtype.names or ())
+
+
 def _open(path, h5py):
     try:
         return h5py.File(path, "r", locking=False)
@@ -176,9 +197,13 @@ def load_finished(paths) -> Finished:
             if "tasks" not in f:
                 raise UserError(f"{path}: not a campaign file (no /tasks table); "
                                 "expected the layout of docs/CONTRACTS.md")
+            if "schema" in f.attrs:
+                from campaign.store import check_format
+
+                check_format(f.attrs, path)
             try:
                 # status first: a row's data is complete before its status says done
-                cols = _columns(f, ("status", "id", "variant", "N", "E", "error", "seed"))
+                cols = _columns(f, ("status", "id", "variant", "N", "E", "seed"))
                 for need in ("status", "id", "N", "E"):
                     if need not in cols:
                         raise UserError(f"{path}: /tasks has no column {need!r}")
@@ -186,7 +211,7 @@ def load_finished(paths) -> Finished:
                 T = len(status)
                 variant = _decode(cols.get("variant", np.array(["default"] * T, dtype=object)))
                 ids = _decode(cols["id"])
-                err = _decode(cols.get("error", np.array([""] * T, dtype=object)))
+                err = _failed_errors(f, status)
                 file_attrs = {k: (v.decode() if isinstance(v, bytes) else v)
                               for k, v in f.attrs.items()}
                 names = sorted(f["scalars"].keys()) if "scalars" in f else []

@@ -46,6 +46,10 @@ TOP_KEYS = ("name", "seed", "system", "grid", "protocol", "variants", "observabl
             "store", "run", "output")
 REQUIRED_TOP = ("name", "seed", "grid")
 MAX_TASKS = 10_000_000
+#: A spec is a few kilobytes; anything much larger is a mistake (or an attack on the parser).
+MAX_SPEC_BYTES = 256 * 1024
+#: Deepest nesting of mappings and lists a spec may have (the schema needs five levels).
+MAX_DEPTH = 16
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 
@@ -137,7 +141,12 @@ def load_spec(path=None) -> Spec:
         return parse_spec(packaged_spec_text("quickstart"), "quickstart.yaml (packaged)")
     p = Path(path)
     try:
-        text = p.read_text()
+        with open(p, "rb") as fh:
+            raw = fh.read(MAX_SPEC_BYTES + 1)
+        if len(raw) > MAX_SPEC_BYTES:
+            raise UserError(f"spec file {str(p)!r} is larger than {MAX_SPEC_BYTES // 1024} KiB; a campaign "
+                            "spec is a few kilobytes (is this the right file?)")
+        text = raw.decode("utf-8")
     except FileNotFoundError:
         raise UserError(f"spec file {str(p)!r} does not exist") from None
     except (IsADirectoryError, PermissionError, UnicodeDecodeError) as exc:
@@ -264,9 +273,37 @@ def _show(value) -> str:
     return f"{kind} {value!r}" if kind else repr(value)
 
 
+def _screen(text: str, source: str):
+    """Refuse, before anything is built from it, YAML that could make loading expensive:
+    anchors and aliases (``&a`` / ``*a``: a few hundred bytes of nested aliases expand to
+    billions of nodes), and nesting deeper than ``MAX_DEPTH``. Token by token: linear in
+    the text."""
+    depth = 0
+    opening = (yaml.BlockMappingStartToken, yaml.BlockSequenceStartToken, yaml.FlowMappingStartToken,
+               yaml.FlowSequenceStartToken)
+    closing = (yaml.BlockEndToken, yaml.FlowMappingEndToken, yaml.FlowSequenceEndToken)
+    for tok in yaml.scan(text, Loader=yaml.SafeLoader):
+        if isinstance(tok, (yaml.AnchorToken, yaml.AliasToken)):
+            kind = "an anchor" if isinstance(tok, yaml.AnchorToken) else "an alias"
+            raise UserError(f"{source}:{tok.start_mark.line + 1}: {kind} ({'&' if kind == 'an anchor' else '*'}"
+                            f"{tok.value}): YAML anchors and aliases are not accepted in a spec (they can "
+                            "make a short file expand to an enormous one); write the values out")
+        if isinstance(tok, opening):
+            depth += 1
+            if depth > MAX_DEPTH:
+                raise UserError(f"{source}:{tok.start_mark.line + 1}: mappings and lists nested more than "
+                                f"{MAX_DEPTH} deep; a spec needs at most five levels")
+        elif isinstance(tok, closing):
+            depth -= 1
+
+
 def parse_spec(text: str, source: str = "<spec>") -> Spec:
     """Validate the YAML text of a spec completely; raise UserError naming every problem."""
+    if len(text) > MAX_SPEC_BYTES:
+        raise UserError(f"{source}: the spec is larger than {MAX_SPEC_BYTES // 1024} KiB; a campaign spec "
+                        "is a few kilobytes")
     try:
+        _screen(text, source)
         node = yaml.compose(text, Loader=yaml.SafeLoader)
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -275,6 +312,10 @@ def parse_spec(text: str, source: str = "<spec>") -> Spec:
         problem = getattr(exc, "problem", None) or str(exc)
         col = f" (column {mark.column + 1})" if mark is not None else ""
         raise UserError(f"{where}: bad YAML syntax{col}: {problem}") from None
+    except ValueError as exc:  # e.g. an integer of more digits than Python converts
+        raise UserError(f"{source}: a value cannot be read: {exc}") from None
+    except RecursionError:
+        raise UserError(f"{source}: nested too deeply") from None
     lines, dups = _line_map(node) if node is not None else ({}, [])
     c = _Checker(source, lines)
     for path, line in dups:

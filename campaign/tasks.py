@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from campaign.spec import Spec, canonical_json
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Task:
     index: int              # row in the store (canonical order)
     id: str                 # 32 hex characters
@@ -37,10 +37,15 @@ class Task:
     N: int
     E: float
     seed: int               # seed index
-    entropy: tuple[int, ...]
+    words: int              # the 128-bit seed hash (``entropy`` = campaign seed, then its 32-bit words)
+    campaign_seed: int
     protocol: tuple[tuple[str, object], ...]
     parent: int | None = None  # index of the task whose packing this one starts from (ladder)
     parent_E: float | None = None
+
+    @property
+    def entropy(self) -> tuple[int, ...]:
+        return (self.campaign_seed, *((self.words >> (32 * k)) & 0xFFFFFFFF for k in range(4)))
 
     def payload(self) -> dict:
         """What a worker needs (small and picklable)."""
@@ -62,22 +67,54 @@ def seed_entropy(campaign_seed: int, system: dict, N: int, E: float, seed: int) 
     return (int(campaign_seed), *words)
 
 
+def _hash_json(prefix: str, suffix: str):
+    """blake2b of ``prefix + middle + suffix`` for many middles, the constant parts hashed once."""
+    base = hashlib.blake2b(prefix.encode(), digest_size=16)
+    tail = suffix.encode()
+
+    def digest(middle: str) -> bytes:
+        h = base.copy()
+        h.update(middle.encode())
+        h.update(tail)
+        return h.digest()
+    return digest
+
+
 def expand(spec: Spec) -> list[Task]:
-    """Every task of the spec in canonical order: variant (default first), N, E, seed index."""
+    """Every task of the spec in canonical order: variant (default first), N, E, seed index.
+
+    Ids and seed words are the hashes of ``task_id`` and ``seed_entropy``; the canonical JSON
+    is assembled from its constant and varying parts (sorted keys: E, N, campaign_seed,
+    protocol, seed, system), which tests/test_tasks.py checks against those functions.
+    """
     system = spec.system.canonical()
+    sys_json = canonical_json(system)
+    cseed = int(spec.seed)
     out = []
     n_seeds = len(spec.seeds)
+    words = {}
+    tail = ',"system":' + sys_json + "}"
+    words_of = _hash_json('{"E":', tail)
+    id_of = _hash_json('{"E":', tail)
     for v in spec.variants:
         proto = dict(v.protocol)
         ladder = proto.get("start") == "ladder"
+        proto_json = canonical_json(proto)
         for N in spec.N:
             for k, E in enumerate(spec.E):
                 upper = k + 1 < len(spec.E) and ladder
+                head = f'{canonical_json(E)},"N":{canonical_json(N)},'
+                id_head = f'{head}"campaign_seed":{cseed},"protocol":{proto_json},"seed":'
                 for s in spec.seeds:
                     i = len(out)
-                    out.append(Task(index=i, id=task_id(system, proto, N, E, s, spec.seed), variant=v.name,
-                                    N=N, E=E, seed=s, entropy=seed_entropy(spec.seed, system, N, E, s),
-                                    protocol=v.protocol, parent=i + n_seeds if upper else None,
+                    w = words.get((N, E, s))
+                    if w is None:
+                        w = int.from_bytes(words_of(f'{head}"seed":{canonical_json(s)}'), "little")
+                        if len(spec.variants) > 1:
+                            words[(N, E, s)] = w
+                    out.append(Task(index=i, id=id_of(id_head + canonical_json(s)).hex(), variant=v.name, N=N,
+                                    E=E, seed=s, words=w, campaign_seed=cseed, protocol=v.protocol,
+                                    parent=i + n_seeds if upper else None,
                                     parent_E=spec.E[k + 1] if upper else None))
     return out
 

@@ -107,6 +107,12 @@ def _matches(spec: str, payload) -> bool:
     return False
 
 
+#: Bins per histogram of kernels.analysis.DEFAULT_BINS (tests/test_store.py checks they agree);
+#: written out so that the synthetic task does not import numba.
+SYNTHETIC_BINS = {"contact_angle": 180, "contact_length": 160, "z_g": 21, "z_v": 41, "alpha_e": 200,
+                  "alpha_v": 400, "fictitious_length": 300, "radial_grains": 400, "radial_contacts": 300}
+
+
 class SyntheticTask:
     """A deterministic stand-in for the kernels: a pure function of the task payload."""
 
@@ -115,15 +121,15 @@ class SyntheticTask:
                "iterations", "force_evaluations", "jam_status", "sigma_max", "ordered_fraction")
 
     def histogram_edges(self, context) -> dict:
+        """The spec's bins, else as many bins as the kernels' defaults (so that the engine's
+        tests and benchmarks move as much data per task as real campaigns do)."""
         bins = context.get("bins") or {}
         out = {}
         for h in context["histograms"]:
             if h in bins:
                 out[h] = np.asarray(bins[h], np.float64)
-            elif h in ("z_g", "z_v"):
-                out[h] = np.arange(0, 17, dtype=np.float64) - 0.5
             else:
-                out[h] = np.linspace(0.0, 1.0, 11)
+                out[h] = np.linspace(0.0, 1.0, SYNTHETIC_BINS.get(h, 10) + 1)
         return out
 
     def run(self, payload, context):

@@ -171,7 +171,7 @@ def write_store(path, c: SyntheticCampaign | None = None, *, status=None, block=
     sel = np.arange(T_full) if rows is None else np.asarray(rows)
     T = len(sel)
     with h5py.File(path, "w") as f:
-        f.attrs.update(schema="jamming-campaign/1", name="synthetic", spec_yaml=SPEC_YAML,
+        f.attrs.update(schema="jamming-campaign/1", format_version=2, name="synthetic", spec_yaml=SPEC_YAML,
                        spec_hash="0" * 32, package_version="0", git_commit="unknown",
                        versions=json.dumps({}), runs=json.dumps([]))
         g = f.create_group("tasks")

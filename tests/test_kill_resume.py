@@ -5,8 +5,9 @@ delays, alternately inline and with two local worker processes), kills it with
 SIGKILL after a random time (from interpreter start-up to a little past the end of the
 run, or, every other round, while it works; estimated from an uninterrupted run and the
 work left),
-and checks the journal: nothing finished is ever lost and no task is recorded
-twice. A last run completes the campaign; every dataset must then equal an
+and checks the durable record (the store's committed rows and the journal's
+records since its last checkpoint): nothing finished is ever lost and no task is
+recorded twice. A last run completes the campaign; every dataset must then equal an
 uninterrupted run's (run-dependent columns aside: wall time, rank, host).
 """
 
@@ -64,12 +65,27 @@ def _contents(path):
     return data, attrs
 
 
-def _journal_tasks(path):
+def _durable(path):
+    """Every finished task of the durable record: ``{index: run id}`` for the journal's
+    records (run id of the run that computed it; a task twice in the journal fails), and
+    the store's committed rows (``None``: the store does not say which run)."""
+    out = {}
     p = Path(str(path) + ".journal")
-    if not p.exists():
-        return []
-    recs, _ = read_journal(p.read_bytes())
-    return [m["index"] for m, _ in recs if m.get("type") == "task"]
+    if p.exists():
+        recs, _ = read_journal(p.read_bytes())
+        for m, _ in recs:
+            if m.get("type") == "task":
+                assert m["index"] not in out, "a finished task was recorded twice in the journal"
+                out[m["index"]] = m["run_id"]
+    if Path(path).exists():
+        try:
+            with h5py.File(path, "r", locking=False) as f:
+                status = f["tasks/status"][:]
+        except OSError:
+            status = np.zeros(0)  # unreadable: the next start salvages it (counted below if rows are lost)
+        for i in np.flatnonzero(status != 0).tolist():
+            out.setdefault(i, None)
+    return out
 
 
 def _kill_rounds(tmp_path, rounds, seed, spec_text=SPEC):
@@ -88,7 +104,7 @@ def _kill_rounds(tmp_path, rounds, seed, spec_text=SPEC):
     idle = min(time.monotonic() - t0, span)
     out = tmp_path / "k.h5"
     rng = random.Random(seed)
-    finished = set()
+    finished = {}  # index -> run that computed it (None: known from the store only)
     killed_mid_run = 0
     for k in range(rounds):
         p = subprocess.Popen(_cmd(spec, out, inline=k % 2 == 0), env=_env(), stdout=subprocess.DEVNULL,
@@ -106,19 +122,23 @@ def _kill_rounds(tmp_path, rounds, seed, spec_text=SPEC):
         except ProcessLookupError:
             pass
         p.wait(timeout=30)
-        indices = _journal_tasks(out)
-        assert len(indices) == len(set(indices)), "a finished task was recorded twice"
-        assert finished <= set(indices), "a finished task was lost"
-        killed_mid_run += (not done_before) and len(set(indices)) > len(finished)
-        finished = set(indices)
+        durable = _durable(out)
+        assert finished.keys() <= durable.keys(), "a finished task was lost"
+        for i, run in durable.items():  # computed again by a later run: recorded twice
+            assert i not in finished or run is None or finished[i] == run, "a finished task was recorded twice"
+        killed_mid_run += (not done_before) and len(durable) > len(finished)
+        for i, run in durable.items():
+            finished.setdefault(i, run)
         if len(finished) == total:  # finished: start over to keep killing runs mid-way
             for suffix in ("", ".journal", ".progress.json"):
                 Path(str(out) + suffix).unlink(missing_ok=True)
-            finished = set()
+            finished = {}
     r = subprocess.run(_cmd(spec, out, inline=False), env=_env(), capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
-    indices = _journal_tasks(out)
-    assert len(indices) == len(set(indices)) == total
+    durable = _durable(out)
+    assert len(durable) == total
+    for i, run in durable.items():
+        assert i not in finished or run is None or finished[i] == run, "a finished task was recorded twice"
     a, a_attrs = _contents(ref)
     b, b_attrs = _contents(out)
     assert set(a) == set(b) and a_attrs.keys() == b_attrs.keys()

@@ -79,12 +79,12 @@ def test_every_step_starts_from_its_parents_packing(tmp_path):
         parent_cfg = store.configuration(t.parent)
         assert parent_cfg is not None  # kept by the store although the spec stores no configurations
         np.testing.assert_array_equal(payload["start"]["positions"], parent_cfg["positions"])
-        assert store.scalars["start_checksum"][t.index] == float(np.sum(parent_cfg["positions"]))
+        assert store.read("scalars/start_checksum", t.index) == float(np.sum(parent_cfg["positions"]))
         assert order[t.parent] < order[t.index]
     for t in tasks:
         if t.parent is None:
             assert "start" not in comm.sent[order[t.index]][1]
-            assert np.isnan(store.scalars["start_checksum"][t.index])
+            assert np.isnan(store.read("scalars/start_checksum", t.index))
     # only parents are asked for their configuration; the default variant keeps none
     asked = {p["index"] for _, p in comm.sent if p.get("return_configuration")}
     assert asked == {t.parent for t in ladder}
@@ -103,7 +103,7 @@ def test_a_failed_parent_fails_its_chain_below_and_nothing_else(tmp_path, monkey
     assert store.status[victim.index] == FAILED
     for t in below:
         assert store.status[t.index] == FAILED
-        assert b"ladder parent" in store.error[t.index]
+        assert b"ladder parent" in store.read("tasks/error", t.index)
     store.close()
 
 

@@ -250,5 +250,5 @@ def test_a_crashing_local_worker_is_survived(tmp_path, monkeypatch):
     assert out["failed"] >= len(crashing)
     for t in crashing:
         assert store.status[t.index] == FAILED
-        assert "died" in store.error[t.index].decode()
+        assert "died" in store.read("tasks/error", t.index).decode()
     store.abandon()

@@ -183,3 +183,33 @@ def test_protocol_keys_of_the_kernels():
     assert s.variants[0].protocol_dict["search"] == "halving"
     with pytest.raises(UserError, match=r"protocol\.search: unknown search rule 'bisect'"):
         parse_spec(MINIMAL + "protocol: {search: bisect}\n")
+
+
+def test_billion_laughs_is_refused_at_once(tmp_path):
+    """Eight levels of nine aliases each: 9^8 = 43 million nodes from 600 bytes if expanded."""
+    import time
+
+    path = ROOT / "tests" / "bad_specs" / "billion_laughs.yaml"
+    t0 = time.monotonic()
+    with pytest.raises(UserError, match="anchors and aliases are not accepted"):
+        parse_spec(path.read_text(), str(path))
+    assert time.monotonic() - t0 < 1.0
+
+
+def test_a_spec_file_larger_than_the_limit_is_refused(tmp_path, capsys):
+    from campaign.spec import MAX_SPEC_BYTES
+
+    p = tmp_path / "big.yaml"
+    p.write_text(MINIMAL + "#" * MAX_SPEC_BYTES + "\n")
+    assert cli.main(["validate", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert "larger than 256 KiB" in err and "Traceback" not in err
+    p.write_text(MINIMAL + "#" * (MAX_SPEC_BYTES - len(MINIMAL) - 2) + "\n")
+    assert cli.main(["validate", str(p)]) == 0
+
+
+def test_an_integer_of_too_many_digits_is_a_user_error(capsys, tmp_path):
+    p = tmp_path / "digits.yaml"
+    p.write_text(MINIMAL.replace("seed: 7", "seed: " + "9" * 5000))
+    assert cli.main(["validate", str(p)]) == 2
+    assert "Traceback" not in capsys.readouterr().err

@@ -8,7 +8,7 @@ import pytest
 
 from campaign.errors import UserError
 from campaign.spec import parse_spec
-from campaign.store import DONE, FAILED, PENDING, Store, encode_record, read_journal
+from campaign.store import DONE, FAILED, PENDING, Store, encode_record, read_journal, scan_journal
 from campaign.tasks import expand
 from campaign.worker import SyntheticTask, run_task
 
@@ -156,14 +156,25 @@ def _fill(out, spec, tasks, fn, ctx, edges, rows):
     st.close()
 
 
-def test_rebuild_from_journal_when_view_is_damaged_or_missing(tmp_path):
+def _fill_killed(out, spec, tasks, fn, ctx, edges, rows):
+    """Like _fill, but the run is cut off after its last flush (no closing checkpoint)."""
+    st = Store(out, spec, tasks, edges)
+    for i in rows:
+        st.record(i, _summary(fn, tasks[i], ctx, fail=(i % 7 == 3)), attempts=1)
+    st.flush(force=True)
+    st.abandon()
+
+
+def test_view_damaged_by_a_killed_run_is_rebuilt_from_the_journal(tmp_path):
+    """Rows recorded since the last checkpoint are in the journal: whatever happened to
+    the store, reopening gives back exactly the uninterrupted run's file."""
     spec, tasks, fn, ctx, edges = _setup()
     ref = tmp_path / "ref.h5"
     _fill(ref, spec, tasks, fn, ctx, edges, range(0, len(tasks), 2))
     expected = _contents(ref)
     for damage in ("garbage", "truncate", "delete"):
         out = tmp_path / f"{damage}.h5"
-        _fill(out, spec, tasks, fn, ctx, edges, range(0, len(tasks), 2))
+        _fill_killed(out, spec, tasks, fn, ctx, edges, range(0, len(tasks), 2))
         raw = out.read_bytes()
         if damage == "garbage":
             out.write_bytes(raw[:200] + b"\x00" * 4000 + raw[4200:])
@@ -175,16 +186,69 @@ def test_rebuild_from_journal_when_view_is_damaged_or_missing(tmp_path):
         _assert_same(_contents(out), expected)
 
 
-def test_lost_journal_is_rebuilt_from_the_view(tmp_path):
+def test_checkpoint_leaves_only_the_header_in_the_journal(tmp_path):
+    spec, tasks, fn, ctx, edges = _setup()
+    out = tmp_path / "s.h5"
+    _fill(out, spec, tasks, fn, ctx, edges, range(len(tasks)))
+    recs, _ = read_journal((tmp_path / "s.h5.journal").read_bytes())
+    kinds = [m["type"] for m, _ in recs]
+    assert kinds[0] == "header" and "task" not in kinds and kinds[-1] == "checkpoint"
+    assert recs[-1][0]["committed"] == len(tasks)
+
+
+def test_a_chunk_torn_while_rewriting_a_block_loses_nothing(tmp_path, monkeypatch):
+    """Adding a row to a block whose other rows were checkpointed rewrites their compressed
+    chunks; those rows are put back into the journal first. Tear such a chunk (as a SIGKILL
+    in the middle of the write would): the store is salvaged block by block and the journal
+    gives back every row of the torn block."""
+    import campaign.store as S
+
+    monkeypatch.setattr(S, "BLOCK_ROWS", 4)
+    spec, tasks, fn, ctx, edges = _setup()
+    out = tmp_path / "s.h5"
+    _fill(out, spec, tasks, fn, ctx, edges, [0, 1, 4, 5, 8, 9])  # blocks 0, 1, 2; checkpointed
+    _fill_killed(out, spec, tasks, fn, ctx, edges, [6])           # block 1 rewritten, then killed
+    recs, _ = read_journal((tmp_path / "s.h5.journal").read_bytes())
+    assert sorted(m["index"] for m, _ in recs if m["type"] == "task") == [4, 5, 6]
+    with h5py.File(out, "r") as f:
+        info = f["histograms/alpha_v/counts"].id.get_chunk_info_by_coord((4, 0))
+    with open(out, "r+b") as fh:
+        fh.seek(info.byte_offset)
+        fh.write(b"\xff" * info.size)
+    logged = []
+    st = Store(out, spec, tasks, edges, log=logged.append)
+    assert any("salvaging" in m for m in logged) and not any("run again" in m for m in logged)
+    assert [int(i) for i in np.flatnonzero(st.status != PENDING)] == [0, 1, 4, 5, 6, 8, 9]
+    st.close()
+    ref = tmp_path / "ref.h5"
+    _fill(ref, spec, tasks, fn, ctx, edges, [0, 1, 4, 5, 6, 8, 9])
+    _assert_same(_contents(out), _contents(ref))
+
+
+def test_lost_store_after_a_checkpoint_is_counted_and_rerun(tmp_path):
+    spec, tasks, fn, ctx, edges = _setup()
+    out = tmp_path / "s.h5"
+    _fill(out, spec, tasks, fn, ctx, edges, [1, 3, 4])
+    out.unlink()
+    logged = []
+    st = Store(out, spec, tasks, edges, log=logged.append)
+    assert any(m.startswith("campaign: at least 3 finished task(s) were only in the missing store") for m in logged)
+    assert not any(st.finished(i) for i in range(len(tasks)))
+    st.close()
+
+
+def test_lost_journal_the_store_is_the_record(tmp_path):
     spec, tasks, fn, ctx, edges = _setup()
     out = tmp_path / "s.h5"
     _fill(out, spec, tasks, fn, ctx, edges, [1, 3, 4])
     expected = _contents(out)
     (tmp_path / "s.h5.journal").unlink()
-    Store(out, spec, tasks, edges).close()  # re-journals the finished rows
-    out.write_bytes(b"not hdf5")
-    Store(out, spec, tasks, edges, log=lambda m: None).close()
+    st = Store(out, spec, tasks, edges)
+    assert [i for i in range(len(tasks)) if st.finished(i)] == [1, 3, 4]
+    st.close()
     _assert_same(_contents(out), expected)
+    recs, _ = read_journal((tmp_path / "s.h5.journal").read_bytes())
+    assert recs[0][0]["spec_hash"] == spec.hash and not [m for m, _ in recs if m["type"] == "task"]
 
 
 def test_unreadable_view_without_journal_is_refused(tmp_path):
@@ -237,14 +301,133 @@ def test_torn_configuration_group_is_rebuilt_from_the_journal(tmp_path):
     st = Store(out, spec, tasks, edges)
     for i in (0, 2, 5):
         st.record(i, _summary(fn, tasks[i], ctx), 1)
+    st.flush(force=True)
+    st.abandon()  # killed after its flush: the records are still in the journal
+    ref = tmp_path / "ref.h5"
+    st = Store(ref, spec, tasks, edges)
+    for i in (0, 2, 5):
+        st.record(i, _summary(fn, tasks[i], ctx), 1)
     st.close()
-    expected = _contents(out)
+    expected = _contents(ref)
     with h5py.File(out, "r+") as f:
         del f[f"configurations/{tasks[2].id}/radii"]
     logged = []
     st = Store(out, spec, tasks, edges, log=logged.append)
-    assert any("rebuilding it from its journal" in m for m in logged)
+    assert any("replaying the journal" in m for m in logged)
     got = st.configuration(2)
     assert np.array_equal(got["radii"], _summary(fn, tasks[2], ctx)["configuration"]["radii"])
     st.close()
     _assert_same(_contents(out), expected)
+
+
+def test_damage_inside_the_journal_keeps_every_intact_record():
+    recs = [({"type": "task", "i": k}, {"h": np.arange(50 + k, dtype=np.int64)}) for k in range(6)]
+    blobs = [encode_record(m, a) for m, a in recs]
+    data = b"".join(blobs)
+    start = [sum(len(b) for b in blobs[:k]) for k in range(6)]
+    # a flipped byte inside record 2: records 0, 1, 3, 4, 5 survive
+    flipped = bytearray(data)
+    flipped[start[2] + 40] ^= 0x01
+    got, end, damaged = scan_journal(bytes(flipped))
+    assert [m["i"] for m, _ in got] == [0, 1, 3, 4, 5] and end == len(data)
+    assert damaged == [(start[2], len(blobs[2]), 1)]
+    # record 3 cut short in the middle (its tail is gone; the next records follow directly)
+    cut = data[:start[3] + 30] + data[start[4]:]
+    got, end, damaged = scan_journal(cut)
+    assert [m["i"] for m, _ in got] == [0, 1, 2, 4, 5] and end == len(cut)
+    assert damaged == [(start[3], 30, 1)]
+    # two records' bytes overwritten, magic and all: both counted from what is left of them
+    wiped = data[:start[1]] + b"\x00" * (start[3] - start[1]) + data[start[3]:]
+    got, _, damaged = scan_journal(wiped)
+    assert [m["i"] for m, _ in got] == [0, 3, 4, 5] and damaged[0][:2] == (start[1], start[3] - start[1])
+
+
+@pytest.mark.parametrize("damage", ["flip", "cut"])
+def test_resume_from_a_damaged_journal_reruns_only_the_lost_tasks(tmp_path, damage):
+    spec, tasks, fn, ctx, edges = _setup()
+    out = tmp_path / "s.h5"
+    rows = [0, 2, 4, 6, 8]
+    _fill_killed(out, spec, tasks, fn, ctx, edges, rows)
+    out.unlink()  # the store is gone too: the journal alone says what was done
+    jpath = tmp_path / "s.h5.journal"
+    data = jpath.read_bytes()
+    recs, _ = read_journal(data)
+    offsets, pos = [], 0
+    while pos < len(data):  # record boundaries
+        n = int.from_bytes(data[pos + 4:pos + 8], "little")
+        offsets.append(pos)
+        pos += 12 + n
+    k = next(j for j, (m, _) in enumerate(recs) if m.get("type") == "task" and m["index"] == 4)
+    a, b = offsets[k], offsets[k + 1]
+    if damage == "flip":
+        data = data[:a + 50] + bytes([data[a + 50] ^ 0x80]) + data[a + 51:]
+    else:
+        data = data[:a + (b - a) // 2] + data[b:]
+    jpath.write_bytes(data)
+    logged = []
+    st = Store(out, spec, tasks, edges, log=logged.append)
+    assert any("about 1 record(s) lost; kept 4 intact task record(s)" in m for m in logged), logged
+    assert [i for i in range(len(tasks)) if st.finished(i)] == [0, 2, 6, 8]
+    st.record(4, _summary(fn, tasks[4], ctx), attempts=1)  # the lost task, run again
+    st.close()
+    ref = tmp_path / "ref.h5"
+    _fill(ref, spec, tasks, fn, ctx, edges, [0, 2, 6, 8])
+    st = Store(ref, spec, tasks, edges)
+    st.record(4, _summary(fn, tasks[4], ctx), attempts=1)
+    st.close()
+    _assert_same(_contents(out), _contents(ref))
+
+
+def _old_format_store(path, spec, tasks):
+    """A store as the previous layout wrote it: dense datasets, no format_version attribute."""
+    T = len(tasks)
+    with h5py.File(path, "w") as f:
+        f.attrs.update(schema="jamming-campaign/1", name=spec.name, spec_hash=spec.hash, spec_yaml=spec.text,
+                       runs="[]")
+        g = f.create_group("tasks")
+        g["id"] = np.array([t.id.encode() for t in tasks], "S32")
+        g["status"] = np.ones(T, np.int8)
+        for name in ("variant", "host", "error"):
+            g[name] = np.zeros(T, "S8")
+        for name in ("N", "seed", "attempts", "rank"):
+            g[name] = np.ones(T, np.int64)
+        for name in ("E", "wall"):
+            g[name] = np.ones(T)
+        f.create_group("scalars")["A_G"] = np.full(T, 250.0)  # an absolute area, as it was
+        f.create_group("histograms")
+
+
+def test_a_store_of_the_old_format_is_refused_by_every_command(tmp_path, capsys):
+    from campaign import cli
+
+    spec, tasks, fn, ctx, edges = _setup()
+    out = tmp_path / "old.h5"
+    _old_format_store(out, spec, tasks)
+    with pytest.raises(UserError, match="store format 1") as exc:
+        Store(out, spec, tasks, edges)
+    msg = str(exc.value)
+    assert "fractions of the box area" in msg and "half-plane" in msg and "--out NEW.h5" in msg
+    (tmp_path / "s.yaml").write_text(SPEC)
+    for argv in (["status", str(out)], ["reduce", str(out), "--out", str(tmp_path / "r")],
+                 ["run", str(tmp_path / "s.yaml"), "--out", str(out), "--task-function", "synthetic",
+                  "--launcher", "inline"]):
+        assert cli.main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert "store format 1" in err and "Run the spec again into a new file" in err and "Traceback" not in err
+    # validate checks the spec (exit 0) and says why its output cannot be resumed
+    (tmp_path / "o.yaml").write_text(SPEC + f"output: {out}\n")
+    assert cli.main(["validate", str(tmp_path / "o.yaml")]) == 0
+    assert "exists but cannot be resumed" in capsys.readouterr().out
+    # --new replaces it
+    assert cli.main(["run", str(tmp_path / "s.yaml"), "--out", str(out), "--task-function", "synthetic",
+                     "--launcher", "inline", "--new"]) == 0
+    with h5py.File(out, "r") as f:
+        assert f.attrs["format_version"] == 2
+
+
+def test_synthetic_bins_are_the_kernels_default_bins():
+    from kernels.analysis import DEFAULT_BINS
+
+    from campaign.worker import SYNTHETIC_BINS
+
+    assert SYNTHETIC_BINS == {h: len(e) - 1 for h, e in DEFAULT_BINS.items()}

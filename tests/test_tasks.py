@@ -80,3 +80,22 @@ def test_task_count_is_the_product(ns, es, seeds, nvar):
     tasks = expand(spec)
     assert len(tasks) == (1 + nvar) * len(ns) * len(es) * seeds == spec.n_tasks
     assert len({t.id for t in tasks}) == len(tasks)
+
+
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2 ** 63 - 1), n=st.lists(st.integers(4, 10 ** 6), min_size=1, max_size=3, unique=True),
+       e=st.lists(st.floats(1e-300, 0.99), min_size=1, max_size=3, unique=True),
+       seeds=st.integers(1, 4), tol=st.floats(1e-14, 1e-2), ladder=st.booleans())
+def test_expand_ids_and_seeds_equal_the_reference_hashes(seed, n, e, seeds, tol, ladder):
+    """expand assembles the canonical JSON from its parts; it must hash exactly what task_id
+    and seed_entropy hash."""
+    from campaign.tasks import seed_entropy, task_id
+
+    start = ", start: ladder" if ladder else ""
+    energies = ", ".join(f"{x:.17e}" for x in e)  # YAML 1.1 reads a float only with its dot
+    spec = parse_spec(f"name: t\nseed: {seed}\ngrid: {{N_G: {n}, E_G: [{energies}], seeds: {seeds}}}\n"
+                      f"variants: [{{name: v, force_tolerance: {tol:.17e}{start}}}]\n")
+    system = spec.system.canonical()
+    for t in expand(spec):
+        assert t.id == task_id(system, dict(t.protocol), t.N, t.E, t.seed, spec.seed)
+        assert t.entropy == seed_entropy(spec.seed, system, t.N, t.E, t.seed)

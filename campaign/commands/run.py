@@ -108,6 +108,16 @@ def provenance(launcher, n_workers, mpi=None) -> dict:
             "argv": sys.argv[:], "pid": os.getpid()}
 
 
+def _peak_rss_mb() -> float:
+    """This process's peak resident memory so far (MB), as the kernel counts it."""
+    try:
+        import resource
+
+        return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)  # kB on Linux
+    except (ImportError, OSError):
+        return float("nan")
+
+
 def _set_numba_cache(args):
     if args.numba_cache:
         os.environ["NUMBA_CACHE_DIR"] = str(Path(args.numba_cache).expanduser().resolve())
@@ -227,11 +237,15 @@ def _mpi_master(args, comm, MPI) -> int:
     except BaseException:  # noqa: BLE001 - a master fault aborts the whole job instead of hanging it
         traceback.print_exc()
         _log("campaign run: internal error on the MPI master; aborting the job")
+        sys.stderr.flush()
+        time.sleep(0.5)  # let the launcher forward the message before MPI_Abort tears the job down
         comm.Abort(1)
     return 1
 
 
 def _run(args, mpi_comm, MPI, state=None) -> int:
+    import numpy as np
+
     from campaign.comm import InlineComm, LocalComm, MPIComm
     from campaign.errors import UserError
     from campaign.master import Master
@@ -274,8 +288,7 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
     comm = None
     outcome = None
     try:
-        todo = int(sum(1 for t in tasks if store.status[t.index] == 0 or
-                       (args.retry_failed and store.status[t.index] == 2)))
+        todo = int(np.count_nonzero((store.status == 0) | ((store.status == 2) if args.retry_failed else False)))
         context["warm_up"] = bool(todo)
         if todo and hasattr(fn, "warm_up") and launcher != "inline":
             if sys.stderr.isatty() and not args.quiet:
@@ -318,7 +331,8 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
         comm = None
         counts = store.counts_by_status()
         store.close(completed=outcome["done"], failed=outcome["failed"], stopped=outcome["stopped"],
-                    seconds=round(time.monotonic() - t0, 3), master_cpu_seconds=round(cpu, 3))
+                    seconds=round(time.monotonic() - t0, 3), master_cpu_seconds=round(cpu, 3),
+                    master_peak_rss_mb=_peak_rss_mb())
     except BaseException:
         if comm is not None:
             try:
@@ -338,7 +352,7 @@ def _run(args, mpi_comm, MPI, state=None) -> int:
             resume = "mpiexec -n K " + resume
         from campaign.walltime import fit_from_store
 
-        pending = [t for t in tasks if store.status[t.index] == 0]
+        pending = [tasks[i] for i in np.flatnonzero(store.status == 0)]
         hours = fit_from_store(store, tasks).total_seconds(pending) / 3600.0
         _log(f"campaign: stopped ({outcome['stopped']}); {counts['pending']} task(s) left, about {hours:.3g} "
              f"core-hours. Resume with: {resume}")

@@ -18,26 +18,11 @@ def configure(parser):
 
 
 def main(args) -> int:
-    import numpy as np
-
     from campaign.progress import fmt_duration, progress_text, read_sidecar
-    from campaign.store import DONE, FAILED, PENDING, read_summary
 
-    s = read_summary(args.file)
-    status = s["status"]
-    variant = s["variant"].astype(str)
-    N, E = s["N"], s["E"]
-    groups = []
-    seen = {}
-    for i in range(len(status)):
-        key = (variant[i], int(N[i]), float(E[i]))
-        if key not in seen:
-            seen[key] = len(groups)
-            groups.append([key, 0, 0, 0])
-        g = groups[seen[key]]
-        g[1 + {DONE: 0, FAILED: 1, PENDING: 2}[int(status[i])]] += 1
-    totals = {"done": int(np.sum(status == DONE)), "failed": int(np.sum(status == FAILED)),
-              "pending": int(np.sum(status == PENDING)), "tasks": int(len(status))}
+    s = _scan(args.file)
+    groups = [[key, c[0], c[1], c[2]] for key, c in s["cells"].items()]
+    totals = s["totals"]
     live = read_sidecar(args.file)
     active = bool(live and live.get("active") and time.time() - live.get("updated", 0) < 60)
     running = int(live.get("running", 0)) if active else 0
@@ -53,16 +38,8 @@ def main(args) -> int:
                 state["per_hour"] = 3600.0 * (last.get("completed", 0) + last.get("failed", 0)) / last["seconds"]
         except (ValueError, IndexError, TypeError):
             pass
-    failures = []
-    tid = s["id"].astype(str)
-    for i in np.flatnonzero(status == FAILED):
-        rec = s["failures"].get(tid[i], {})
-        failures.append({"id": tid[i], "variant": variant[i], "N": int(N[i]), "E": float(E[i]),
-                         "seed": int(s["seed"][i]), "attempts": int(s["attempts"][i]),
-                         "host": s["host"][i].decode(errors="replace"), "rank": int(s["rank"][i]),
-                         "message": str(rec.get("message", s["error"][i].decode(errors="replace"))),
-                         "traceback": str(rec.get("traceback", ""))})
-    remaining_hours, learnt_from = _remaining_core_hours(attrs, status, s["wall"])
+    failures = s["failures"]
+    remaining_hours, learnt_from = _remaining_core_hours(attrs, s)
     if args.json:
         print(json.dumps({"file": str(args.file), "name": str(attrs.get("name", "")), "live": active,
                           **state, "tasks": totals["tasks"], "remaining_core_hours": remaining_hours,
@@ -94,18 +71,108 @@ def main(args) -> int:
     return 0
 
 
-def _remaining_core_hours(attrs, status, wall):
-    """Core-hours of the unfinished tasks by the cost model learnt from the finished ones."""
+#: Rows read at a time: memory stays bounded whatever the number of tasks.
+BLOCK = 1 << 16
+#: At most this many finished rows (evenly spaced) teach the cost model behind the estimate.
+FIT_ROWS = 20000
+
+
+def _scan(path):
+    """One pass over the task table in blocks of rows: counts per (variant, N, E) cell in
+    order of appearance, totals, the failed rows' details and an evenly spaced sample of
+    finished rows (N, E, wall, variant) for the cost model. Memory: one block, the cells,
+    the failures and the sample; the status column (one byte a task) is read first, to
+    space the sample."""
+    import numpy as np
+
+    from campaign.store import DONE, FAILED, PENDING, open_store
+
+    last = None
+    for _ in range(5):  # the file may be caught in the middle of a flush
+        try:
+            with open_store(path) as f:
+                return _scan_open(f, np, DONE, FAILED, PENDING)
+        except (OSError, KeyError, ValueError) as exc:
+            last = exc
+            time.sleep(0.2)
+    from campaign.errors import UserError
+
+    raise UserError(f"cannot read {str(path)!r} as a campaign store: {last}")
+
+
+def _scan_open(f, np, DONE, FAILED, PENDING):
+    t = f["tasks"]
+    status_all = t["status"][:]
+    T = len(status_all)
+    n_done = int(np.count_nonzero(status_all == DONE))
+    stride = max(1, -(-n_done // FIT_ROWS))
+    failure_recs = {tid: dict(g.attrs) for tid, g in f["failures"].items()} if "failures" in f else {}
+    cells, failures = {}, []
+    sample = {"N": [], "E": [], "wall": [], "variant": []}
+    done_seen = 0
+    for lo in range(0, T, BLOCK):
+        hi = min(lo + BLOCK, T)
+        st = status_all[lo:hi]
+        v, N, E = t["variant"][lo:hi], t["N"][lo:hi], t["E"][lo:hi]
+        change = np.flatnonzero((v[1:] != v[:-1]) | (N[1:] != N[:-1]) | (E[1:] != E[:-1])) + 1
+        for a, b in zip(np.r_[0, change].tolist(), np.r_[change, hi - lo].tolist()):
+            key = (v[a].decode(errors="replace"), int(N[a]), float(E[a]))
+            c = cells.setdefault(key, [0, 0, 0])
+            part = st[a:b]
+            c[0] += int(np.count_nonzero(part == DONE))
+            c[1] += int(np.count_nonzero(part == FAILED))
+            c[2] += int(np.count_nonzero(part == PENDING))
+        done = np.flatnonzero(st == DONE)
+        pick = done[(np.arange(done_seen, done_seen + len(done)) % stride) == 0]
+        done_seen += len(done)
+        if len(pick):
+            wall = t["wall"][lo:hi]
+            sample["N"].append(N[pick])
+            sample["E"].append(E[pick])
+            sample["wall"].append(wall[pick])
+            sample["variant"].append(v[pick])
+        bad = np.flatnonzero(st == FAILED)
+        if len(bad):
+            cols = {k: t[k][lo:hi][bad] for k in ("id", "seed", "attempts", "host", "rank", "error")}
+            for k, i in enumerate(bad):
+                tid = cols["id"][k].decode()
+                rec = failure_recs.get(tid, {})
+                failures.append({"id": tid, "variant": v[i].decode(errors="replace"), "N": int(N[i]),
+                                 "E": float(E[i]), "seed": int(cols["seed"][k]), "attempts": int(cols["attempts"][k]),
+                                 "host": cols["host"][k].decode(errors="replace"), "rank": int(cols["rank"][k]),
+                                 "message": str(rec.get("message", cols["error"][k].decode(errors="replace"))),
+                                 "traceback": str(rec.get("traceback", ""))})
+    totals = {"done": n_done, "failed": int(np.count_nonzero(status_all == FAILED)),
+              "pending": int(np.count_nonzero(status_all == PENDING)), "tasks": T}
+    sample = {k: (np.concatenate(x) if x else np.zeros(0)) for k, x in sample.items()}
+    return {"attrs": {k: f.attrs[k] for k in f.attrs}, "cells": cells, "totals": totals,
+            "failures": failures, "sample": sample}
+
+
+def _remaining_core_hours(attrs, s):
+    """Core-hours of the unfinished tasks by the cost model learnt from (a sample of at most
+    FIT_ROWS of) the finished ones. Per cell: the tasks of a (variant, N, E) cell cost the
+    same, so the sum over the unfinished tasks is the count per cell times the cell's estimate."""
+    from campaign.costmodel import CostModel
     from campaign.errors import UserError
     from campaign.spec import parse_spec
-    from campaign.tasks import expand
-    from campaign.walltime import remaining_seconds
 
     try:
-        tasks = expand(parse_spec(str(attrs["spec_yaml"]), "the file's spec"))
+        spec = parse_spec(str(attrs["spec_yaml"]), "the file's spec")
     except (KeyError, UserError):
         return None, 0
-    if len(tasks) != len(status):
+    if spec.n_tasks != s["totals"]["tasks"]:
         return None, 0
-    seconds, n = remaining_seconds(tasks, status, wall)
-    return seconds / 3600.0, n
+    protocols = {v.name: dict(v.protocol) for v in spec.variants}
+    smp = s["sample"]
+    vnames = [x.decode(errors="replace") for x in smp["variant"]]
+    if any(v not in protocols for v in vnames):
+        return None, 0
+    model = (CostModel.fit(smp["N"], smp["E"], smp["wall"], [protocols[v] for v in vnames]) if vnames
+             else CostModel.prior())
+    total = 0.0
+    for (v, n, e), (done, failed, pending) in s["cells"].items():
+        left = failed + pending
+        if left and v in protocols:
+            total += left * float(model.seconds(n, e, [protocols[v]])[0])
+    return total / 3600.0, model.n_points

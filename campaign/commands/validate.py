@@ -50,9 +50,9 @@ def _learnt_remaining(spec, tasks):
     if not spec.output or not Path(spec.output).exists():
         return None
     try:
-        s = read_summary(spec.output)
-    except UserError:
-        return None
+        s = read_summary(spec.output, fields=("status", "wall"))
+    except UserError as exc:
+        return f"exists but cannot be resumed: {exc}"
     if s["attrs"].get("spec_hash") != spec.hash or len(s["status"]) != len(tasks):
         return "exists, written by a different spec"
     seconds, n = remaining_seconds(tasks, s["status"], s["wall"])
