@@ -84,7 +84,8 @@ OLD_FORMAT_HELP = (
     "besides the layout, the per-packing results changed meaning: A_G and A_V are now fractions of the "
     "box area (they were absolute areas) and a grain whose contacts lie in a closed half-plane is now a "
     "rattler, so the old rows cannot be converted. Run the spec again into a new file (packings are pure "
-    "functions of the spec and come out bit-identical): campaign run SPEC --out NEW.h5 (or --new to "
+    "functions of the spec, so the rerun is reproducible; a few jams stop at another step than before, "
+    "since the force residual uses the new rattler rule): campaign run SPEC --out NEW.h5 (or --new to "
     "replace this file); the spec is stored in the file's 'spec_yaml' attribute")
 
 
