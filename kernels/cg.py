@@ -67,12 +67,11 @@ Checked wrapper: ``minimize(...) -> FireResult``.
 import numpy as np
 from numba import njit
 
-from kernels.cells import _as_radii, _candidate_pairs_core
-from kernels.fire import (BELOW, CHECK_EVERY, CONVERGED, MAX_STEPS, STALLED, STATUS_NAMES,
-                          FireResult, _residual_core, _wrap_inplace, default_timestep)
-from kernels.potential import (_energy_forces_core, _energy_forces_rows, _pair_inv_sigma,
-                               _rows_from_pairs, check_exponent)
-from kernels.space import _as_box, _as_positions, _wrap_core
+from kernels.cells import _candidate_pairs_core
+from kernels.fire import (BELOW, CHECK_EVERY, CONVERGED, MAX_STEPS, STALLED,
+                          _checked_minimize_inputs, _residual_core, _starting_timestep,
+                          _wrap_inplace, fire_result)
+from kernels.potential import _energy_forces_rows, _pair_inv_sigma, _rows_from_pairs
 
 SIGMA = 0.1  # strong Wolfe curvature parameter
 C1 = 1e-4  # Armijo parameter
@@ -362,37 +361,20 @@ def minimize(positions, radii, box, exponent=2.0, *, force_tolerance=1e-6, max_s
     trial step, in units of length / force) to one over a contact's stiffness at the
     starting energy.
     """
-    pos = _as_positions(positions).copy()
-    rad = _as_radii(radii, pos.shape[0])
-    b = _as_box(box)
-    a = check_exponent(exponent)
-    tol = float(force_tolerance)
-    if not (np.isfinite(tol) and tol > 0):
-        raise ValueError(f"force_tolerance: expected a finite number > 0, got {force_tolerance!r}")
+    pos, rad, b, a, tol, skin = _checked_minimize_inputs(positions, radii, box, exponent,
+                                                         force_tolerance, max_steps, skin)
     e_tol = 0.0
     if energy_tolerance is not None:
         e_tol = float(energy_tolerance)
         if not (np.isfinite(e_tol) and e_tol > 0):
             raise ValueError("energy_tolerance: expected None or a finite number > 0, got "
                              f"{energy_tolerance!r}")
-    if int(max_steps) != max_steps or max_steps < 0:
-        raise ValueError(f"max_steps: expected an integer >= 0, got {max_steps!r}")
-    if skin is None:
-        skin = 0.6 * float(np.mean(rad))
-    if not (np.isfinite(skin) and skin > 0):
-        raise ValueError(f"skin: expected a finite number > 0, got {skin!r}")
     if step is None:
-        pi, pj = _candidate_pairs_core(pos, rad, b, 0.0)
-        e0 = _energy_forces_core(pos, b, pi, pj, _pair_inv_sigma(rad, pi, pj), a,
-                                 np.empty_like(pos))[0]
-        step = first_step(default_timestep(rad, a, e0 / len(rad)))
+        step = first_step(_starting_timestep(pos, rad, b, a))
     if not (np.isfinite(step) and step > 0):
         raise ValueError(f"step: expected a finite number > 0, got {step!r}")
-    res = _cg_core(pos, rad, b, a, tol, int(max_steps), float(skin), float(step), 0.0, e_tol)
-    status, steps, nforce, e, w, residual, nc = res
-    return FireResult(positions=_wrap_core(pos, b), energy=e, pressure=w / (2 * b[0] * b[1]),
-                      residual=residual, steps=steps, force_evaluations=nforce,
-                      status=STATUS_NAMES[status])
+    res = _cg_core(pos, rad, b, a, tol, int(max_steps), skin, float(step), 0.0, e_tol)
+    return fire_result(pos, b, res)
 
 
 def first_step(dt0):

@@ -268,13 +268,9 @@ def default_timestep(radii, exponent, energy_per_disk):
     return _dt_for(np.asarray(radii, dtype=np.float64), float(exponent), float(energy_per_disk))
 
 
-def minimize(positions, radii, box, exponent=2.0, *, force_tolerance=1e-6, max_steps=100_000,
-             skin=None, dt=None):
-    """Minimise the pair energy with FIRE 2.0 at fixed radii (checked wrapper).
-
-    ``skin`` defaults to 0.3 times the mean diameter; ``dt`` to ``default_timestep``
-    at the starting energy.
-    """
+def _checked_minimize_inputs(positions, radii, box, exponent, force_tolerance, max_steps, skin):
+    """Inputs of a checked minimiser wrapper (FIRE's and CG's): a copy of the positions,
+    radii, box, exponent, tolerance and skin (default 0.3 mean diameters), or ValueError."""
     pos = _as_positions(positions).copy()
     rad = _as_radii(radii, pos.shape[0])
     b = _as_box(box)
@@ -288,12 +284,33 @@ def minimize(positions, radii, box, exponent=2.0, *, force_tolerance=1e-6, max_s
         skin = 0.6 * float(np.mean(rad))
     if not (np.isfinite(skin) and skin > 0):
         raise ValueError(f"skin: expected a finite number > 0, got {skin!r}")
+    return pos, rad, b, a, tol, float(skin)
+
+
+def _starting_timestep(pos, rad, b, a):
+    """``default_timestep`` at the configuration's own energy per disk."""
+    pi, pj = _candidate_pairs_core(pos, rad, b, 0.0)
+    e0 = _energy_forces_core(pos, b, pi, pj, _pair_inv_sigma(rad, pi, pj), a, np.empty_like(pos))[0]
+    return default_timestep(rad, a, e0 / len(rad))
+
+
+def minimize(positions, radii, box, exponent=2.0, *, force_tolerance=1e-6, max_steps=100_000,
+             skin=None, dt=None):
+    """Minimise the pair energy with FIRE 2.0 at fixed radii (checked wrapper).
+
+    ``skin`` defaults to 0.3 times the mean diameter; ``dt`` to ``default_timestep``
+    at the starting energy.
+    """
+    pos, rad, b, a, tol, skin = _checked_minimize_inputs(positions, radii, box, exponent,
+                                                         force_tolerance, max_steps, skin)
     if dt is None:
-        pi, pj = _candidate_pairs_core(pos, rad, b, 0.0)
-        e0 = _energy_forces_core(pos, b, pi, pj, _pair_inv_sigma(rad, pi, pj), a,
-                                 np.empty_like(pos))[0]
-        dt = default_timestep(rad, a, e0 / len(rad))
-    res = _fire_core(pos, rad, b, a, tol, int(max_steps), float(skin), float(dt), 0.0)
+        dt = _starting_timestep(pos, rad, b, a)
+    res = _fire_core(pos, rad, b, a, tol, int(max_steps), skin, float(dt), 0.0)
+    return fire_result(pos, b, res)
+
+
+def fire_result(pos, b, res):
+    """``FireResult`` of a minimiser core's return tuple (positions minimised in place)."""
     status, steps, nforce, e, w, residual, nc = res
     return FireResult(positions=_wrap_core(pos, b), energy=e, pressure=w / (2 * b[0] * b[1]),
                       residual=residual, steps=steps, force_evaluations=nforce,
