@@ -68,7 +68,7 @@ import numpy as np
 from numba import njit
 
 from kernels.cells import _candidate_pairs_core
-from kernels.fire import (BELOW, CHECK_EVERY, CONVERGED, MAX_STEPS, STALLED,
+from kernels.fire import (BELOW, CHECK_EVERY, CONVERGED, DT_FACTOR, MAX_STEPS, STALLED,
                           _checked_minimize_inputs, _residual_core, _starting_timestep,
                           _wrap_inplace, fire_result)
 from kernels.potential import _energy_forces_rows, _pair_inv_sigma, _rows_from_pairs
@@ -379,8 +379,6 @@ def minimize(positions, radii, box, exponent=2.0, *, force_tolerance=1e-6, max_s
 
 def first_step(dt0):
     """First line-search step from a FIRE time step: ``dt0 = DT_FACTOR / sqrt(k)``
-    (``kernels.protocol._dt_for``) gives ``1 / k``, the step that would relax one
+    (``kernels.fire._dt_for``) gives ``1 / k``, the step that would relax one
     contact of stiffness ``k`` exactly."""
-    from kernels.protocol import DT_FACTOR
-
     return (dt0 / DT_FACTOR) ** 2

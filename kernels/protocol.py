@@ -60,10 +60,9 @@ import numpy as np
 from numba import njit
 
 from kernels.cg import _cg_core
-from kernels.fire import BELOW, CONVERGED, MAX_STEPS, _fire_core
+from kernels.fire import BELOW, CONVERGED, DT_FACTOR, MAX_STEPS, _dt_for, _fire_core
 from kernels.space import _wrap_core
 
-DT_FACTOR = 0.04  # initial FIRE time step in units of 1/sqrt(stiffness), see _dt_for
 AIM = 0.5  # the secant rule aims at E_min (1 + AIM window)
 ABORT_FRACTION = 0.5  # stop a minimisation once E_G < ABORT_FRACTION E_min
 # The first minimisation relaxes the random start (overlaps up to x ~ 0.2): its time step is
@@ -88,26 +87,6 @@ ST_MAX_STEPS = 2
 ST_STALLED = 3
 ST_TOO_DENSE = 4
 STATUS_NAMES = ("converged", "max_search", "max_steps", "stalled", "too_dense")
-
-
-@njit(cache=True)
-def _dt_for(radii, alpha, e_per_disk):
-    """Initial FIRE time step ``DT_FACTOR / sqrt(k)`` (unit masses).
-
-    ``k = (alpha - 1) x^(alpha - 2) / s^2`` is the stiffness of a contact between two
-    disks of mean diameter ``s`` at overlap ``x = 3 (alpha E)^(1/alpha)`` (a few
-    times the typical overlap at energy ``E`` per disk). With ``dt_max = 10 dt0`` the
-    factor 0.04 keeps the fastest harmonic mode stable; 0.06 already is not.
-    """
-    s = 0.0
-    for i in range(radii.shape[0]):
-        s += radii[i]
-    s = 2.0 * s / radii.shape[0]
-    x = 3.0 * (alpha * max(e_per_disk, 1e-300)) ** (1.0 / alpha)
-    if x > 0.2:
-        x = 0.2
-    k = (alpha - 1.0) * x ** (alpha - 2.0) / (s * s)
-    return DT_FACTOR / np.sqrt(k)
 
 
 @njit(cache=True)
