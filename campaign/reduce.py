@@ -349,21 +349,36 @@ def _min_positive(x):
     return float(x.min()) if len(x) else np.nan
 
 
-def reduce_campaign(paths, settings: Settings | None = None, *, distributions=True) -> Reduction:
-    """Reduce campaign file(s) (see the module docstring). ``distributions=False`` skips the
-    histogram pass (scalars, fits and the table only)."""
-    s = settings or Settings()
-    t0 = time.perf_counter()
-    everything = load_finished(paths)
-    t_load = time.perf_counter() - t0
-    # statistics use the converged packings whose identities hold; the others are
-    # counted per cell (n_excluded) and named in the notes
-    good, reasons = everything.usable()
-    fin = everything.subset(good)
-    tasks = fin.tasks
-    if len(tasks["status"]) == 0:
-        raise UserError(f"{fin.paths[0]}: the task table is empty")
-    # cells are defined by every task, finished or not
+@dataclass
+class _Grid:
+    """The cells of a reduction, (variant, N, E) for every task finished or not, and where
+    each usable packing falls (``cell``; ``order``/``bounds``: the packings sorted by cell)."""
+
+    cv: np.ndarray
+    cN: np.ndarray
+    cE: np.ndarray
+    cell: np.ndarray
+    n_done: np.ndarray
+    n_excluded: np.ndarray
+    n_failed: np.ndarray
+    n_pending: np.ndarray
+    order: np.ndarray
+    bounds: np.ndarray
+
+    @property
+    def C(self):
+        return len(self.cv)
+
+    @property
+    def n_tasks(self):
+        return self.n_done + self.n_excluded + self.n_failed + self.n_pending
+
+    def packings(self, i):
+        """Rows (into the usable packings) of cell ``i``."""
+        return self.order[self.bounds[i]:self.bounds[i + 1]]
+
+
+def _grid(everything, good, tasks) -> _Grid:
     cell_all, cv, cN, cE = _cell_index(tasks["variant"], tasks["N"].astype(np.int64),
                                        tasks["E"].astype(float))
     C = len(cv)
@@ -373,58 +388,70 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                                dtype=np.int64)
     cell = cell_everything[good]
     st = tasks["status"]
-    n_done = np.bincount(cell, minlength=C)
-    n_excluded = np.bincount(cell_everything[~good], minlength=C)
     counted = tasks["counted"]
-    n_failed = np.bincount(cell_all[counted & (st == STATUS_FAILED)], minlength=C)
-    n_pending = np.bincount(cell_all[counted & (st == STATUS_PENDING)], minlength=C)
-    n_tot = n_done + n_excluded + n_failed + n_pending
-    cells = {"variant": cv, "N": cN, "E": cE, "n_packings": n_done, "n_excluded": n_excluded,
-             "n_pending": n_pending, "n_failed": n_failed, "n_tasks": n_tot}
+    order = np.argsort(cell, kind="stable")
+    return _Grid(cv=cv, cN=cN, cE=cE, cell=cell,
+                 n_done=np.bincount(cell, minlength=C),
+                 n_excluded=np.bincount(cell_everything[~good], minlength=C),
+                 n_failed=np.bincount(cell_all[counted & (st == STATUS_FAILED)], minlength=C),
+                 n_pending=np.bincount(cell_all[counted & (st == STATUS_PENDING)], minlength=C),
+                 order=order, bounds=np.searchsorted(cell[order], np.arange(C + 1)))
+
+
+def _cell_table(fin, g: _Grid) -> dict:
+    """Counts, and mean, standard deviation and standard error of every scalar, per cell."""
+    cells = {"variant": g.cv, "N": g.cN, "E": g.cE, "n_packings": g.n_done, "n_excluded": g.n_excluded,
+             "n_pending": g.n_pending, "n_failed": g.n_failed, "n_tasks": g.n_tasks}
     for name, v in fin.scalars.items():
-        _, mean, std, sem = _group_stats(v, cell, C)
+        _, mean, std, sem = _group_stats(v, g.cell, g.C)
         cells[f"mean_{name}"] = mean
         cells[f"std_{name}"] = std
         cells[f"sem_{name}"] = sem
+    return cells
+
+
+def _count_notes(fin, g: _Grid, reasons) -> list:
+    """What the reduction leaves out: unknown layout, unusable, pending and failed packings."""
     notes = []
+    cv, cN, cE = g.cv, g.cN, g.cE
     schema = str(fin.attrs.get("schema", ""))
     if not schema.startswith("jamming-campaign/"):
         notes.append(f"{fin.paths[0]}: unknown store schema {schema!r} (expected "
                      "jamming-campaign/1); reading it as that layout")
     if len(fin) == 0:
         notes.append("no finished packings yet: nothing to fit")
-    done_total = int(len(fin))
-    excl_total = int(n_excluded.sum())
-    if excl_total:
+    if g.n_excluded.sum():
         why = ", ".join(f"{int(m.sum())} with {r}" for r, m in reasons.items() if m.any())
-        notes.append(f"{excl_total} finished packing(s) left out of the statistics ({why}); "
+        notes.append(f"{int(g.n_excluded.sum())} finished packing(s) left out of the statistics ({why}); "
                      "the cells' n_excluded counts them")
-        for i in np.flatnonzero(n_excluded > 0):
-            notes.append(f"  {cv[i]} N={cN[i]} E={cE[i]:.3g}: {n_excluded[i]} of "
-                         f"{n_done[i] + n_excluded[i]} finished left out")
-    pend_total = int(n_pending.sum())
-    fail_total = int(n_failed.sum())
+        for i in np.flatnonzero(g.n_excluded > 0):
+            notes.append(f"  {cv[i]} N={cN[i]} E={cE[i]:.3g}: {g.n_excluded[i]} of "
+                         f"{g.n_done[i] + g.n_excluded[i]} finished left out")
+    pend_total, fail_total = int(g.n_pending.sum()), int(g.n_failed.sum())
     if pend_total or fail_total:
-        notes.append(f"{done_total} packings done, {pend_total} pending, {fail_total} failed: "
+        notes.append(f"{len(fin)} packings done, {pend_total} pending, {fail_total} failed: "
                      "the reduction uses the finished ones only")
-        for i in np.flatnonzero((n_pending + n_failed) > 0):
-            notes.append(f"  {cv[i]} N={cN[i]} E={cE[i]:.3g}: {n_done[i]} done, "
-                         f"{n_pending[i]} pending, {n_failed[i]} failed")
-        errs = tasks["error"][(st == STATUS_FAILED)]
+        for i in np.flatnonzero((g.n_pending + g.n_failed) > 0):
+            notes.append(f"  {cv[i]} N={cN[i]} E={cE[i]:.3g}: {g.n_done[i]} done, "
+                         f"{g.n_pending[i]} pending, {g.n_failed[i]} failed")
+        errs = fin.tasks["error"][(fin.tasks["status"] == STATUS_FAILED)]
         if len(errs):
             first = next((e for e in errs if e), "")
             if first:
                 notes.append(f"  first failure: {first.splitlines()[-1] if first else ''}")
+    return notes
 
-    # ---- P(A_G): best Gaussian per cell and its histogram
+
+def _area_distributions(fin, g: _Grid, s: Settings, cells):
+    """P(A_G) per cell: its best Gaussian (added to ``cells``) and a histogram of about
+    sqrt(n) bins; and the width scaling sigma(A_G) ~ N^-gamma per (variant, E)."""
+    C = g.C
     A = fin.scalars.get("A_G", np.full(len(fin), np.nan))
     gm = np.full((C, 4), np.nan)
     a_edges = np.full((C, s.area_bins + 1), np.nan)
     a_counts = np.zeros((C, s.area_bins), np.int64)
-    order = np.argsort(cell, kind="stable")
-    bounds = np.searchsorted(cell[order], np.arange(C + 1))
     for i in range(C):
-        v = A[order[bounds[i]:bounds[i + 1]]]
+        v = A[g.packings(i)]
         v = v[np.isfinite(v)]
         if v.size >= 2:
             gm[i] = fits.gaussian_mle(v)
@@ -437,15 +464,21 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
     cells.update(A_G_gauss_mean=gm[:, 0], A_G_gauss_sigma=gm[:, 1], A_G_gauss_mean_err=gm[:, 2],
                  A_G_gauss_sigma_err=gm[:, 3])
     width = []
+    cv, cN, cE = g.cv, g.cN, g.cE
     for v in np.unique(cv):
         for e in np.unique(cE[cv == v]):
-            sel = np.flatnonzero((cv == v) & (cE == e) & (n_done >= s.min_packings))
+            sel = np.flatnonzero((cv == v) & (cE == e) & (g.n_done >= s.min_packings))
             r = fits.fit_width_scaling(cN[sel], gm[sel, 1], gm[sel, 3])
             width.append({"variant": v, "E": float(e), "gamma": r.value, "gamma_err": r.err,
                           "log_prefactor": r.slope, "chi2_dof": r.chi2_dof,
                           "n_sizes": r.n_points, "message": r.message})
+    return {"edges": a_edges, "counts": a_counts}, width
 
-    # ---- fits per (variant, N)
+
+def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes):
+    """The power-law fits of A_G and Psi_O against E_G and Delta Z per (variant, N), with
+    bootstrap errors; returns (fit records, normalised residuals per cell, table rows)."""
+    C, cv, cN, cE, n_done = g.C, g.cv, g.cN, g.cE, g.n_done
     fit_records, residuals, rows = [], [], []
     cols = ["E_G", "delta_Z", "A_G", "psi_O"]
     have = all(c in fin.scalars for c in cols)
@@ -470,8 +503,7 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
         row["n_cells"] = int(len(usable))
         boot = None
         if have and len(usable) >= 4 and s.n_boot > 1:
-            data = [np.column_stack([fin.scalars[c][order[bounds[i]:bounds[i + 1]]] for c in cols])
-                    for i in usable]
+            data = [np.column_stack([fin.scalars[c][g.packings(i)] for c in cols]) for i in usable]
             data = [d[np.all(np.isfinite(d), axis=1)] for d in data]
             if all(len(d) >= 2 for d in data):
                 boot = fits.bootstrap_cell_means(data, s.n_boot, seed=[s.boot_seed, gi])
@@ -520,8 +552,11 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
             row[bkey], row[f"{bkey}_err"] = f.exponent, f.exponent_err
             row[f"chi2_dof_{quantity}_{absc}"] = f.chi2_dof
         rows.append(row)
+    return fit_records, np.array(residuals).reshape(len(fit_records), C), rows
 
-    # ---- extrapolation in 1/N_G
+
+def _extrapolate(rows, notes) -> dict:
+    """Every table entry extrapolated linearly in 1/N_G, per variant."""
     extrapolated = {}
     for v in sorted({r["variant"] for r in rows}):
         rs = [r for r in rows if r["variant"] == v]
@@ -536,51 +571,78 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
         extrapolated[v] = out
         if out["A_G_star_E_n_sizes"] < 2:
             notes.append(f"{v}: fewer than two sizes with fits: no extrapolation in 1/N_G")
+    return extrapolated
 
-    # ---- distributions (one pass over every histogram)
+
+def _histograms(fin, g: _Grid, s: Settings):
+    """One pass over every histogram: summed and normalised counts per cell, the
+    self-averaging ratios, and P(sin theta)."""
+    C, cell = g.C, g.cell
     dists, selfavg = {}, {}
-    t1 = time.perf_counter()
-    if distributions:
-        for name, edges in sorted(fin.edges.items()):
-            nb = len(edges) - 1
-            centres = 0.5 * (edges[1:] + edges[:-1])
-            counts = np.zeros((C, nb), np.int64)
-            want_m = name not in SELF_AVERAGING_SKIP
-            mom = np.full((len(fin), 2), np.nan) if want_m else None
-            for pos, block in fin.histogram_blocks(name):
-                cb = cell[pos]
-                o = np.argsort(cb, kind="stable")
-                cbs = cb[o]
-                starts = np.flatnonzero(np.r_[True, cbs[1:] != cbs[:-1]])
-                counts[cbs[starts]] += np.add.reduceat(block[o], starts, axis=0)
-                if want_m:
-                    bf = block.astype(float)
-                    tot = bf.sum(axis=1)
-                    with np.errstate(invalid="ignore", divide="ignore"):
-                        mom[pos, 0] = bf @ centres / tot
-                        mom[pos, 1] = bf @ (centres * centres) / tot
-            widths = np.diff(edges)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                density = counts / counts.sum(axis=1, keepdims=True) / widths
-            dists[name] = {"edges": edges, "counts": counts, "density": density}
+    for name, edges in sorted(fin.edges.items()):
+        nb = len(edges) - 1
+        centres = 0.5 * (edges[1:] + edges[:-1])
+        counts = np.zeros((C, nb), np.int64)
+        want_m = name not in SELF_AVERAGING_SKIP
+        mom = np.full((len(fin), 2), np.nan) if want_m else None
+        for pos, block in fin.histogram_blocks(name):
+            cb = cell[pos]
+            o = np.argsort(cb, kind="stable")
+            cbs = cb[o]
+            starts = np.flatnonzero(np.r_[True, cbs[1:] != cbs[:-1]])
+            counts[cbs[starts]] += np.add.reduceat(block[o], starts, axis=0)
             if want_m:
-                tot = counts.sum(axis=1).astype(float)
+                bf = block.astype(float)
+                tot = bf.sum(axis=1)
                 with np.errstate(invalid="ignore", divide="ignore"):
-                    ens = np.stack([counts @ centres / tot, counts @ (centres**2) / tot], axis=1)
-                    ratio = mom / ens[cell]
-                rm = np.full((C, 2), np.nan)
-                rs = np.full((C, 2), np.nan)
-                for k in range(2):
-                    _, rm[:, k], rs[:, k], _ = _group_stats(ratio[:, k], cell, C)
-                selfavg[name] = {"ratio_mean": rm, "ratio_std": rs, "ensemble_moments": ens}
-        if "contact_angle" in dists:
-            se = np.linspace(0.0, 1.0, s.sin_bins + 1)
-            d = dists["contact_angle"]
-            dens = np.full((C, s.sin_bins), np.nan)
-            has = d["counts"].sum(axis=1) > 0
-            if has.any():
-                dens[has] = fits.sin_theta_density(d["counts"][has], d["edges"], se)
-            dists["sin_theta"] = {"edges": se, "density": dens}
+                    mom[pos, 0] = bf @ centres / tot
+                    mom[pos, 1] = bf @ (centres * centres) / tot
+        widths = np.diff(edges)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            density = counts / counts.sum(axis=1, keepdims=True) / widths
+        dists[name] = {"edges": edges, "counts": counts, "density": density}
+        if want_m:
+            tot = counts.sum(axis=1).astype(float)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ens = np.stack([counts @ centres / tot, counts @ (centres**2) / tot], axis=1)
+                ratio = mom / ens[cell]
+            rm = np.full((C, 2), np.nan)
+            rs = np.full((C, 2), np.nan)
+            for k in range(2):
+                _, rm[:, k], rs[:, k], _ = _group_stats(ratio[:, k], cell, C)
+            selfavg[name] = {"ratio_mean": rm, "ratio_std": rs, "ensemble_moments": ens}
+    if "contact_angle" in dists:
+        se = np.linspace(0.0, 1.0, s.sin_bins + 1)
+        d = dists["contact_angle"]
+        dens = np.full((C, s.sin_bins), np.nan)
+        has = d["counts"].sum(axis=1) > 0
+        if has.any():
+            dens[has] = fits.sin_theta_density(d["counts"][has], d["edges"], se)
+        dists["sin_theta"] = {"edges": se, "density": dens}
+    return dists, selfavg
+
+
+def reduce_campaign(paths, settings: Settings | None = None, *, distributions=True) -> Reduction:
+    """Reduce campaign file(s) (see the module docstring). ``distributions=False`` skips the
+    histogram pass (scalars, fits and the table only)."""
+    s = settings or Settings()
+    t0 = time.perf_counter()
+    everything = load_finished(paths)
+    t_load = time.perf_counter() - t0
+    # statistics use the converged packings whose identities hold; the others are
+    # counted per cell (n_excluded) and named in the notes
+    good, reasons = everything.usable()
+    fin = everything.subset(good)
+    if len(fin.tasks["status"]) == 0:
+        raise UserError(f"{fin.paths[0]}: the task table is empty")
+    g = _grid(everything, good, fin.tasks)  # cells are defined by every task, finished or not
+    cells = _cell_table(fin, g)
+    notes = _count_notes(fin, g, reasons)
+    area_hist, width = _area_distributions(fin, g, s, cells)
+    fit_records, residuals, rows = _scaling_fits(fin, g, s, cells, notes)
+    extrapolated = _extrapolate(rows, notes)
+    t1 = time.perf_counter()
+    dists, selfavg = _histograms(fin, g, s) if distributions else ({}, {})
     t_hist = time.perf_counter() - t1
 
     from campaign import tradeoff
@@ -589,16 +651,16 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                                         seed=s.boot_seed, usable=good)
     notes += vnotes
     alpha_e, theta, alpha_v = fits.three_disk_peaks(species_radii(fin.attrs))
-    meta = {"sources": fin.paths, "done": done_total, "excluded": excl_total, "pending": pend_total,
-            "failed": fail_total, "total": int(n_tot.sum()), "n_boot": s.n_boot,
+    meta = {"sources": fin.paths, "done": int(len(fin)), "excluded": int(g.n_excluded.sum()),
+            "pending": int(g.n_pending.sum()), "failed": int(g.n_failed.sum()),
+            "total": int(g.n_tasks.sum()), "n_boot": s.n_boot,
             "boot_seed": s.boot_seed, "min_packings": s.min_packings,
             "fit_energies": [float(x) for x in s.fit_energies],
             "spec_hash": fin.attrs.get("spec_hash", ""), "name": fin.attrs.get("name", ""),
             "seconds": {"load": t_load, "histograms": t_hist,
                         "total": time.perf_counter() - t0}}
     return Reduction(cells=cells, distributions=dists, self_averaging=selfavg,
-                     area_hist={"edges": a_edges, "counts": a_counts}, fits=fit_records,
-                     residuals=np.array(residuals).reshape(len(fit_records), C),
+                     area_hist=area_hist, fits=fit_records, residuals=residuals,
                      width_scaling=width, rows=rows, extrapolated=extrapolated,
                      peaks={"alpha_e": alpha_e, "theta": theta, "alpha_v": alpha_v},
                      notes=notes, meta=meta, variants=variants)
