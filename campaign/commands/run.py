@@ -9,10 +9,7 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import signal
-import socket
-import subprocess
 import sys
 import time
 import traceback
@@ -56,66 +53,6 @@ def configure(parser):
 
 def _log(msg):
     print(msg, file=sys.stderr, flush=True)
-
-
-def _git_commit() -> str:
-    here = Path(__file__).resolve().parent
-    try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5)
-        if out.returncode == 0 and out.stdout.strip():
-            return out.stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        pass
-    return "unknown"
-
-
-def _versions(mpi=None) -> dict:
-    from importlib import metadata
-
-    out = {"python": platform.python_version()}
-    for dist in ("numpy", "numba", "h5py", "mpi4py", "mpich", "pyyaml", "scipy"):
-        try:
-            out[dist] = metadata.version(dist)
-        except metadata.PackageNotFoundError:
-            out[dist] = "not installed"
-    try:
-        import h5py
-
-        out["hdf5"] = h5py.version.hdf5_version
-    except ImportError:
-        pass
-    if mpi is None:  # not under MPI: ask the library for its version without initialising it
-        try:
-            import mpi4py
-
-            mpi4py.rc.initialize = mpi4py.rc.finalize = False
-            from mpi4py import MPI as mpi
-        except Exception:  # noqa: BLE001 - provenance is best effort
-            mpi = None
-    if mpi is not None:
-        try:
-            out["mpi_library"] = " ".join(mpi.Get_library_version().split())[:200]
-        except Exception:  # noqa: BLE001
-            pass
-    return out
-
-
-def provenance(launcher, n_workers, mpi=None) -> dict:
-    from campaign import __version__
-
-    return {"package_version": __version__, "git_commit": _git_commit(), "versions": _versions(mpi),
-            "launcher": launcher, "workers": n_workers, "hosts": [socket.gethostname()],
-            "argv": sys.argv[:], "pid": os.getpid()}
-
-
-def _peak_rss_mb() -> float:
-    """This process's peak resident memory so far (MB), as the kernel counts it."""
-    try:
-        import resource
-
-        return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)  # kB on Linux
-    except (ImportError, OSError):
-        return float("nan")
 
 
 def _set_numba_cache(args):
@@ -162,9 +99,13 @@ def main(args) -> int:
             _refuse_split_launch(refused)
         if comm.Get_size() > 1:
             if comm.Get_rank() != 0:
-                return _mpi_worker(comm)
+                from campaign.engine import mpi_worker
+
+                return mpi_worker(comm)
             return _mpi_master(args, comm, MPI)
-    return _run(args, None, None)
+    from campaign.engine import run_campaign
+
+    return run_campaign(args)
 
 
 def _refuse_split_launch(message):
@@ -178,54 +119,14 @@ def _refuse_split_launch(message):
     raise UserError(message)
 
 
-def _mpi_worker(comm) -> int:
-    from campaign.comm import mpi_worker
-
-    context = comm.bcast(None, root=0)
-    if context is None:  # the master refused to start (bad spec, refused file): it says why
-        return 0
-    comm.gather(socket.gethostname(), root=0)
-    try:
-        _node_warm_up(comm, context, first_warms=True)
-        mpi_worker(comm, context)
-    except BaseException:  # noqa: BLE001 - a worker-side fault must not hang the job
-        traceback.print_exc()
-        sys.stderr.flush()
-        comm.Abort(1)
-    return 0
-
-
-def _node_warm_up(comm, context, first_warms):
-    """One compilation per node: the node's lowest rank fills the numba cache, the others wait.
-
-    On the master's node the master (rank 0, always first) has compiled already; on other nodes
-    (possibly other CPUs, hence other cache entries) the first worker compiles while the rest of
-    the node waits, instead of every rank compiling the same kernels at once.
-    """
-    from mpi4py import MPI
-
-    node = comm.Split_type(MPI.COMM_TYPE_SHARED)
-    try:
-        if first_warms and node.Get_rank() == 0 and context.get("warm_up", True):
-            from campaign.worker import resolve
-
-            fn = resolve(context.get("task_function"))
-            if hasattr(fn, "warm_up"):
-                try:
-                    fn.warm_up(context)
-                except Exception:  # noqa: BLE001 - the tasks will report it
-                    pass
-        node.Barrier()
-    finally:
-        node.Free()
-
-
 def _mpi_master(args, comm, MPI) -> int:
     from campaign.errors import UserError
 
+    from campaign.engine import run_campaign
+
     state = {"sent": False}
     try:
-        return _run(args, comm, MPI, state)
+        return run_campaign(args, comm, MPI, state)
     except UserError:
         if not state["sent"]:
             comm.bcast(None, root=0)
@@ -241,124 +142,3 @@ def _mpi_master(args, comm, MPI) -> int:
         time.sleep(0.5)  # let the launcher forward the message before MPI_Abort tears the job down
         comm.Abort(1)
     return 1
-
-
-def _run(args, mpi_comm, MPI, state=None) -> int:
-    import numpy as np
-
-    from campaign.comm import InlineComm, LocalComm, MPIComm
-    from campaign.errors import UserError
-    from campaign.master import Master
-    from campaign.progress import Progress
-    from campaign.spec import load_spec
-    from campaign.store import Store
-    from campaign.tasks import energy_floor_problems, expand
-    from campaign.worker import resolve
-
-    state = state if state is not None else {}
-    spec = load_spec(args.spec)
-    out = Path(args.out or spec.output)
-    retries = spec.retries if args.retries is None else args.retries
-    if retries < 0:
-        raise UserError(f"--retries must be >= 0, got {retries}")
-    if mpi_comm is not None:
-        launcher, n_workers = "mpi", mpi_comm.Get_size() - 1
-    elif args.launcher == "inline":
-        launcher, n_workers = "inline", 1
-    else:
-        n_workers = args.workers if args.workers is not None else (os.cpu_count() or 1)
-        if n_workers < 1:
-            raise UserError(f"--workers must be at least 1, got {n_workers}")
-        launcher = "local"
-    if args.task_function == "kernels":
-        problems = energy_floor_problems(spec)
-        if problems:
-            raise UserError(f"{len(problems)} problem(s) in the spec:\n  " + "\n  ".join(problems))
-    tasks = expand(spec)
-    fn = resolve(args.task_function)
-    context = {"task_function": args.task_function, "system": spec.system.canonical(),
-               "observables": list(spec.observables), "histograms": list(spec.histograms),
-               "bins": {h: list(e) for h, e in spec.bins}, "configurations": spec.configurations,
-               "protocol_warmup": spec.variants[0].protocol_dict}
-    edges = fn.histogram_edges(context)
-    context["edges"] = {h: [float(x) for x in e] for h, e in edges.items()}
-
-    store = Store(out, spec, tasks, edges, new=args.new, provenance=provenance(launcher, n_workers, MPI),
-                  log=_log)
-    comm = None
-    outcome = None
-    try:
-        todo = int(np.count_nonzero((store.status == 0) | ((store.status == 2) if args.retry_failed else False)))
-        context["warm_up"] = bool(todo)
-        if todo and hasattr(fn, "warm_up") and launcher != "inline":
-            if sys.stderr.isatty() and not args.quiet:
-                _log(f"campaign: compiling the kernels (once; cached in {os.environ.get('NUMBA_CACHE_DIR')})")
-            t_warm, cpu_warm = time.monotonic(), time.process_time()
-            fn.warm_up(context)
-            if not args.quiet:  # the per-node start-up cost a job of a chain pays (docs: slurm/README.md)
-                _log(f"campaign: kernels ready in {time.monotonic() - t_warm:.1f} s, "
-                     f"{time.process_time() - cpu_warm:.1f} s of CPU (compiled, or loaded from the numba "
-                     f"cache {os.environ.get('NUMBA_CACHE_DIR')})")
-        if mpi_comm is not None:
-            mpi_comm.bcast(context, root=0)
-            state["sent"] = True
-            hosts = mpi_comm.gather(socket.gethostname(), root=0)
-            store.run["hosts"] = sorted(set(hosts))
-            _node_warm_up(mpi_comm, context, first_warms=False)  # rank 0 has warmed its node already
-            comm = MPIComm(mpi_comm)
-        elif launcher == "inline" or todo == 0:  # nothing to do: no worker processes to start
-            comm = InlineComm(context)
-        else:
-            comm = LocalComm(context, min(n_workers, max(1, todo)))
-        comm.dead = comm.wait_ready()  # workers have loaded (not compiled: see warm_up above) the kernels
-        show = not args.quiet
-        progress = Progress(len(tasks), sidecar=Path(str(out) + ".progress.json"),
-                            enabled=None if show else False)
-        wall = None
-        if args.deadline is not None:
-            from campaign.walltime import Deadline
-
-            wall = Deadline(store, tasks, args.deadline, args.margin)
-        master = Master(comm, store, tasks, retries=retries, depth=max(1, args.depth), progress=progress,
-                        grace=args.grace, redo_failed=args.retry_failed, log=_log, can_dispatch=wall)
-        if getattr(args, "warned", None):
-            master._on_signal(signal.SIGUSR1, None)
-        t0, cpu0 = time.monotonic(), time.process_time()
-        outcome = master.run()
-        cpu = time.process_time() - cpu0
-        progress.finish()
-        comm.close(abandon=outcome["abandoned"] > 0)
-        comm = None
-        counts = store.counts_by_status()
-        store.close(completed=outcome["done"], failed=outcome["failed"], stopped=outcome["stopped"],
-                    seconds=round(time.monotonic() - t0, 3), master_cpu_seconds=round(cpu, 3),
-                    master_peak_rss_mb=_peak_rss_mb())
-    except BaseException:
-        if comm is not None:
-            try:
-                comm.close(abandon=True)
-            except Exception:  # noqa: BLE001
-                pass
-        store.abandon()
-        raise
-    msg = (f"campaign: {out}: {counts['done']} done, {counts['failed']} failed, {counts['pending']} pending "
-           f"of {len(tasks)} tasks (this run: {outcome['done']} done, {outcome['failed']} failed)")
-    _log(msg)
-    if counts["failed"]:
-        _log(f"campaign: see the failures with: campaign status {out}")
-    if outcome["stopped"] is not None and counts["pending"]:
-        resume = " ".join(["campaign", "run"] + ([args.spec] if args.spec else []) + ["--out", str(out)])
-        if mpi_comm is not None:
-            resume = "mpiexec -n K " + resume
-        from campaign.walltime import fit_from_store
-
-        pending = [tasks[i] for i in np.flatnonzero(store.status == 0)]
-        hours = fit_from_store(store, tasks).total_seconds(pending) / 3600.0
-        _log(f"campaign: stopped ({outcome['stopped']}); {counts['pending']} task(s) left, about {hours:.3g} "
-             f"core-hours. Resume with: {resume}")
-        # Running out of allocated time is the normal end of one job of a chain: success.
-        code = {"SIGINT": 130, "SIGTERM": 143, "SIGUSR1": 0, "wall time": 0}.get(outcome["stopped"], 3)
-        if mpi_comm is not None and outcome["abandoned"]:
-            mpi_comm.Abort(code)  # workers still busy with abandoned tasks: do not wait for them
-        return code
-    return 0
