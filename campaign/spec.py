@@ -33,8 +33,10 @@ from kernels.names import HISTOGRAMS, OBSERVABLES  # noqa: F401 - re-exported
 #: protocol keys a spec may set (forwarded to ``kernels.jam`` as keyword arguments)
 PROTOCOL_DEFAULTS = {"window": 0.1, "force_tolerance": 1e-6}
 PROTOCOL_KEYS = ("window", "force_tolerance", "search_tolerance", "phi_start", "max_search", "max_steps",
-                 "minimizer", "search", "delta", "skin", "start")
+                 "minimizer", "search", "delta", "skin", "start", "route")
 MINIMIZERS = ("fire",)
+#: how a packing reaches its window (``kernels.jamming.ROUTES``): "ohern" (default) or "pressure"
+ROUTES = ("ohern", "pressure")
 SEARCH_RULES = ("secant", "halving")
 #: where each packing's search starts: "random" (independent packings, the paper's protocol) or
 #: "ladder" (the same seed's packing at the next higher energy of the grid, decompressed)
@@ -467,7 +469,7 @@ def _protocol(c, value, path, allow, base=None):
         "max_steps": dict(lo=1, hi=10**12, integer=True),
     }
     choices = {"search": ("search rule", SEARCH_RULES), "start": ("start", STARTS),
-               "minimizer": ("minimizer", MINIMIZERS)}
+               "minimizer": ("minimizer", MINIMIZERS), "route": ("route", ROUTES)}
     for k, v in m.items():
         if k in checks:
             x = c.number(v, path + (k,), **checks[k])
@@ -482,6 +484,8 @@ def _protocol(c, value, path, allow, base=None):
                 out[k] = x
     if out.get("start") == "random":
         del out["start"]  # the default: independent packings keep their ids
+    if out.get("route") == "ohern":
+        del out["route"]  # the default route: its packings keep their ids
     return out
 
 
