@@ -15,12 +15,21 @@ For each N (default 256, 1024, 4096):
   force tolerance is the default 1e-6, or the first decade above the float64 floor
   (``kernels.jamming.energy_floor``) where 1e-6 is refused (N = 4096 at 1e-16).
 
+With ``--routes ohern pressure`` the time to jam is measured for each route of
+``kernels.jam`` (``route=...``, see ``kernels.barostat``) side by side, seed by seed, and
+the table gives the ratio of the median force evaluations (and times) to the first
+route. ``--profile`` adds, for each route, the force evaluations spent in each
+minimisation (the k-th from the difference of two runs bounded by ``max_search = k``
+and ``k - 1``: the searches are deterministic), median over seeds.
+
 Prints a table and, with ``--json FILE``, writes every measurement as JSON. For the
 one-core comparison run it pinned to one CPU, e.g. ``taskset -c 0`` (XLA then uses
 one thread, numba kernels are serial anyway).
 
     python benchmarks/bench_jam.py --json bench.json
     python benchmarks/bench_jam.py --sizes 256 1024 --energies 1e-6 --seeds 2   # quick
+    python benchmarks/bench_jam.py --no-jax --sizes 1024 --energies 1e-16 --steps 10 \
+        --routes ohern pressure --seeds 20 --json routes.json
 """
 
 import argparse
@@ -156,6 +165,20 @@ def _jam_time(n, e, seed, **settings):
                 force_evaluations=p.force_evaluations, n_nonrattlers=p.n_nonrattlers)
 
 
+def _profile(n, e, seed, **settings):
+    """Force evaluations of each minimisation of one search (see module docstring)."""
+    import kernels
+
+    total = kernels.jam(n, e, seed, **settings)
+    per, prev = [], 0
+    for k in range(1, total.iterations + 1):
+        cum = (total.force_evaluations if k == total.iterations
+               else kernels.jam(n, e, seed, max_search=k, **settings).force_evaluations)
+        per.append(cum - prev)
+        prev = cum
+    return per
+
+
 def _tolerance_for(n, e):
     """The default force tolerance, or the first decade above the float64 floor."""
     from kernels.jamming import DEFAULTS, energy_floor, initial_state
@@ -178,6 +201,10 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=2000, help="FIRE steps per step-cost sample")
     ap.add_argument("--no-jax", action="store_true", help="skip the JAX MD comparison")
     ap.add_argument("--no-jam", action="store_true", help="skip the time-to-jam part")
+    ap.add_argument("--routes", nargs="+", default=["ohern"], choices=["ohern", "pressure"],
+                    help="routes of kernels.jam to time side by side (ratios to the first)")
+    ap.add_argument("--profile", action="store_true",
+                    help="force evaluations per minimisation of each route (median over seeds)")
     ap.add_argument("--json", metavar="FILE", help="write all measurements as JSON")
     args = ap.parse_args(argv)
 
@@ -230,17 +257,41 @@ def main(argv=None):
         for e in args.energies:
             for n in args.sizes:
                 tol = _tolerance_for(n, e)
-                runs = [_jam_time(n, e, seed, force_tolerance=tol) for seed in range(args.seeds)]
-                row = dict(n=n, energy=e, force_tolerance=tol,
-                           median_seconds=statistics.median(r["seconds"] for r in runs),
-                           median_force_evaluations=statistics.median(
-                               r["force_evaluations"] for r in runs),
-                           median_iterations=statistics.median(r["iterations"] for r in runs),
-                           converged=sum(r["status"] == "converged" for r in runs),
-                           runs=runs)
-                results["time_to_jam"].append(row)
-                print(f"jam N={n} E={e:g} tol={tol:g}: median {row['median_seconds']:.2f} s, "
-                      f"{row['converged']}/{len(runs)} converged", flush=True)
+                runs = {r: [] for r in args.routes}
+                for seed in range(args.seeds):  # routes interleaved: same machine load
+                    for route in args.routes:
+                        runs[route].append(_jam_time(n, e, seed, force_tolerance=tol,
+                                                     route=route))
+                base = None
+                for route in args.routes:
+                    rr = runs[route]
+                    row = dict(n=n, energy=e, force_tolerance=tol, route=route,
+                               median_seconds=statistics.median(r["seconds"] for r in rr),
+                               median_force_evaluations=statistics.median(
+                                   r["force_evaluations"] for r in rr),
+                               median_iterations=statistics.median(r["iterations"] for r in rr),
+                               converged=sum(r["status"] == "converged" for r in rr),
+                               runs=rr)
+                    if base is None:
+                        base = row
+                    row["force_evaluation_ratio"] = (row["median_force_evaluations"]
+                                                     / base["median_force_evaluations"])
+                    row["time_ratio"] = row["median_seconds"] / base["median_seconds"]
+                    if args.profile:
+                        prof = [_profile(n, e, seed, force_tolerance=tol, route=route)
+                                for seed in range(args.seeds)]
+                        row["profile"] = prof
+                        depth = max(len(p) for p in prof)
+                        row["median_profile"] = [statistics.median(p[k] for p in prof if len(p) > k)
+                                                 for k in range(depth)]
+                        print(f"profile N={n} E={e:g} {route}: force evaluations per "
+                              f"minimisation (median) {[int(x) for x in row['median_profile']]}",
+                              flush=True)
+                    results["time_to_jam"].append(row)
+                    print(f"jam N={n} E={e:g} tol={tol:g} route={route}: median "
+                          f"{row['median_seconds']:.2f} s, "
+                          f"{row['median_force_evaluations']:.0f} force evaluations, "
+                          f"{row['converged']}/{len(rr)} converged", flush=True)
 
     print()
     print("| N | ours per step (us) | JAX MD per step (us) | ratio |")
@@ -251,14 +302,15 @@ def main(argv=None):
         print(f"| {r['n']} | {r['ours_us']:.1f} | {j} | {s} |")
     if results["time_to_jam"]:
         print()
-        print("| N | E | force tolerance | median time to jam (s) | median force evaluations | "
+        print("| N | E | force tolerance | route | median time to jam (s) | "
+              "median force evaluations | ratio to first route (evaluations / time) | "
               "median iterations | converged |")
-        print("|---:|---:|---:|---:|---:|---:|---:|")
+        print("|---:|---:|---:|---|---:|---:|---:|---:|---:|")
         for r in results["time_to_jam"]:
-            print(f"| {r['n']} | {r['energy']:g} | {r['force_tolerance']:g} | "
-                  f"{r['median_seconds']:.2f} | "
-                  f"{r['median_force_evaluations']:.0f} | {r['median_iterations']:.0f} | "
-                  f"{r['converged']}/{len(r['runs'])} |")
+            print(f"| {r['n']} | {r['energy']:g} | {r['force_tolerance']:g} | {r['route']} | "
+                  f"{r['median_seconds']:.2f} | {r['median_force_evaluations']:.0f} | "
+                  f"{r['force_evaluation_ratio']:.2f} / {r['time_ratio']:.2f} | "
+                  f"{r['median_iterations']:.0f} | {r['converged']}/{len(r['runs'])} |")
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(results, fh, indent=2)
