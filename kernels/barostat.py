@@ -46,11 +46,11 @@ import numpy as np
 from numba import njit
 
 from kernels.cells import _candidate_pairs_core
-from kernels.fire import (A_START, CONVERGED, DT_MAX_FACTOR, DT_MIN_FACTOR, F_A, F_DEC, F_INC,
+from kernels.fire import (A_START, BELOW, CONVERGED, DT_MAX_FACTOR, DT_MIN_FACTOR, F_A, F_DEC, F_INC,
                           MAX_STEPS, N_DELAY, N_NEG_MAX, STALLED, CHECK_EVERY, _fire_core,
                           _residual_core, _wrap_inplace)
 from kernels.potential import pair_energy_force_inv, _pair_inv_sigma, _rows_from_pairs
-from kernels.protocol import (AIM, E_FIRST_GUESS, ST_CONVERGED, ST_MAX_SEARCH, ST_MAX_STEPS,
+from kernels.protocol import (ABORT_FRACTION, AIM, E_FIRST_GUESS, ST_CONVERGED, ST_MAX_SEARCH, ST_MAX_STEPS,
                               ST_STALLED, ST_TOO_DENSE, _dt_for, _spatial_order)
 from kernels.space import _wrap_core
 
@@ -294,6 +294,7 @@ def _pressure_core(positions, radii0, box, alpha, e_min, window, tol, search_tol
     w_last = 0.0
     res_last = np.inf
     e_guess = max(e_goal, E_FIRST_GUESS)
+    abort = ABORT_FRACTION * e_min * n
     while True:
         it += 1
         skin = skin_factor * mean_d * lam
@@ -339,12 +340,20 @@ def _pressure_core(positions, radii0, box, alpha, e_min, window, tol, search_tol
             skin = skin_factor * mean_d * lam
             dt0 = _dt_for(radii, alpha, e_guess)
             st, steps, nf, e, w, res, nc = _fire_core(pos, radii, box, alpha, tol, max_steps,
-                                                      skin, dt0, 0.0)
+                                                      skin, dt0, abort)
             nforce += nf
             e_last = e
             w_last = w
             res_last = res
             eg = e / n
+            if st == BELOW:
+                # the packing rearranged and unjams at these radii: back to the same
+                # target pressure, which recompresses it (no secant from this state)
+                have1 = False
+                if it >= max_search:
+                    status = ST_MAX_SEARCH
+                    break
+                continue
             if st == MAX_STEPS:
                 status = ST_MAX_STEPS
                 break
