@@ -24,18 +24,30 @@ step of ``kernels.protocol._dt_for`` serves both.
 
 Route (``_pressure_core``):
 
-1. Aim: near jamming ``E_G ~ (N_c / (alpha N)) x^alpha`` and ``P ~ N_c x^(alpha - 1) / (2 A)``
-   with ``x`` the typical relative overlap and ``N_c ~ 2 N`` contacts, so the target
-   ``E_goal = E_min (1 + AIM window)`` gives a first ``P_t``.
-2. Minimise H at ``P_t`` (particle force residual below ``search_tolerance``, pressure
-   within ``PRESSURE_TOL`` of ``P_t``).
-3. Measure ``E_G``. If it is in the window, polish at fixed radii to ``force_tolerance``
+1. Relax the random start at its radii (FIRE at fixed radii to ``search_tolerance``, as
+   the first minimisation of the O'Hern search; a start that unjams, ``E_G < E_min / 2``,
+   goes straight to step 3 with the pressure of the scaling forms below).
+2. Stages: minimise H at a target ``P_t`` aimed ``STAGE_STEP`` (100) lower in energy than
+   the latest minimum, never below the goal ``E_goal = E_min (1 + AIM window)``. Near
+   jamming ``E_G ~ P^(alpha / (alpha - 1))`` (``E_G ~ x^alpha``, ``P ~ x^(alpha - 1)`` with
+   ``x`` the typical relative overlap), so ``P_t = P (E_stage / E_G)^((alpha - 1) / alpha)``
+   from the measured ``P`` and ``E_G``. An enthalpy minimum has a particle force residual
+   below ``search_tolerance`` and ``|P - P_t| <= PRESSURE_TOL P_t``.
+3. At the goal: if ``E_G`` is in the window, polish at fixed radii to ``force_tolerance``
    with ``kernels.fire._fire_core``; done when the polished minimum is still in the
-   window. Otherwise correct ``P_t`` by a secant step in ``(ln P, ln E)`` (slope from
-   the two latest minima when it lies within a factor 2 of the scaling value
-   ``alpha / (alpha - 1)``, else the scaling value) and go to 2 from the current state.
-   Everything is done on pressures and forces: at ``E_G = 1e-16`` energy *differences*
-   are below the float64 rounding of the total energy, the energy itself is not.
+   window (a polish in which the packing unjams, ``E_G < E_min / 2``, is stopped and the
+   same ``P_t`` recompresses it). Otherwise correct ``P_t`` by a secant step in
+   ``(ln P, ln E)`` (slope from the two latest minima when it lies within a factor 2 of
+   the scaling value ``alpha / (alpha - 1)``, else the scaling value) and minimise H
+   again from the current state. Everything is done on pressures and forces: at
+   ``E_G = 1e-16`` energy *differences* are below the float64 rounding of the total
+   energy, the energy itself is not.
+
+Each stage costs about as many force evaluations as one minimisation of the O'Hern
+search with the secant rule (the slow part is the same: relaxing the soft modes near
+jamming from a residual of 1e-2 to 1e-4), and there are half as many stages, but the
+stages are larger steps: over seeds the two routes cost about the same
+(docs/PRESSURE_ROUTE.md has the measurements).
 
 Bounds, status codes and the returned tuple are those of ``kernels.protocol._ohern_core``:
 ``max_search`` bounds the minimisations (each enthalpy minimisation and each polish
@@ -58,7 +70,6 @@ BARO_SCALE = 0.5  # barostat coordinate u = BARO_SCALE d sqrt(n) ln(lambda)
 PRESSURE_TOL = 1e-3  # relative pressure accuracy of an enthalpy minimum
 CONTACTS_PER_DISK = 2.0  # N_c / N of the first pressure estimate (isostatic: 2)
 STAGE_STEP = 1e-2  # energy factor between pressure stages
-E_FIRST = 1e-6  # energy aimed at by the first stage
 
 
 @njit(cache=True)
@@ -275,10 +286,12 @@ def _pressure_core(positions, radii0, box, alpha, e_min, window, tol, search_tol
     lam_max = max_radius / rmax0
     c_baro = baro_scale * mean_d * np.sqrt(n)
     expo = alpha / (alpha - 1.0)  # E ~ P^expo near jamming
-    # first aim from the scaling forms with N_c = CONTACTS_PER_DISK n contacts
-    e_stage = max(e_goal, E_FIRST)
-    x = (alpha * e_stage / CONTACTS_PER_DISK) ** (1.0 / alpha)
-    p_t = CONTACTS_PER_DISK * n * x ** (alpha - 1.0) / (2.0 * area)
+    # the pressure of E_goal from the scaling forms with N_c = CONTACTS_PER_DISK n contacts,
+    # used when no jammed state has been measured
+    x = (alpha * e_goal / CONTACTS_PER_DISK) ** (1.0 / alpha)
+    p_goal = CONTACTS_PER_DISK * n * x ** (alpha - 1.0) / (2.0 * area)
+    p_t = p_goal
+    e_stage = np.inf
     order = np.arange(n)
     pos = positions.copy()
     rad0 = radii0.copy()
@@ -299,13 +312,19 @@ def _pressure_core(positions, radii0, box, alpha, e_min, window, tol, search_tol
         it += 1
         skin = skin_factor * mean_d * lam
         dt0 = _dt_for(rad0 * lam, alpha, e_guess)
-        st, lam, steps, nf, e, w, res = _enthalpy_core(pos, rad0, box, alpha, p_t, lam,
-                                                       search_tol, PRESSURE_TOL, max_steps,
-                                                       skin, dt0, c_baro, lam_max)
+        if it == 1:
+            # relax the random start at its radii, as the first O'Hern minimisation
+            st, steps, nf, e, w, res, nc = _fire_core(pos, radii, box, alpha, search_tol,
+                                                      max_steps, skin, dt0, abort)
+        else:
+            st, lam, steps, nf, e, w, res = _enthalpy_core(pos, rad0, box, alpha, p_t, lam,
+                                                           search_tol, PRESSURE_TOL, max_steps,
+                                                           skin, dt0, c_baro, lam_max)
         nforce += nf
         if verbose:
             print(it, st, steps, nf, e / n, w / (2.0 * area) / p_t, res, lam)
         if it == 1:
+            # the random start has relaxed: reorder the disks by cell
             perm = _spatial_order(pos, box, mean_d)
             pos = pos[perm].copy()
             rad0 = rad0[perm].copy()
@@ -313,19 +332,26 @@ def _pressure_core(positions, radii0, box, alpha, e_min, window, tol, search_tol
         e_last = e
         w_last = w
         res_last = res
+        eg = e / n
         if st == MAX_STEPS:
             status = ST_MAX_STEPS
             break
+        if it == 1 and (st == BELOW or (st == CONVERGED and eg <= 0.0)):
+            # unjammed at the start's radii: go straight to the goal's pressure
+            e_stage = e_goal
+            if it >= max_search:
+                status = ST_MAX_SEARCH
+                break
+            continue
         if st != CONVERGED:
             status = ST_TOO_DENSE if lam > lam_max else ST_STALLED
             break
-        eg = e / n
         if eg > 0.0:
             e_guess = eg
         if e_stage > e_goal and eg > e_max:
-            # an intermediate stage: lower the pressure by the scaling factor
-            e_stage = max(e_goal, e_stage * stage_step)
-            p_t *= (e_stage / eg) ** (1.0 / expo)
+            # an intermediate stage: aim STAGE_STEP lower with the scaling exponent
+            e_stage = max(e_goal, min(e_stage, eg) * stage_step)
+            p_t = w / (2.0 * area) * (e_stage / eg) ** (1.0 / expo)
             if it >= max_search:
                 status = ST_MAX_SEARCH
                 break
