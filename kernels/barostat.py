@@ -35,8 +35,8 @@ Route (``_pressure_core``):
    below ``search_tolerance`` and ``|P - P_t| <= PRESSURE_TOL P_t``.
 3. At the goal: if ``E_G`` is in the window, polish at fixed radii to ``force_tolerance``
    with ``kernels.fire._fire_core``; done when the polished minimum is still in the
-   window (a polish in which the packing unjams, ``E_G < E_min / 2``, is stopped and the
-   same ``P_t`` recompresses it). Otherwise correct ``P_t`` by a secant step in
+   window (a polish in which the energy creeps below ``E_min`` is stopped there and the
+   same ``P_t`` recompresses the packing). Otherwise correct ``P_t`` by a secant step in
    ``(ln P, ln E)`` (slope from the two latest minima when it lies within a factor 2 of
    the scaling value ``alpha / (alpha - 1)``, else the scaling value) and minimise H
    again from the current state. Everything is done on pressures and forces: at
@@ -365,16 +365,19 @@ def _pressure_core(positions, radii0, box, alpha, e_min, window, tol, search_tol
                 radii[i] = lam * rad0[i]
             skin = skin_factor * mean_d * lam
             dt0 = _dt_for(radii, alpha, e_guess)
+            # stopped as soon as the energy leaves the window below: a polish that creeps
+            # out of the window cannot end in it, and below E_min the forces approach
+            # the float64 floor (a creep to 0.6 E_min stalled at a residual of 3e-6)
             st, steps, nf, e, w, res, nc = _fire_core(pos, radii, box, alpha, tol, max_steps,
-                                                      skin, dt0, abort)
+                                                      skin, dt0, e_min * n)
             nforce += nf
             e_last = e
             w_last = w
             res_last = res
             eg = e / n
             if st == BELOW:
-                # the packing rearranged and unjams at these radii: back to the same
-                # target pressure, which recompresses it (no secant from this state)
+                # the packing rearranged and left the window below at these radii: back
+                # to the same target pressure, which recompresses it (no secant from here)
                 have1 = False
                 if it >= max_search:
                     status = ST_MAX_SEARCH
