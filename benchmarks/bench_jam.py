@@ -198,6 +198,8 @@ def main(argv=None):
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 1024, 4096])
     ap.add_argument("--energies", type=float, nargs="+", default=[1e-6, 1e-16])
     ap.add_argument("--seeds", type=int, default=5, help="seeds per point (median)")
+    ap.add_argument("--first-seed", type=int, default=0,
+                    help="time to jam: seeds first-seed .. first-seed + seeds - 1")
     ap.add_argument("--steps", type=int, default=2000, help="FIRE steps per step-cost sample")
     ap.add_argument("--no-jax", action="store_true", help="skip the JAX MD comparison")
     ap.add_argument("--no-jam", action="store_true", help="skip the time-to-jam part")
@@ -258,7 +260,8 @@ def main(argv=None):
             for n in args.sizes:
                 tol = _tolerance_for(n, e)
                 runs = {r: [] for r in args.routes}
-                for seed in range(args.seeds):  # routes interleaved: same machine load
+                seeds = range(args.first_seed, args.first_seed + args.seeds)
+                for seed in seeds:  # routes interleaved: same machine load
                     for route in args.routes:
                         runs[route].append(_jam_time(n, e, seed, force_tolerance=tol,
                                                      route=route))
@@ -279,7 +282,7 @@ def main(argv=None):
                     row["time_ratio"] = row["median_seconds"] / base["median_seconds"]
                     if args.profile:
                         prof = [_profile(n, e, seed, force_tolerance=tol, route=route)
-                                for seed in range(args.seeds)]
+                                for seed in seeds]
                         row["profile"] = prof
                         depth = max(len(p) for p in prof)
                         row["median_profile"] = [statistics.median(p[k] for p in prof if len(p) > k)
