@@ -20,6 +20,13 @@ For each N (default 256, 1024, 4096):
   literal protocol: CG stopped by the energy-change rule, Delta halved after every
   minimisation (``MINIMIZERS``).
 
+With ``--routes ohern pressure`` the time to jam is measured for each route of
+``kernels.jam`` (``route=...``, see ``kernels.barostat``) side by side, seed by seed, and
+the table gives the ratio of the median force evaluations (and times) to the first
+route. ``--profile`` adds, for each route, the force evaluations spent in each
+minimisation (the k-th from the difference of two runs bounded by ``max_search = k``
+and ``k - 1``: the searches are deterministic), median over seeds.
+
 Prints a table and, with ``--json FILE``, writes every measurement as JSON. For the
 one-core comparison run it pinned to one CPU, e.g. ``taskset -c 0`` (XLA then uses
 one thread, numba kernels are serial anyway).
@@ -28,6 +35,8 @@ one thread, numba kernels are serial anyway).
     python benchmarks/bench_jam.py --sizes 256 1024 --energies 1e-6 --seeds 2   # quick
     python benchmarks/bench_jam.py --no-steps --sizes 256 1024 --energies 1e-6 1e-12 1e-16 \
         --seeds 5 --minimizers fire cg paper                                    # docs/MINIMIZERS.md
+    python benchmarks/bench_jam.py --no-jax --sizes 1024 --energies 1e-16 --steps 10 \
+        --routes ohern pressure --seeds 20 --json routes.json                   # docs/PRESSURE_ROUTE.md
 """
 
 import argparse
@@ -171,6 +180,20 @@ def _jam_time(n, e, seed, **settings):
                 force_evaluations=p.force_evaluations, n_nonrattlers=p.n_nonrattlers)
 
 
+def _profile(n, e, seed, **settings):
+    """Force evaluations of each minimisation of one search (see module docstring)."""
+    import kernels
+
+    total = kernels.jam(n, e, seed, **settings)
+    per, prev = [], 0
+    for k in range(1, total.iterations + 1):
+        cum = (total.force_evaluations if k == total.iterations
+               else kernels.jam(n, e, seed, max_search=k, **settings).force_evaluations)
+        per.append(cum - prev)
+        prev = cum
+    return per
+
+
 def _tolerance_for(n, e):
     """The default force tolerance, or the first decade above the float64 floor."""
     from kernels.jamming import DEFAULTS, energy_floor, initial_state
@@ -190,12 +213,18 @@ def main(argv=None):
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 1024, 4096])
     ap.add_argument("--energies", type=float, nargs="+", default=[1e-6, 1e-16])
     ap.add_argument("--seeds", type=int, default=5, help="seeds per point (median)")
+    ap.add_argument("--first-seed", type=int, default=0,
+                    help="time to jam: seeds first-seed .. first-seed + seeds - 1")
     ap.add_argument("--steps", type=int, default=2000, help="FIRE steps per step-cost sample")
     ap.add_argument("--no-jax", action="store_true", help="skip the JAX MD comparison")
     ap.add_argument("--no-jam", action="store_true", help="skip the time-to-jam part")
     ap.add_argument("--no-steps", action="store_true", help="skip the per-step cost part")
     ap.add_argument("--minimizers", nargs="+", default=["fire"], choices=sorted(MINIMIZERS),
                     help="jam with each of these (fire, cg, paper); ratios to the first")
+    ap.add_argument("--routes", nargs="+", default=["ohern"], choices=["ohern", "pressure"],
+                    help="routes of kernels.jam to time side by side (ratios to the first)")
+    ap.add_argument("--profile", action="store_true",
+                    help="force evaluations per minimisation of each variant (median over seeds)")
     ap.add_argument("--json", metavar="FILE", help="write all measurements as JSON")
     args = ap.parse_args(argv)
 
@@ -249,25 +278,44 @@ def main(argv=None):
         for e in args.energies:
             for n in args.sizes:
                 tol = _tolerance_for(n, e)
-                runs = {m: [] for m in args.minimizers}
-                for seed in range(args.seeds):
-                    for m in args.minimizers:
-                        runs[m].append(_jam_time(n, e, seed, force_tolerance=tol,
-                                                 **MINIMIZERS[m]))
-                for m in args.minimizers:
-                    rs = runs[m]
-                    row = dict(n=n, energy=e, force_tolerance=tol, minimizer=m,
-                               median_seconds=statistics.median(r["seconds"] for r in rs),
+                # every (minimiser, route) pair, interleaved seed by seed: the same machine load
+                variants = [(m if len(args.routes) == 1 else f"{m}/{route}" if len(args.minimizers) > 1
+                             else route, dict(MINIMIZERS[m], route=route))
+                            for m in args.minimizers for route in args.routes]
+                runs = {label: [] for label, _ in variants}
+                seeds = range(args.first_seed, args.first_seed + args.seeds)
+                for seed in seeds:
+                    for label, kw in variants:
+                        runs[label].append(_jam_time(n, e, seed, force_tolerance=tol, **kw))
+                base = None
+                for label, kw in variants:
+                    rr = runs[label]
+                    row = dict(n=n, energy=e, force_tolerance=tol, variant=label, settings=kw,
+                               median_seconds=statistics.median(r["seconds"] for r in rr),
                                median_force_evaluations=statistics.median(
-                                   r["force_evaluations"] for r in rs),
-                               median_iterations=statistics.median(r["iterations"] for r in rs),
-                               median_residual=statistics.median(r["force_residual"] for r in rs),
-                               converged=sum(r["status"] == "converged" for r in rs),
-                               runs=rs)
+                                   r["force_evaluations"] for r in rr),
+                               median_iterations=statistics.median(r["iterations"] for r in rr),
+                               median_residual=statistics.median(r["force_residual"] for r in rr),
+                               converged=sum(r["status"] == "converged" for r in rr),
+                               runs=rr)
+                    if base is None:
+                        base = row
+                    row["force_evaluation_ratio"] = (row["median_force_evaluations"]
+                                                     / base["median_force_evaluations"])
+                    row["time_ratio"] = row["median_seconds"] / base["median_seconds"]
+                    if args.profile:
+                        prof = [_profile(n, e, seed, force_tolerance=tol, **kw) for seed in seeds]
+                        row["profile"] = prof
+                        depth = max(len(p) for p in prof)
+                        row["median_profile"] = [statistics.median(p[k] for p in prof if len(p) > k)
+                                                 for k in range(depth)]
+                        print(f"profile N={n} E={e:g} {label}: force evaluations per "
+                              f"minimisation (median) {[int(x) for x in row['median_profile']]}",
+                              flush=True)
                     results["time_to_jam"].append(row)
-                    print(f"jam N={n} E={e:g} tol={tol:g} {m}: median {row['median_seconds']:.2f} s, "
+                    print(f"jam N={n} E={e:g} tol={tol:g} {label}: median {row['median_seconds']:.2f} s, "
                           f"{row['median_force_evaluations']:.0f} force evaluations, "
-                          f"{row['converged']}/{len(rs)} converged", flush=True)
+                          f"{row['converged']}/{len(rr)} converged", flush=True)
 
     if results["step_cost"]:
         print()
@@ -279,29 +327,16 @@ def main(argv=None):
         print(f"| {r['n']} | {r['ours_us']:.1f} | {j} | {s} |")
     if results["time_to_jam"]:
         print()
-        print("| N | E | force tolerance | minimizer | median time to jam (s) | "
-              "median force evaluations | median iterations | median force residual | converged |")
-        print("|---:|---:|---:|---|---:|---:|---:|---:|---:|")
+        print("| N | E | force tolerance | variant | median time to jam (s) | "
+              "median force evaluations | ratio to the first (evaluations / time) | "
+              "median iterations | median force residual | converged |")
+        print("|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|")
         for r in results["time_to_jam"]:
-            print(f"| {r['n']} | {r['energy']:g} | {r['force_tolerance']:g} | {r['minimizer']} | "
-                  f"{r['median_seconds']:.3f} | "
-                  f"{r['median_force_evaluations']:.0f} | {r['median_iterations']:.0f} | "
-                  f"{r['median_residual']:.2g} | {r['converged']}/{len(r['runs'])} |")
-        if len(args.minimizers) > 1:
-            base = args.minimizers[0]
-            ref = {(r["n"], r["energy"]): r for r in results["time_to_jam"]
-                   if r["minimizer"] == base}
-            print()
-            print(f"| N | E | minimizer | force evaluations / {base} | seconds / {base} |")
-            print("|---:|---:|---|---:|---:|")
-            for r in results["time_to_jam"]:
-                if r["minimizer"] == base:
-                    continue
-                b = ref[(r["n"], r["energy"])]
-                fe = r["median_force_evaluations"] / b["median_force_evaluations"]
-                sec = r["median_seconds"] / b["median_seconds"]
-                r["ratio_force_evaluations"], r["ratio_seconds"] = fe, sec
-                print(f"| {r['n']} | {r['energy']:g} | {r['minimizer']} | {fe:.2f} | {sec:.2f} |")
+            print(f"| {r['n']} | {r['energy']:g} | {r['force_tolerance']:g} | {r['variant']} | "
+                  f"{r['median_seconds']:.2f} | {r['median_force_evaluations']:.0f} | "
+                  f"{r['force_evaluation_ratio']:.2f} / {r['time_ratio']:.2f} | "
+                  f"{r['median_iterations']:.0f} | {r['median_residual']:.2g} | "
+                  f"{r['converged']}/{len(r['runs'])} |")
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(results, fh, indent=2)

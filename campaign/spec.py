@@ -33,11 +33,13 @@ from kernels.names import HISTOGRAMS, OBSERVABLES  # noqa: F401 - re-exported
 #: protocol keys a spec may set (forwarded to ``kernels.jam`` as keyword arguments)
 PROTOCOL_DEFAULTS = {"window": 0.1, "force_tolerance": 1e-6}
 PROTOCOL_KEYS = ("window", "force_tolerance", "search_tolerance", "phi_start", "max_search", "max_steps",
-                 "minimizer", "search", "delta", "skin", "start", "stop", "energy_tolerance")
+                 "minimizer", "search", "delta", "skin", "start", "stop", "energy_tolerance", "route")
 MINIMIZERS = ("fire", "cg")
 SEARCH_RULES = ("secant", "halving", "paper")
 #: what ends a minimisation: the force residual, or (cg only) the paper's energy-change rule
 STOPS = ("force", "energy")
+#: how a packing reaches its window (``kernels.jamming.ROUTES``): "ohern" (default) or "pressure"
+ROUTES = ("ohern", "pressure")
 #: where each packing's search starts: "random" (independent packings, the paper's protocol) or
 #: "ladder" (the same seed's packing at the next higher energy of the grid, decompressed)
 STARTS = ("random", "ladder")
@@ -511,7 +513,8 @@ def _protocol(c, value, path, allow, base=None):
         "energy_tolerance": dict(lo=0, hi=1, lo_open=True),
     }
     choices = {"search": ("search rule", SEARCH_RULES), "start": ("start", STARTS),
-               "minimizer": ("minimizer", MINIMIZERS), "stop": ("stop rule", STOPS)}
+               "minimizer": ("minimizer", MINIMIZERS), "stop": ("stop rule", STOPS),
+               "route": ("route", ROUTES)}
     for k, v in m.items():
         if k in checks:
             x = c.number(v, path + (k,), **checks[k])
@@ -536,6 +539,12 @@ def _protocol(c, value, path, allow, base=None):
             c.err(path + ("energy_tolerance",), "energy_tolerance is only used with stop 'energy'; "
                                                 f"got stop {out.get('stop', 'force')!r}")
         del out["energy_tolerance"]  # inherited by a variant that stops on forces: unused
+    if out.get("route") == "ohern":
+        del out["route"]  # the default route: its packings keep their ids
+    if out.get("route") == "pressure" and (out.get("minimizer", "fire") != "fire" or "stop" in out):
+        c.err(path + ("route",), "route 'pressure' relaxes with FIRE and stops on the force residual: it "
+                                 f"needs minimizer 'fire' and stop 'force', got minimizer "
+                                 f"{out.get('minimizer', 'fire')!r}, stop {out.get('stop', 'force')!r}")
     return out
 
 

@@ -16,6 +16,7 @@ import numbers
 
 import numpy as np
 
+from kernels.barostat import BARO_SCALE, STAGE_STEP, _pressure_core
 from kernels.cells import _candidate_pairs_core
 from kernels.fire import _contacts_core, _nonrattler_mask_core
 from kernels.potential import ALPHA_RANGE, check_exponent
@@ -40,7 +41,12 @@ DEFAULTS = dict(
     search="secant",
     delta=0.01,
     skin=0.3,
+    route="ohern",
 )
+
+#: Routes to a packing in the window: the O'Hern ladder (``kernels.protocol``) or fixed-pressure
+#: minimisation with the radius scale as a degree of freedom (``kernels.barostat``).
+ROUTES = ("ohern", "pressure")
 
 #: Largest factor by which the secant search lowers the energy per minimisation.
 ENERGY_STEP = 1e-1
@@ -271,6 +277,12 @@ def jam(n, energy, seed, start=None, **settings):
         literal rule); see ``kernels.protocol``.
     delta : first relative radius step Delta (and the largest step); default 0.01.
     skin : Verlet skin in units of the mean diameter; default 0.3.
+    route : "ohern" (default: the grow/shrink search above) or "pressure": the
+        positions relax together with the common radius scale toward a target
+        pressure aimed from the energy, in stages of a factor 100 in energy, with
+        secant corrections and a final polish at fixed radii (``kernels.barostat``).
+        ``search`` and ``delta`` only apply to "ohern"; ``iterations`` counts the
+        minimisations either way.
 
     Returns a ``Packing``; its ``status`` is "converged" or the bound that stopped
     the search ("max_search", "max_steps", "stalled", "too_dense").
@@ -313,6 +325,11 @@ def jam(n, energy, seed, start=None, **settings):
     if opt["search"] not in SEARCH_NAMES:
         raise ValueError(f"search: expected one of {list(SEARCH_NAMES)}, got {opt['search']!r}")
     rule = SEARCH_NAMES.index(opt["search"])
+    if opt["route"] not in ROUTES:
+        raise ValueError(f"route: expected one of {list(ROUTES)}, got {opt['route']!r}")
+    if opt["route"] == "pressure" and (opt["minimizer"] != "fire" or opt["stop"] != "force"):
+        raise ValueError("route: 'pressure' relaxes with FIRE and stops on the force residual; expected "
+                         f"minimizer 'fire' and stop 'force', got {opt['minimizer']!r} and {opt['stop']!r}")
     delta = _positive_float("delta", opt["delta"], upper=1.0)
     skin = _positive_float("skin", opt["skin"], upper=1.0)
     if start is None:
@@ -336,9 +353,14 @@ def jam(n, energy, seed, start=None, **settings):
             f"positions exceeds force_tolerance times the contact forces), got {energy!r}; "
             "use a larger force_tolerance, a larger energy or a smaller n")
 
-    status, scale, e_tot, virial, residual, iterations, nforce = _ohern_core(
-        positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search, max_steps,
-        skin, delta, rule, max_radius, ENERGY_STEP, minimizer, e_tol)
+    if opt["route"] == "pressure":
+        status, scale, e_tot, virial, residual, iterations, nforce = _pressure_core(
+            positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search, max_steps,
+            skin, max_radius, STAGE_STEP, BARO_SCALE, False)
+    else:
+        status, scale, e_tot, virial, residual, iterations, nforce = _ohern_core(
+            positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search, max_steps,
+            skin, delta, rule, max_radius, ENERGY_STEP, minimizer, e_tol)
     radii = radii0 * scale
     area = float(box[0] * box[1])
     pi, pj = _candidate_pairs_core(positions, radii, box, 0.0)
@@ -358,6 +380,6 @@ def jam(n, energy, seed, start=None, **settings):
     )
 
 
-__all__ = ["jam", "Packing", "DEFAULTS", "STATUS_CODES", "ALPHA_RANGE", "species_counts",
+__all__ = ["jam", "Packing", "DEFAULTS", "ROUTES", "STATUS_CODES", "ALPHA_RANGE", "species_counts",
            "energy_floor",
            "initial_state", "check_species"]
