@@ -61,7 +61,7 @@ from kernels.cells import _candidate_pairs_core
 from kernels.fire import (A_START, BELOW, CONVERGED, DT_MAX_FACTOR, DT_MIN_FACTOR, F_A, F_DEC, F_INC,
                           MAX_STEPS, N_DELAY, N_NEG_MAX, STALLED, CHECK_EVERY, _dt_for, _fire_core,
                           _residual_core, _wrap_inplace)
-from kernels.potential import pair_energy_force_inv, _pair_inv_sigma, _rows_from_pairs
+from kernels.potential import _energy_forces_rows_scaled, _pair_inv_sigma, _rows_from_pairs
 from kernels.protocol import (ABORT_FRACTION, AIM, E_FIRST_GUESS, ST_CONVERGED, ST_MAX_SEARCH, ST_MAX_STEPS,
                               ST_STALLED, ST_TOO_DENSE, _spatial_order)
 from kernels.space import _wrap_core
@@ -70,62 +70,6 @@ BARO_SCALE = 0.5  # barostat coordinate u = BARO_SCALE d sqrt(n) ln(lambda)
 PRESSURE_TOL = 1e-3  # relative pressure accuracy of an enthalpy minimum
 CONTACTS_PER_DISK = 2.0  # N_c / N of the first pressure estimate (isostatic: 2)
 STAGE_STEP = 1e-2  # energy factor between pressure stages
-
-
-@njit(cache=True)
-def _forces_scaled(positions, box, start, nbr, inv_s0, inv_lam, alpha, forces):
-    """Net forces, energy, virial, contact count and force sum with radii scaled by
-    ``1 / inv_lam``: pair ``k`` has ``1/s = inv_s0[k] * inv_lam``."""
-    n = positions.shape[0]
-    Lx = box[0]
-    Ly = box[1]
-    hx = 0.5 * Lx
-    hy = 0.5 * Ly
-    for i in range(n):
-        forces[i, 0] = 0.0
-        forces[i, 1] = 0.0
-    energy = 0.0
-    virial = 0.0
-    ncontact = 0
-    fsum = 0.0
-    for i in range(n):
-        xi = positions[i, 0]
-        yi = positions[i, 1]
-        fxi = 0.0
-        fyi = 0.0
-        for k in range(start[i], start[i + 1]):
-            j = nbr[k]
-            dx = positions[j, 0] - xi
-            dy = positions[j, 1] - yi
-            if dx > hx:
-                dx -= Lx
-            elif dx < -hx:
-                dx += Lx
-            if dy > hy:
-                dy -= Ly
-            elif dy < -hy:
-                dy += Ly
-            d2 = dx * dx + dy * dy
-            q = inv_s0[k] * inv_lam
-            if d2 * q * q >= 1.0:
-                continue
-            r = np.sqrt(d2)
-            v, f = pair_energy_force_inv(r, q, alpha)
-            energy += v
-            virial += r * f
-            ncontact += 1
-            fsum += f
-            if r > 0.0:
-                fr = f / r
-                fx = fr * dx
-                fy = fr * dy
-                fxi -= fx
-                fyi -= fy
-                forces[j, 0] += fx
-                forces[j, 1] += fy
-        forces[i, 0] += fxi
-        forces[i, 1] += fyi
-    return energy, virial, ncontact, fsum
 
 
 @njit(cache=True)
@@ -164,8 +108,8 @@ def _enthalpy_core(positions, radii0, box, alpha, p_target, lam, tol, ptol, max_
     pi, pj = _candidate_pairs_core(positions, radii, box, skin)
     inv_s0 = _pair_inv_sigma(radii0, pi, pj)
     start, nbr = _rows_from_pairs(n, pi, pj)
-    energy, virial, nc, fsum = _forces_scaled(positions, box, start, nbr, inv_s0, 1.0 / lam,
-                                              alpha, frc)
+    energy, virial, nc, fsum = _energy_forces_rows_scaled(positions, box, start, nbr, inv_s0,
+                                                          1.0 / lam, alpha, frc)
     fu = (two_a_p - virial) / c_baro
     nforce = 1
     n_pos = 0
@@ -260,8 +204,8 @@ def _enthalpy_core(positions, radii0, box, alpha, p_target, lam, tol, ptol, max_
             for i in range(n):
                 ref[i, 0] = positions[i, 0]
                 ref[i, 1] = positions[i, 1]
-        energy, virial, nc, fsum = _forces_scaled(positions, box, start, nbr, inv_s0, 1.0 / lam,
-                                                  alpha, frc)
+        energy, virial, nc, fsum = _energy_forces_rows_scaled(positions, box, start, nbr, inv_s0,
+                                                              1.0 / lam, alpha, frc)
         fu = (two_a_p - virial) / c_baro
         nforce += 1
     return status, lam, step, nforce, energy, virial, residual

@@ -141,6 +141,15 @@ def _energy_forces_rows(positions, box, start, nbr, inv_s, alpha, forces):
     the force on ``i`` is accumulated in registers. Same sums, same precondition on
     coordinates as ``_energy_forces_core``; only the summation order differs.
     """
+    return _energy_forces_rows_scaled(positions, box, start, nbr, inv_s, 1.0, alpha, forces)
+
+
+@njit(cache=True)
+def _energy_forces_rows_scaled(positions, box, start, nbr, inv_s, scale, alpha, forces):
+    """``_energy_forces_rows`` with every contact distance divided by ``scale``
+    (``1/s = inv_s[k] * scale``): all radii scaled by ``1 / scale`` without rebuilding
+    ``inv_s`` (the pressure route's radius degree of freedom). ``scale = 1`` gives the
+    same bits as unscaled radii."""
     n = positions.shape[0]
     Lx = box[0]
     Ly = box[1]
@@ -171,7 +180,7 @@ def _energy_forces_rows(positions, box, start, nbr, inv_s, alpha, forces):
             elif dy < -hy:
                 dy += Ly
             d2 = dx * dx + dy * dy
-            q = inv_s[k]
+            q = inv_s[k] * scale
             if d2 * q * q >= 1.0:
                 continue
             r = np.sqrt(d2)
