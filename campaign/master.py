@@ -84,7 +84,9 @@ class Master:
         self.signals += 1
         name = signal.Signals(signum).name
         if self.signals == 1:
-            self.stop_reason = name
+            # a warning that comes after the wall-time stop (SLURM's USR1 while the last tasks
+            # finish) starts the grace period but does not rename why the run stopped
+            self.stop_reason = self.stop_reason or name
             self.stop_since = time.monotonic()
             running = sum(len(q) for q in self.in_flight.values())
             self.log(f"\ncampaign: {name}: no new tasks; waiting up to {self.grace:g} s for {running} running "

@@ -252,3 +252,32 @@ def test_a_crashing_local_worker_is_survived(tmp_path, monkeypatch):
         assert store.status[t.index] == FAILED
         assert "died" in store.read("tasks/error", t.index).decode()
     store.abandon()
+
+
+def test_a_warning_after_the_wall_time_stop_keeps_the_reason(tmp_path):
+    """SLURM's USR1 arriving while the master collects its last tasks after a wall-time stop
+    (a real signal to this process) starts the grace period; the run still says it stopped
+    for the wall time."""
+    import os
+    import signal
+
+    spec, tasks, ctx, store = _setup(tmp_path)
+    budget = {"left": 5}
+
+    def can_dispatch(task, queued):
+        budget["left"] -= 1
+        return budget["left"] > 0
+
+    class WarnedComm(InlineComm):
+        def recv(self, timeout=None):
+            if budget["left"] <= 0 and not getattr(self, "warned", False):
+                self.warned = True
+                os.kill(os.getpid(), signal.SIGUSR1)
+            return super().recv(timeout)
+
+    comm = WarnedComm(ctx)
+    logs = []
+    out = Master(comm, store, tasks, retries=1, can_dispatch=can_dispatch, log=logs.append).run()
+    store.close()
+    assert comm.warned and any("SIGUSR1" in m for m in logs)
+    assert out["stopped"] == "wall time" and 0 < out["done"] < len(tasks)
