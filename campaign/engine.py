@@ -207,7 +207,7 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
         master = Master(comm, store, tasks, retries=retries, depth=max(1, args.depth), progress=progress,
                         grace=args.grace, redo_failed=args.retry_failed, log=_log, can_dispatch=wall)
         if getattr(args, "warned", None):
-            master._on_signal(signal.SIGUSR1, None)
+            master.on_signal(signal.SIGUSR1)
         t0, cpu0 = time.monotonic(), time.process_time()
         outcome = master.run()
         cpu = time.process_time() - cpu0

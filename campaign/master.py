@@ -80,7 +80,9 @@ class Master:
         self.mean_wall = None  # running mean of the workers' task times (sets the dispatch depth)
 
     # ---- signals
-    def _on_signal(self, signum, frame):
+    def on_signal(self, signum, frame=None):
+        """What SIGINT, SIGTERM and SIGUSR1 do (also called for a signal that came before the
+        master started): stop dispatching, then wait for the running tasks up to the grace time."""
         self.signals += 1
         name = signal.Signals(signum).name
         if self.signals == 1:
@@ -98,7 +100,7 @@ class Master:
         old = {}
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1):
             try:
-                old[sig] = signal.signal(sig, self._on_signal)
+                old[sig] = signal.signal(sig, self.on_signal)
             except ValueError:  # not the main thread
                 pass
         return old
