@@ -57,11 +57,11 @@ counts one), ``max_steps`` the FIRE steps of each.
 import numpy as np
 from numba import njit
 
-from kernels.cells import _candidate_pairs_core
-from kernels.fire import (A_START, BELOW, CONVERGED, DT_MAX_FACTOR, DT_MIN_FACTOR, F_A, F_DEC, F_INC,
-                          MAX_STEPS, N_DELAY, N_NEG_MAX, STALLED, CHECK_EVERY, _dt_for, _fire_core,
-                          _residual_core, _wrap_inplace)
-from kernels.potential import _energy_forces_rows_scaled, _pair_inv_sigma, _rows_from_pairs
+from kernels.fire import (A_START, BELOW, CONVERGED, DT_MAX_FACTOR, DT_MIN_FACTOR, MAX_STEPS,
+                          N_NEG_MAX, STALLED, CHECK_EVERY, _dt_for, _fire_adapt, _fire_core,
+                          _fire_kick, _fire_mix_move, _fire_power, _fire_retreat, _residual_core,
+                          _verlet_rows, _wrap_inplace)
+from kernels.potential import _energy_forces_rows_scaled
 from kernels.protocol import (ABORT_FRACTION, AIM, E_FIRST_GUESS, ST_CONVERGED, ST_MAX_SEARCH, ST_MAX_STEPS,
                               ST_STALLED, ST_TOO_DENSE, _spatial_order)
 from kernels.space import _wrap_core
@@ -101,13 +101,11 @@ def _enthalpy_core(positions, radii0, box, alpha, p_target, lam, tol, ptol, max_
     u = c_baro * np.log(lam)
     vu = 0.0
     _wrap_inplace(positions, box)
-    ref = positions.copy()
+    ref = np.empty((n, 2))
     lam_ref = lam
     for i in range(n):
         radii[i] = lam * radii0[i]
-    pi, pj = _candidate_pairs_core(positions, radii, box, skin)
-    inv_s0 = _pair_inv_sigma(radii0, pi, pj)
-    start, nbr = _rows_from_pairs(n, pi, pj)
+    pi, pj, start, nbr, inv_s0 = _verlet_rows(positions, radii, box, skin, radii0, ref)
     energy, virial, nc, fsum = _energy_forces_rows_scaled(positions, box, start, nbr, inv_s0,
                                                           1.0 / lam, alpha, frc)
     fu = (two_a_p - virial) / c_baro
@@ -118,15 +116,7 @@ def _enthalpy_core(positions, radii0, box, alpha, p_target, lam, tol, ptol, max_
     residual = np.inf
     step = 0
     while True:
-        fmax2 = 0.0
-        ff = fu * fu
-        p = fu * vu
-        for i in range(n):
-            f2 = frc[i, 0] * frc[i, 0] + frc[i, 1] * frc[i, 1]
-            ff += f2
-            p += frc[i, 0] * vel[i, 0] + frc[i, 1] * vel[i, 1]
-            if f2 > fmax2:
-                fmax2 = f2
+        fmax2, ff, p = _fire_power(frc, vel, fu * fu, fu * vu)
         p_ok = abs(virial - two_a_p) <= ptol * two_a_p
         mean_f = fsum / nc if nc > 0 else 0.0
         bound = np.sqrt(fmax2) / mean_f if mean_f > 0.0 else np.inf
@@ -144,47 +134,18 @@ def _enthalpy_core(positions, radii0, box, alpha, p_target, lam, tol, ptol, max_
             status = STALLED
             break
         step += 1
-        if p > 0.0:
-            n_pos += 1
-            n_neg = 0
-            if n_pos > N_DELAY:
-                dt = min(dt * F_INC, dt_max)
-                a *= F_A
-        else:
-            n_pos = 0
-            n_neg += 1
+        n_pos, n_neg, dt, a = _fire_adapt(p, step, n_pos, n_neg, dt, a, dt_min, dt_max)
+        if p <= 0.0:
             if n_neg > N_NEG_MAX:
                 status = STALLED
                 break
-            if step >= N_DELAY:
-                if dt * F_DEC >= dt_min:
-                    dt *= F_DEC
-                a = A_START
-            for i in range(n):
-                positions[i, 0] -= 0.5 * dt * vel[i, 0]
-                positions[i, 1] -= 0.5 * dt * vel[i, 1]
-                vel[i, 0] = 0.0
-                vel[i, 1] = 0.0
+            _fire_retreat(positions, vel, dt)
             u -= 0.5 * dt * vu
             vu = 0.0
         vu += dt * fu
-        vv = vu * vu
-        for i in range(n):
-            vel[i, 0] += dt * frc[i, 0]
-            vel[i, 1] += dt * frc[i, 1]
-            vv += vel[i, 0] * vel[i, 0] + vel[i, 1] * vel[i, 1]
+        vv = _fire_kick(vel, frc, dt, vu * vu)
         mix = a * np.sqrt(vv / ff) if ff > 0.0 else 0.0
-        disp2 = 0.0
-        for i in range(n):
-            vel[i, 0] = (1.0 - a) * vel[i, 0] + mix * frc[i, 0]
-            vel[i, 1] = (1.0 - a) * vel[i, 1] + mix * frc[i, 1]
-            positions[i, 0] += dt * vel[i, 0]
-            positions[i, 1] += dt * vel[i, 1]
-            ddx = positions[i, 0] - ref[i, 0]
-            ddy = positions[i, 1] - ref[i, 1]
-            d2 = ddx * ddx + ddy * ddy
-            if d2 > disp2:
-                disp2 = d2
+        disp2 = _fire_mix_move(positions, vel, frc, a, mix, dt, ref)
         vu = (1.0 - a) * vu + mix * fu
         u += dt * vu
         lam = np.exp(u / c_baro)
@@ -197,13 +158,8 @@ def _enthalpy_core(positions, radii0, box, alpha, p_target, lam, tol, ptol, max_
             _wrap_inplace(positions, box)
             for i in range(n):
                 radii[i] = lam * radii0[i]
-            pi, pj = _candidate_pairs_core(positions, radii, box, skin)
-            inv_s0 = _pair_inv_sigma(radii0, pi, pj)
-            start, nbr = _rows_from_pairs(n, pi, pj)
+            pi, pj, start, nbr, inv_s0 = _verlet_rows(positions, radii, box, skin, radii0, ref)
             lam_ref = lam
-            for i in range(n):
-                ref[i, 0] = positions[i, 0]
-                ref[i, 1] = positions[i, 1]
         energy, virial, nc, fsum = _energy_forces_rows_scaled(positions, box, start, nbr, inv_s0,
                                                               1.0 / lam, alpha, frc)
         fu = (two_a_p - virial) / c_baro

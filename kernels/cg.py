@@ -67,11 +67,10 @@ Checked wrapper: ``minimize(...) -> FireResult``.
 import numpy as np
 from numba import njit
 
-from kernels.cells import _candidate_pairs_core
 from kernels.fire import (BELOW, CHECK_EVERY, CONVERGED, DT_FACTOR, MAX_STEPS, STALLED,
                           _checked_minimize_inputs, _residual_core, _starting_timestep,
-                          _wrap_inplace, fire_result)
-from kernels.potential import _energy_forces_rows, _pair_inv_sigma, _rows_from_pairs
+                          _verlet_rows, _wrap_inplace, fire_result)
+from kernels.potential import _energy_forces_rows
 
 SIGMA = 0.1  # strong Wolfe curvature parameter
 C1 = 1e-4  # Armijo parameter
@@ -129,6 +128,14 @@ def _wrap_with(positions, ref, box):
 
 
 @njit(cache=True)
+def _along(positions, t, d, out):
+    """``out = positions + t d``: the trial point at step ``t`` of the line search."""
+    for i in range(positions.shape[0]):
+        out[i, 0] = positions[i, 0] + t * d[i, 0]
+        out[i, 1] = positions[i, 1] + t * d[i, 1]
+
+
+@njit(cache=True)
 def _cg_core(positions, radii, box, alpha, tol, max_steps, skin, step0, e_abort, e_tol):
     """Minimise the total energy in place (``positions`` is overwritten).
 
@@ -150,10 +157,8 @@ def _cg_core(positions, radii, box, alpha, tol, max_steps, skin, step0, e_abort,
     trial = np.empty((n, 2))
     scratch = np.empty((n, 2))
     _wrap_inplace(positions, box)
-    ref = positions.copy()
-    pi, pj = _candidate_pairs_core(positions, radii, box, skin)
-    inv_s = _pair_inv_sigma(radii, pi, pj)
-    start, nbr = _rows_from_pairs(n, pi, pj)
+    ref = np.empty((n, 2))
+    pi, pj, start, nbr, inv_s = _verlet_rows(positions, radii, box, skin, radii, ref)
     half2 = 0.25 * skin * skin
     cap = DISP_CAP * skin
     energy, virial, nc, fsum = _energy_forces_rows(positions, box, start, nbr, inv_s, alpha, frc)
@@ -250,16 +255,9 @@ def _cg_core(positions, radii, box, alpha, tol, max_steps, skin, step0, e_abort,
         nc_t = nc
         fs_t = fsum
         for ls in range(LS_MAX):
-            for i in range(n):
-                trial[i, 0] = positions[i, 0] + t * d[i, 0]
-                trial[i, 1] = positions[i, 1] + t * d[i, 1]
+            _along(positions, t, d, trial)
             if _max_disp2(trial, ref) > half2:
-                pi, pj = _candidate_pairs_core(trial, radii, box, skin)
-                inv_s = _pair_inv_sigma(radii, pi, pj)
-                start, nbr = _rows_from_pairs(n, pi, pj)
-                for i in range(n):
-                    ref[i, 0] = trial[i, 0]
-                    ref[i, 1] = trial[i, 1]
+                pi, pj, start, nbr, inv_s = _verlet_rows(trial, radii, box, skin, radii, ref)
             e_t, w_t, nc_t, fs_t = _energy_forces_rows(trial, box, start, nbr, inv_s, alpha, ftr)
             nforce += 1
             g_t = -_dot(ftr, d)
@@ -300,16 +298,9 @@ def _cg_core(positions, radii, box, alpha, tol, max_steps, skin, step0, e_abort,
         if not accepted and t_lo > 0.0:
             # fall back to the longest step known to descend, if it lowered the energy
             t = t_lo
-            for i in range(n):
-                trial[i, 0] = positions[i, 0] + t * d[i, 0]
-                trial[i, 1] = positions[i, 1] + t * d[i, 1]
+            _along(positions, t, d, trial)
             if _max_disp2(trial, ref) > half2:
-                pi, pj = _candidate_pairs_core(trial, radii, box, skin)
-                inv_s = _pair_inv_sigma(radii, pi, pj)
-                start, nbr = _rows_from_pairs(n, pi, pj)
-                for i in range(n):
-                    ref[i, 0] = trial[i, 0]
-                    ref[i, 1] = trial[i, 1]
+                pi, pj, start, nbr, inv_s = _verlet_rows(trial, radii, box, skin, radii, ref)
             e_t, w_t, nc_t, fs_t = _energy_forces_rows(trial, box, start, nbr, inv_s, alpha, ftr)
             nforce += 1
             if e_t <= energy + C1 * t * g0 or abs(e_t - energy) <= e_res:

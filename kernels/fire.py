@@ -155,6 +155,99 @@ def _wrap_inplace(positions, box):
 
 
 @njit(cache=True)
+def _verlet_rows(positions, radii, box, skin, sigma_radii, ref):
+    """(Re)build the Verlet list around ``positions``: candidate pairs within ``skin`` at
+    ``radii``, their ``1/s`` from ``sigma_radii`` (the same radii, or the pressure route's
+    unscaled ones), in row form; ``ref`` records the positions it was built at.
+    Returns ``(pi, pj, start, nbr, inv_s)``."""
+    pi, pj = _candidate_pairs_core(positions, radii, box, skin)
+    inv_s = _pair_inv_sigma(sigma_radii, pi, pj)
+    start, nbr = _rows_from_pairs(positions.shape[0], pi, pj)
+    for i in range(positions.shape[0]):
+        ref[i, 0] = positions[i, 0]
+        ref[i, 1] = positions[i, 1]
+    return pi, pj, start, nbr, inv_s
+
+
+# One FIRE 2.0 step in passes over the disks, shared by ``_fire_core`` and the pressure
+# route (``kernels.barostat``), which adds its radius degree of freedom to the sums by
+# passing it as the starting value.
+
+
+@njit(cache=True)
+def _fire_adapt(p, step, n_pos, n_neg, dt, a, dt_min, dt_max):
+    """FIRE 2.0's time step and mixing after a step of power ``p``: after ``N_DELAY``
+    downhill steps grow ``dt`` and shrink ``a``; on a non-positive power count it (a stall
+    past ``N_NEG_MAX``) and, past the first ``N_DELAY`` steps, shrink ``dt`` and reset ``a``
+    (the caller then retreats half a step). Returns ``(n_pos, n_neg, dt, a)``."""
+    if p > 0.0:
+        n_pos += 1
+        n_neg = 0
+        if n_pos > N_DELAY:
+            dt = min(dt * F_INC, dt_max)
+            a *= F_A
+    else:
+        n_pos = 0
+        n_neg += 1
+        if step >= N_DELAY:
+            if dt * F_DEC >= dt_min:
+                dt *= F_DEC
+            a = A_START
+    return n_pos, n_neg, dt, a
+
+
+@njit(cache=True)
+def _fire_power(frc, vel, ff, p):
+    """Largest |F|^2, and ``ff + |F|^2`` and the power ``p + F.v``."""
+    fmax2 = 0.0
+    for i in range(frc.shape[0]):
+        f2 = frc[i, 0] * frc[i, 0] + frc[i, 1] * frc[i, 1]
+        ff += f2
+        p += frc[i, 0] * vel[i, 0] + frc[i, 1] * vel[i, 1]
+        if f2 > fmax2:
+            fmax2 = f2
+    return fmax2, ff, p
+
+
+@njit(cache=True)
+def _fire_retreat(positions, vel, dt):
+    """After a step with non-positive power: half a step back, velocities to zero."""
+    for i in range(positions.shape[0]):
+        positions[i, 0] -= 0.5 * dt * vel[i, 0]
+        positions[i, 1] -= 0.5 * dt * vel[i, 1]
+        vel[i, 0] = 0.0
+        vel[i, 1] = 0.0
+
+
+@njit(cache=True)
+def _fire_kick(vel, frc, dt, vv):
+    """Semi-implicit Euler ``v += dt F``; returns ``vv + |v|^2``."""
+    for i in range(vel.shape[0]):
+        vel[i, 0] += dt * frc[i, 0]
+        vel[i, 1] += dt * frc[i, 1]
+        vv += vel[i, 0] * vel[i, 0] + vel[i, 1] * vel[i, 1]
+    return vv
+
+
+@njit(cache=True)
+def _fire_mix_move(positions, vel, frc, a, mix, dt, ref):
+    """FIRE's mixing ``v <- (1 - a) v + mix F`` and the move ``x += dt v``; returns the
+    largest squared displacement from ``ref``."""
+    disp2 = 0.0
+    for i in range(positions.shape[0]):
+        vel[i, 0] = (1.0 - a) * vel[i, 0] + mix * frc[i, 0]
+        vel[i, 1] = (1.0 - a) * vel[i, 1] + mix * frc[i, 1]
+        positions[i, 0] += dt * vel[i, 0]
+        positions[i, 1] += dt * vel[i, 1]
+        ddx = positions[i, 0] - ref[i, 0]
+        ddy = positions[i, 1] - ref[i, 1]
+        d2 = ddx * ddx + ddy * ddy
+        if d2 > disp2:
+            disp2 = d2
+    return disp2
+
+
+@njit(cache=True)
 def _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort):
     """Minimise the total energy in place (``positions`` is overwritten).
 
@@ -175,10 +268,8 @@ def _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort)
     frc = np.empty((n, 2))
     scratch = np.empty((n, 2))
     _wrap_inplace(positions, box)
-    ref = positions.copy()
-    pi, pj = _candidate_pairs_core(positions, radii, box, skin)
-    inv_s = _pair_inv_sigma(radii, pi, pj)
-    start, nbr = _rows_from_pairs(n, pi, pj)
+    ref = np.empty((n, 2))
+    pi, pj, start, nbr, inv_s = _verlet_rows(positions, radii, box, skin, radii, ref)
     half2 = 0.25 * skin * skin
     energy, virial, nc, fsum = _energy_forces_rows(positions, box, start, nbr, inv_s, alpha, frc)
     nforce = 1
@@ -198,15 +289,7 @@ def _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort)
             residual = 0.0
             break
         # one pass: largest force, |F|^2 and the power P = F.v
-        fmax2 = 0.0
-        ff = 0.0
-        p = 0.0
-        for i in range(n):
-            f2 = frc[i, 0] * frc[i, 0] + frc[i, 1] * frc[i, 1]
-            ff += f2
-            p += frc[i, 0] * vel[i, 0] + frc[i, 1] * vel[i, 1]
-            if f2 > fmax2:
-                fmax2 = f2
+        fmax2, ff, p = _fire_power(frc, vel, 0.0, 0.0)
         mean_f = fsum / nc
         bound = np.sqrt(fmax2) / mean_f if mean_f > 0.0 else 0.0
         if bound < tol or step % CHECK_EVERY == 0 or step >= max_steps:
@@ -219,53 +302,19 @@ def _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort)
             break
         step += 1
         # FIRE 2.0 step
-        if p > 0.0:
-            n_pos += 1
-            n_neg = 0
-            if n_pos > N_DELAY:
-                dt = min(dt * F_INC, dt_max)
-                a *= F_A
-        else:
-            n_pos = 0
-            n_neg += 1
+        n_pos, n_neg, dt, a = _fire_adapt(p, step, n_pos, n_neg, dt, a, dt_min, dt_max)
+        if p <= 0.0:
             if n_neg > N_NEG_MAX:
                 status = STALLED
                 residual = _residual_core(positions, radii, box, pi, pj, alpha, scratch)[0]
                 break
-            if step >= N_DELAY:
-                if dt * F_DEC >= dt_min:
-                    dt *= F_DEC
-                a = A_START
-            for i in range(n):
-                positions[i, 0] -= 0.5 * dt * vel[i, 0]
-                positions[i, 1] -= 0.5 * dt * vel[i, 1]
-                vel[i, 0] = 0.0
-                vel[i, 1] = 0.0
-        vv = 0.0
-        for i in range(n):
-            vel[i, 0] += dt * frc[i, 0]
-            vel[i, 1] += dt * frc[i, 1]
-            vv += vel[i, 0] * vel[i, 0] + vel[i, 1] * vel[i, 1]
+            _fire_retreat(positions, vel, dt)
+        vv = _fire_kick(vel, frc, dt, 0.0)
         mix = a * np.sqrt(vv / ff) if ff > 0.0 else 0.0
-        disp2 = 0.0
-        for i in range(n):
-            vel[i, 0] = (1.0 - a) * vel[i, 0] + mix * frc[i, 0]
-            vel[i, 1] = (1.0 - a) * vel[i, 1] + mix * frc[i, 1]
-            positions[i, 0] += dt * vel[i, 0]
-            positions[i, 1] += dt * vel[i, 1]
-            ddx = positions[i, 0] - ref[i, 0]
-            ddy = positions[i, 1] - ref[i, 1]
-            d2 = ddx * ddx + ddy * ddy
-            if d2 > disp2:
-                disp2 = d2
+        disp2 = _fire_mix_move(positions, vel, frc, a, mix, dt, ref)
         if disp2 > half2:
             _wrap_inplace(positions, box)
-            pi, pj = _candidate_pairs_core(positions, radii, box, skin)
-            inv_s = _pair_inv_sigma(radii, pi, pj)
-            start, nbr = _rows_from_pairs(n, pi, pj)
-            for i in range(n):
-                ref[i, 0] = positions[i, 0]
-                ref[i, 1] = positions[i, 1]
+            pi, pj, start, nbr, inv_s = _verlet_rows(positions, radii, box, skin, radii, ref)
         energy, virial, nc, fsum = _energy_forces_rows(positions, box, start, nbr, inv_s, alpha,
                                                        frc)
         nforce += 1
