@@ -162,6 +162,7 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     tasks = expand(spec)
     fn = resolve(args.task_function)
     context = {"task_function": args.task_function, "system": spec.system.canonical(),
+               "systems": {v.name: v.system.canonical() for v in spec.variants},
                "observables": list(spec.observables), "histograms": list(spec.histograms),
                "bins": {h: list(e) for h, e in spec.bins}, "configurations": spec.configurations,
                "protocol_warmup": spec.variants[0].protocol_dict}

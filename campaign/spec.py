@@ -62,22 +62,45 @@ class Species:
     radius: float
 
 
+#: continuous size distributions (``kernels.jamming.SIZE_DISTRIBUTIONS``) and the widest accepted
+SIZE_DISTRIBUTIONS = ("uniform", "lognormal")
+MAX_POLYDISPERSITY = 0.5
+
+
 @dataclass(frozen=True)
 class System:
     box: tuple[float, float] = (1.0, 1.0)
     species: tuple[Species, ...] = (Species("A", 0.5, 1.4), Species("B", 0.5, 1.0))
     exponent: float = 2.0
+    #: a continuous size distribution ``(name, polydispersity)`` instead of ``species``
+    sizes: tuple[str, float] | None = None
 
     def canonical(self) -> dict:
-        return {"box": list(self.box),
-                "species": [[s.name, s.fraction, s.radius] for s in self.species],
-                "potential": {"exponent": self.exponent}}
+        out = {"box": list(self.box), "potential": {"exponent": self.exponent}}
+        if self.sizes is None:
+            out["species"] = [[s.name, s.fraction, s.radius] for s in self.species]
+        else:
+            out["sizes"] = {"distribution": self.sizes[0], "polydispersity": self.sizes[1]}
+        return out
+
+    def label(self) -> str:
+        """Short description: ``alpha=2.5, bidisperse 1.4:1`` or ``alpha=2, lognormal 20%``."""
+        if self.sizes is not None:
+            sizes = f"{self.sizes[0]} {100 * self.sizes[1]:g}%"
+        elif len(self.species) == 1:
+            sizes = "monodisperse"
+        else:
+            kind = {2: "bidisperse", 3: "tridisperse"}.get(len(self.species), f"{len(self.species)} species")
+            sizes = f"{kind} " + ":".join(f"{s.radius:g}" for s in self.species)
+        return f"alpha={self.exponent:g}, {sizes}"
 
 
 @dataclass(frozen=True)
 class Variant:
     name: str
     protocol: tuple[tuple[str, Any], ...]  # the effective protocol, sorted by key
+    system: System = System()               # the effective system (the spec's, or overridden)
+    E: tuple[float, ...] = ()               # the variant's energies (the grid's, or its own E_G)
 
     @property
     def protocol_dict(self) -> dict:
@@ -107,13 +130,16 @@ class Spec:
 
     @property
     def n_tasks(self) -> int:
-        return len(self.variants) * len(self.N) * len(self.E) * len(self.seeds)
+        return sum(len(v.E) for v in self.variants) * len(self.N) * len(self.seeds)
 
     def canonical(self) -> dict:
         """Everything that decides which tasks exist and what is stored (not output, not run)."""
         return {"name": self.name, "seed": self.seed, "system": self.system.canonical(),
                 "grid": {"N_G": list(self.N), "E_G": list(self.E), "seeds": list(self.seeds)},
-                "variants": [[v.name, dict(v.protocol)] for v in self.variants],
+                # a variant's system only when it overrides the spec's (older specs keep their hash)
+                "variants": [[v.name, dict(v.protocol)]
+                             + ([v.system.canonical()] if v.system != self.system else [])
+                             + ([{"E_G": list(v.E)}] if v.E != self.E else []) for v in self.variants],
                 "observables": list(self.observables),
                 "bins": {k: list(v) for k, v in self.bins},
                 "store": {"configurations": self.configurations}}
@@ -335,7 +361,7 @@ def parse_spec(text: str, source: str = "<spec>") -> Spec:
     system = _system(c, top.get("system", {}), ("system",))
     N, E, seeds = _grid(c, top.get("grid"), ("grid",)) if "grid" in top else ((), (), ())
     base = _protocol(c, top.get("protocol", {}), ("protocol",), allow=PROTOCOL_KEYS)
-    variants = _variants(c, top.get("variants", []), ("variants",), base)
+    variants = _variants(c, top.get("variants", []), ("variants",), base, system, E)
     observables = _observables(c, top.get("observables", list(OBSERVABLES)), ("observables",))
     bins = _bins(c, top.get("bins", {}), ("bins",), observables)
     configurations = False
@@ -354,7 +380,7 @@ def parse_spec(text: str, source: str = "<spec>") -> Spec:
     elif name:
         output = f"results/{name}.h5"
     if not c.errors:
-        n_tasks = len(variants) * len(N) * len(E) * len(seeds)
+        n_tasks = sum(len(v.E) for v in variants) * len(N) * len(seeds)
         if n_tasks > MAX_TASKS:
             c.err(("grid",), f"{n_tasks} tasks is more than the {MAX_TASKS} one store is built for; "
                              "split the campaign into several specs")
@@ -365,12 +391,17 @@ def parse_spec(text: str, source: str = "<spec>") -> Spec:
                 output=output, text=text, source=source)
 
 
-def _system(c, value, path) -> System:
-    sysmap = c.mapping(value, path, ("box", "species", "potential"))
-    default = System()
+def _system(c, value, path, base: System | None = None) -> System:
+    """The ``system`` mapping over ``base`` (default: the paper's mixture): each key given
+    replaces the base's; ``species`` and ``sizes`` replace each other."""
+    sysmap = c.mapping(value, path, ("box", "species", "sizes", "potential"))
+    base = System() if base is None else base
     if sysmap is None:
-        return default
-    box = default.box
+        return base
+    if "species" in sysmap and "sizes" in sysmap:
+        c.err(path + ("sizes",), "give either species (discrete radii) or sizes (a continuous "
+                                 "distribution), not both")
+    box = base.box
     if "box" in sysmap:
         seq, _ = c.seq(sysmap["box"], path + ("box",), "two box lengths")
         if seq is not None:
@@ -380,8 +411,9 @@ def _system(c, value, path) -> System:
                 vals = [c.number(v, path + ("box", i), lo=0, lo_open=True) for i, v in enumerate(seq)]
                 if None not in vals:
                     box = tuple(vals)
-    species = default.species
+    species, sizes = base.species, base.sizes
     if "species" in sysmap:
+        sizes = None
         seq, _ = c.seq(sysmap["species"], path + ("species",), "species")
         if seq is not None:
             if not seq:
@@ -407,13 +439,29 @@ def _system(c, value, path) -> System:
                     c.err(path + ("species",), f"species fractions must add up to 1, they add up to {total!r}")
                 else:
                     species = tuple(out)
-    exponent = default.exponent
+    elif "sizes" in sysmap:
+        p = path + ("sizes",)
+        m = c.mapping(sysmap["sizes"], p, ("distribution", "polydispersity"), ("distribution", "polydispersity"))
+        if m is not None and "distribution" in m and "polydispersity" in m:
+            name = c.string(m["distribution"], p + ("distribution",),
+                            what=f"one of {', '.join(SIZE_DISTRIBUTIONS)}")
+            if name is not None and name not in SIZE_DISTRIBUTIONS:
+                hint = difflib.get_close_matches(name, SIZE_DISTRIBUTIONS, n=1)
+                extra = f" (did you mean {hint[0]!r}?)" if hint else ""
+                c.err(p + ("distribution",), f"unknown size distribution {name!r}{extra}; expected one of "
+                                             f"{', '.join(SIZE_DISTRIBUTIONS)}")
+                name = None
+            delta = c.number(m["polydispersity"], p + ("polydispersity",), lo=0, hi=MAX_POLYDISPERSITY,
+                             lo_open=True)
+            if name is not None and delta is not None:
+                sizes = (name, delta)
+    exponent = base.exponent
     if "potential" in sysmap:
         pot = c.mapping(sysmap["potential"], path + ("potential",), ("exponent",))
         if pot is not None and "exponent" in pot:
             e = c.number(pot["exponent"], path + ("potential", "exponent"), lo=2.0, hi=3.0)
             exponent = e if e is not None else exponent
-    return System(box=box, species=species, exponent=exponent)
+    return System(box=box, species=species, exponent=exponent, sizes=sizes)
 
 
 def _grid(c, value, path):
@@ -427,16 +475,7 @@ def _grid(c, value, path):
             vals = [c.number(v, path + ("N_G", i), lo=4, hi=10_000_000, integer=True) for i, v in enumerate(seq)]
             N = _unique_sorted(c, vals, path + ("N_G",))
     if "E_G" in g:
-        raw = g["E_G"]
-        if isinstance(raw, dict):
-            vals = _log_range(c, raw, path + ("E_G",))
-            E = tuple(vals) if vals else ()
-        else:
-            seq, _ = c.seq(raw, path + ("E_G",), "energies per grain", allow_scalar=True)
-            if seq is not None:
-                vals = [c.number(v, path + ("E_G", i), lo=0, hi=1, lo_open=True, hi_open=True)
-                        for i, v in enumerate(seq)]
-                E = _unique_sorted(c, vals, path + ("E_G",))
+        E = _energies(c, g["E_G"], path + ("E_G",))
     if "seeds" in g:
         raw = g["seeds"]
         if isinstance(raw, dict):
@@ -451,6 +490,18 @@ def _grid(c, value, path):
             if n is not None:
                 seeds = tuple(range(n))
     return N, E, seeds
+
+
+def _energies(c, raw, path):
+    """``E_G``: a list of energies per grain, or ``{log_range: [lo, hi], per_decade: k}``."""
+    if isinstance(raw, dict):
+        vals = _log_range(c, raw, path)
+        return tuple(vals) if vals else ()
+    seq, _ = c.seq(raw, path, "energies per grain", allow_scalar=True)
+    if seq is None:
+        return ()
+    vals = [c.number(v, path + (i,), lo=0, hi=1, lo_open=True, hi_open=True) for i, v in enumerate(seq)]
+    return _unique_sorted(c, vals, path)
 
 
 def _unique_sorted(c, vals, path):
@@ -548,15 +599,21 @@ def _protocol(c, value, path, allow, base=None):
     return out
 
 
-def _variants(c, value, path, base):
-    out = [Variant("default", tuple(sorted(base.items())))]
+#: variant keys besides the protocol's
+VARIANT_KEYS = ("name", "system", "E_G")
+
+
+def _variants(c, value, path, base, system, E):
+    """The base protocol, system and energies as "default", then each variant: protocol keys,
+    a ``system`` mapping and ``E_G`` override the base's (``_protocol``, ``_system``, ``_energies``)."""
+    out = [Variant("default", tuple(sorted(base.items())), system, E)]
     seq, _ = c.seq(value, path, "variants")
     if seq is None:
         return tuple(out)
     names = {"default": None}
     for i, item in enumerate(seq):
         p = path + (i,)
-        m = c.mapping(item, p, ("name",) + PROTOCOL_KEYS, ("name",))
+        m = c.mapping(item, p, VARIANT_KEYS + PROTOCOL_KEYS, ("name",))
         if m is None or "name" not in m:
             continue
         nm = c.string(m["name"], p + ("name",), _NAME, "a variant name of letters, digits, '_', '.', '-'")
@@ -567,15 +624,17 @@ def _variants(c, value, path, base):
                   else f"duplicate variant name {nm!r} (also variants[{names[nm]}])")
             continue
         names[nm] = i
-        overrides = {k: v for k, v in m.items() if k != "name"}
-        proto = _protocol(c, overrides, p, allow=("name",) + PROTOCOL_KEYS, base=base)
+        overrides = {k: v for k, v in m.items() if k not in VARIANT_KEYS}
+        proto = _protocol(c, overrides, p, allow=VARIANT_KEYS + PROTOCOL_KEYS, base=base)
+        vsys = _system(c, m["system"], p + ("system",), base=system) if "system" in m else system
+        vE = _energies(c, m["E_G"], p + ("E_G",)) if "E_G" in m else E
         key = tuple(sorted(proto.items()))
-        same = [v.name for v in out if v.protocol == key]
+        same = [v.name for v in out if v.protocol == key and v.system == vsys]
         if same:
-            c.err(p, f"variant {nm!r} has the same effective protocol as {same[0]!r}; "
+            c.err(p, f"variant {nm!r} has the same effective protocol and system as {same[0]!r}; "
                      "it would repeat the same packings")
             continue
-        out.append(Variant(nm, key))
+        out.append(Variant(nm, key, vsys, vE))
     return tuple(out)
 
 

@@ -2,7 +2,8 @@
 
 A task is one packing: (variant, N, E, seed index). Its **id** is the blake2b
 hash (16 bytes, 32 hex characters) of the canonical JSON of
-``{campaign seed, system, effective protocol, N, E, seed}``: the description of the packing,
+``{campaign seed, system, effective protocol, N, E, seed}`` (the variant's system: a
+variant may override the spec's potential, sizes or box): the description of the packing,
 not of its place in a spec. The variant's *name* is not part of it (renaming a
 variant keeps its packings); observables, bins and storage options are not
 either (they change what is kept of a packing, not the packing; the store's
@@ -87,35 +88,37 @@ def expand(spec: Spec) -> list[Task]:
     is assembled from its constant and varying parts (sorted keys: E, N, campaign_seed,
     protocol, seed, system), which tests/test_tasks.py checks against those functions.
     """
-    system = spec.system.canonical()
-    sys_json = canonical_json(system)
     cseed = int(spec.seed)
     out = []
     n_seeds = len(spec.seeds)
     words = {}
-    tail = ',"system":' + sys_json + "}"
-    words_of = _hash_json('{"E":', tail)
-    id_of = _hash_json('{"E":', tail)
+    shared = len(spec.variants) > 1
     for v in spec.variants:
+        # each variant's own system (a system variant is another physical system: other ids,
+        # other initial states); variants of one system share the seed words
+        sys_json = canonical_json(v.system.canonical())
+        tail = ',"system":' + sys_json + "}"
+        words_of = _hash_json('{"E":', tail)
+        id_of = words_of
         proto = dict(v.protocol)
         ladder = proto.get("start") == "ladder"
         proto_json = canonical_json(proto)
         for N in spec.N:
-            for k, E in enumerate(spec.E):
-                upper = k + 1 < len(spec.E) and ladder
+            for k, E in enumerate(v.E):
+                upper = k + 1 < len(v.E) and ladder
                 head = f'{canonical_json(E)},"N":{canonical_json(N)},'
                 id_head = f'{head}"campaign_seed":{cseed},"protocol":{proto_json},"seed":'
                 for s in spec.seeds:
                     i = len(out)
-                    w = words.get((N, E, s))
+                    w = words.get((sys_json, N, E, s))
                     if w is None:
                         w = int.from_bytes(words_of(f'{head}"seed":{canonical_json(s)}'), "little")
-                        if len(spec.variants) > 1:
-                            words[(N, E, s)] = w
+                        if shared:
+                            words[(sys_json, N, E, s)] = w
                     out.append(Task(index=i, id=id_of(id_head + canonical_json(s)).hex(), variant=v.name, N=N,
                                     E=E, seed=s, words=w, campaign_seed=cseed, protocol=v.protocol,
                                     parent=i + n_seeds if upper else None,
-                                    parent_E=spec.E[k + 1] if upper else None))
+                                    parent_E=v.E[k + 1] if upper else None))
     return out
 
 
@@ -161,19 +164,21 @@ def energy_floor_problems(spec) -> list[str]:
         from kernels.jamming import DEFAULTS, energy_floor, initial_state
     except Exception:  # noqa: BLE001 - no kernels, nothing to check against
         return []
-    system = spec.system
-    species = tuple((s.fraction, s.radius) for s in system.species)
     problems = []
     for v in spec.variants:
+        system = v.system
+        species = tuple((s.fraction, s.radius) for s in system.species)
         proto = dict(v.protocol)
         tol = proto.get("force_tolerance", DEFAULTS["force_tolerance"])
         phi = proto.get("phi_start", DEFAULTS["phi_start"])
         for N in spec.N:
-            _, radii, _ = initial_state(N, 0, system.box, species, phi)
+            # a continuous distribution's smallest radius varies from seed to seed: seed 0 stands in
+            _, radii, _ = initial_state(N, 0, system.box, species, phi, system.sizes)
             floor = energy_floor(radii, system.box, system.exponent, tol)
-            low = [E for E in spec.E if E < floor]
+            low = [E for E in v.E if E < floor]
             if low:
-                problems.append(f"{spec.source}: grid.E_G: {', '.join(f'{e:g}' for e in low)} below the lowest "
+                where = "grid.E_G" if v.E == spec.E else f"variants[{spec.variants.index(v) - 1}].E_G"
+                problems.append(f"{spec.source}: {where}: {', '.join(f'{e:g}' for e in low)} below the lowest "
                                 f"energy float64 resolves for N_G = {N} with force_tolerance {tol:g} (variant "
                                 f"{v.name!r}): {floor:.3g}; raise E_G, loosen force_tolerance or lower N_G")
     return problems

@@ -61,17 +61,21 @@ class KernelTask:
     def run(self, payload, context):
         import kernels
 
-        system = context["system"]
-        species = tuple((f, r) for _, f, r in system["species"])
+        # the variant's system (a spec's variants may override it), else the spec's
+        system = (context.get("systems") or {}).get(payload.get("variant"), context["system"])
         exponent = system["potential"]["exponent"]
         protocol = dict(payload["protocol"])
+        if "sizes" in system:
+            protocol["sizes"] = (system["sizes"]["distribution"], system["sizes"]["polydispersity"])
+        else:
+            protocol["species"] = tuple((f, r) for _, f, r in system["species"])
         protocol.pop("start", None)  # "ladder": the master sends the parent's packing as payload["start"]
         start = payload.get("start")
         if start is not None:
             start = (start["positions"], start["radii"], start["species"])
         t0 = time.perf_counter()
         p = kernels.jam(payload["N"], payload["E"], list(payload["entropy"]), start=start,
-                        box=tuple(system["box"]), species=species, exponent=exponent, **protocol)
+                        box=tuple(system["box"]), exponent=exponent, **protocol)
         t1 = time.perf_counter()
         obs = [o for o in context["observables"]]
         bins = {h: np.asarray(e, dtype=np.float64) for h, e in (context.get("edges") or {}).items()}

@@ -42,7 +42,15 @@ DEFAULTS = dict(
     delta=0.01,
     skin=0.3,
     route="ohern",
+    sizes=None,
 )
+
+#: Continuous size distributions (``sizes=(name, polydispersity)``): relative radii of mean 1
+#: and standard deviation ``polydispersity``, drawn per disk from the task's random stream.
+SIZE_DISTRIBUTIONS = ("uniform", "lognormal")
+#: Largest polydispersity accepted: at 0.5 the uniform distribution's smallest disk is 0.13
+#: of the mean, the log-normal's 1st percentile 0.28; wider ones make most small disks rattlers.
+MAX_POLYDISPERSITY = 0.5
 
 #: Routes to a packing in the window: the O'Hern ladder (``kernels.protocol``) or fixed-pressure
 #: minimisation with the radius scale as a degree of freedom (``kernels.barostat``).
@@ -149,6 +157,35 @@ def species_counts(n, fractions):
     return counts
 
 
+def check_sizes(sizes):
+    """Validate a continuous size distribution ``(name, polydispersity)``; None passes."""
+    if sizes is None:
+        return None
+    try:
+        name, delta = sizes
+    except (TypeError, ValueError):
+        raise ValueError(f"sizes: expected None or (distribution, polydispersity), got {sizes!r}") from None
+    if name not in SIZE_DISTRIBUTIONS:
+        raise ValueError(f"sizes: expected a distribution among {list(SIZE_DISTRIBUTIONS)}, got {name!r}")
+    d = _positive_float("sizes polydispersity", delta)
+    if d > MAX_POLYDISPERSITY:
+        raise ValueError(f"sizes: expected a polydispersity in (0, {MAX_POLYDISPERSITY:g}], got {delta!r}")
+    return name, d
+
+
+def relative_radii(rng, n, name, delta):
+    """``n`` relative radii of mean 1 and standard deviation ``delta`` (the polydispersity
+    ``sqrt(<R^2> - <R>^2) / <R>`` of the distribution, not of the sample).
+
+    "uniform": flat on ``1 +- sqrt(3) delta``. "lognormal": ``exp(s Z - s^2 / 2)`` with
+    ``s^2 = ln(1 + delta^2)``, ``Z`` standard normal (not truncated)."""
+    if name == "uniform":
+        half = math.sqrt(3.0) * delta
+        return 1.0 - half + 2.0 * half * rng.random(n)
+    s2 = math.log1p(delta * delta)
+    return np.exp(math.sqrt(s2) * rng.standard_normal(n) - 0.5 * s2)
+
+
 def _seed_sequence(seed):
     if isinstance(seed, np.random.SeedSequence):
         return seed
@@ -160,16 +197,25 @@ def _seed_sequence(seed):
                      f"numpy.random.SeedSequence, got {seed!r}")
 
 
-def initial_state(n, seed, box, species, phi_start):
-    """Random positions, radii at ``phi_start`` and species, in species order."""
-    frac, rel = check_species(species)
-    counts = species_counts(n, frac)
-    species_idx = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
-    rel_r = rel[species_idx]
+def initial_state(n, seed, box, species, phi_start, sizes=None):
+    """Random positions, radii at ``phi_start`` and species, in species order.
+
+    With ``sizes = (distribution, polydispersity)`` the relative radii are drawn per disk
+    (``relative_radii``, after the positions, from the same stream) and every disk is
+    species 0; ``species`` is then not used."""
     b = np.asarray(box, dtype=np.float64)
-    radii = rel_r * math.sqrt(phi_start * b[0] * b[1] / (math.pi * float(np.sum(rel_r ** 2))))
     rng = np.random.Generator(np.random.PCG64(_seed_sequence(seed)))
     positions = rng.random((n, 2)) * b
+    sizes = check_sizes(sizes)
+    if sizes is None:
+        frac, rel = check_species(species)
+        counts = species_counts(n, frac)
+        species_idx = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
+        rel_r = rel[species_idx]
+    else:
+        rel_r = relative_radii(rng, n, *sizes)
+        species_idx = np.zeros(n, dtype=np.int32)
+    radii = rel_r * math.sqrt(phi_start * b[0] * b[1] / (math.pi * float(np.sum(rel_r ** 2))))
     return positions, radii, species_idx
 
 
@@ -248,6 +294,10 @@ def jam(n, energy, seed, start=None, **settings):
     box : (Lx, Ly), default (1, 1).
     species : sequence of (fraction, relative radius); default 50:50 with the first
         species (A) 1.4 times larger. Counts by largest-remainder rounding.
+    sizes : None (default: ``species``) or ``(distribution, polydispersity)``, a continuous
+        size distribution among ``SIZE_DISTRIBUTIONS`` ("uniform", "lognormal") with
+        relative radii of mean 1 and standard deviation ``polydispersity`` (at most
+        ``MAX_POLYDISPERSITY``), drawn from the seed's stream; every disk is species 0.
     exponent : alpha in [2, 3]; 2 harmonic, 2.5 Hertz.
     window : relative window width, ``E_max = energy (1 + window)``; default 0.1.
     force_tolerance : final bound on max |F_net| over non-rattlers / mean contact
@@ -334,7 +384,7 @@ def jam(n, energy, seed, start=None, **settings):
     skin = _positive_float("skin", opt["skin"], upper=1.0)
     if start is None:
         positions, radii0, species_idx = initial_state(n, _seed_sequence(seed), box, opt["species"],
-                                                       phi_start)
+                                                       phi_start, opt["sizes"])
     else:
         positions, radii0, species_idx = _check_start(start, n, box)
     # the nearest image must be the only one in range: 2 r_max (1 + skin) < L/2
@@ -381,5 +431,5 @@ def jam(n, energy, seed, start=None, **settings):
 
 
 __all__ = ["jam", "Packing", "DEFAULTS", "ROUTES", "STATUS_CODES", "ALPHA_RANGE", "species_counts",
-           "energy_floor",
+           "energy_floor", "SIZE_DISTRIBUTIONS", "MAX_POLYDISPERSITY", "check_sizes", "relative_radii",
            "initial_state", "check_species"]

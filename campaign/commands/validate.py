@@ -24,9 +24,21 @@ def main(args) -> int:
     longest = max(task_cost(t) for t in tasks)
     print(f"{spec.source}: valid")
     print(f"  name        {spec.name}")
-    print(f"  tasks       {len(tasks)} = {len(spec.variants)} variant(s) x {len(spec.N)} N_G x "
-          f"{len(spec.E)} E_G x {len(spec.seeds)} seed(s)")
+    if all(v.E == spec.E for v in spec.variants):
+        grid = f"{len(spec.variants)} variant(s) x {len(spec.N)} N_G x {len(spec.E)} E_G"
+    else:  # variants with their own energies
+        grid = f"{sum(len(v.E) for v in spec.variants)} (variant, E_G) x {len(spec.N)} N_G"
+    print(f"  tasks       {len(tasks)} = {grid} x {len(spec.seeds)} seed(s)")
     print(f"  variants    {', '.join(v.name for v in spec.variants)}")
+    if any(v.system != spec.system for v in spec.variants):
+        # several physical systems: each a sub-campaign with its own ids, table and figures
+        print("  systems")
+        for v in spec.variants:
+            own = "" if v.system == spec.system else "  (overrides the spec's system)"
+            print(f"    {v.name:<12} {v.system.label()}, box {v.system.box[0]:g} x {v.system.box[1]:g}{own}")
+    for v in spec.variants:
+        if v.E != spec.E:
+            print(f"  E_G of {v.name}: {', '.join(f'{e:g}' for e in v.E)}")
     print(f"  N_G         {', '.join(str(n) for n in spec.N)}")
     print(f"  E_G         {', '.join(f'{e:g}' for e in spec.E)}")
     print(f"  observables {', '.join(spec.observables)}")
