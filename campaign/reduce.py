@@ -279,6 +279,97 @@ def species_radii(attrs):
         return DEFAULT_RADII
 
 
+def _merge_system(base: dict, over: dict) -> dict:
+    """A variant's ``system`` over the base's, key by key: ``potential`` (and a ``sizes`` over
+    a ``sizes``) merge their own keys; ``sizes`` replaces ``species`` and vice versa; any other
+    key (``box``) is replaced."""
+    out = dict(base)
+    for k, v in over.items():
+        if k == "sizes":
+            out.pop("species", None)
+        elif k == "species":
+            out.pop("sizes", None)
+        if k in ("potential", "sizes") and isinstance(out.get(k), dict) and isinstance(v, dict):
+            out[k] = {**out[k], **v}
+        else:
+            out[k] = v
+    return out
+
+
+def _num_label(x) -> str:
+    return f"{float(x):.3g}"
+
+
+def _sizes_label(system: dict) -> str:
+    """``bidisperse 1.4:1`` from species radii (with the fractions when unequal), or
+    ``lognormal 20%`` from a continuous ``sizes`` distribution."""
+    sizes = system.get("sizes")
+    if isinstance(sizes, dict):
+        name = str(sizes.get("distribution", "polydisperse"))
+        if "polydispersity" in sizes:
+            return f"{name} {_num_label(100 * float(sizes['polydispersity']))}%"
+        rest = ", ".join(f"{k} {v}" for k, v in sorted(sizes.items()) if k != "distribution")
+        return f"{name} {rest}".strip()
+    species = system.get("species")
+    if isinstance(species, list) and species:
+        sp = sorted(((float(s["radius"]), float(s.get("fraction", 1.0))) for s in species),
+                    key=lambda t: -t[0])
+        radii = [r for r, _ in sp]
+        if max(radii) == min(radii):
+            return "monodisperse"
+        kind = {2: "bidisperse", 3: "tridisperse"}.get(len(sp), f"{len(sp)} species")
+        label = f"{kind} " + ":".join(_num_label(r / radii[-1]) for r in radii)
+        fr = [f for _, f in sp]
+        if max(fr) - min(fr) > 1e-9:
+            label += ", " + ":".join(_num_label(100 * f / sum(fr)) for f in fr)
+        return label
+    return _sizes_label({"species": [{"radius": r, "fraction": 0.5} for r in DEFAULT_RADII]})
+
+
+def _describe_system(system: dict) -> dict:
+    pot = system.get("potential")
+    exponent = float(pot["exponent"]) if isinstance(pot, dict) and "exponent" in pot else 2.0
+    box = system.get("box")
+    box = tuple(float(x) for x in box) if isinstance(box, (list, tuple)) and len(box) == 2 else (1.0, 1.0)
+    return {"exponent": exponent, "sizes": _sizes_label(system), "box": box}
+
+
+def variant_systems(attrs, variants=()) -> dict:
+    """The physical system of every variant, from the spec text stored in the file.
+
+    ``{variant: {"exponent": alpha, "sizes": label, "box": (L_x, L_y)}}`` for "default" (the
+    spec's ``system``) and each of the spec's variants, whose ``system`` key merges over the
+    base's (``_merge_system``); a variant without one has the base system. ``variants``: names
+    found in the data; those the spec does not list get the base system. An old or foreign spec
+    gives every variant exponent 2 and the paper's mixture.
+    """
+    fallback = _describe_system({})
+    try:
+        import yaml
+
+        spec = yaml.safe_load(attrs.get("spec_yaml", "")) or {}
+        base = spec.get("system") or {}
+        if not isinstance(base, dict):
+            raise TypeError("system is not a mapping")
+        out = {"default": _describe_system(base)}
+        for item in spec.get("variants") or []:
+            if not isinstance(item, dict) or "name" not in item:
+                continue
+            over = item.get("system")
+            desc = dict(out["default"])  # a protocol-only variant: the base system
+            if isinstance(over, dict):
+                try:
+                    desc = _describe_system(_merge_system(base, over))
+                except Exception:  # noqa: BLE001 -- a system this reader does not understand
+                    pass
+            out[str(item["name"])] = desc
+    except Exception:  # noqa: BLE001 -- an old or foreign spec
+        out = {"default": fallback}
+    for v in variants:
+        out.setdefault(str(v), dict(out["default"]))
+    return out
+
+
 # =========================================================================== reduction
 @dataclass
 class Reduction:
