@@ -388,6 +388,7 @@ class Reduction:
     notes: list                  # human-readable: what is missing, what was skipped
     meta: dict
     variants: list = field(default_factory=list)  # campaign.tradeoff records, one per variant
+    systems: list = field(default_factory=list)   # campaign.systems records, with two systems or more
 
     def to_json(self):
         def clean(v):
@@ -402,6 +403,7 @@ class Reduction:
             return v
 
         return clean({"rows": self.rows, "extrapolated": self.extrapolated, "variants": self.variants,
+                      "systems": self.systems,
                       "status": {k: self.meta[k] for k in ("done", "pending", "failed", "total")},
                       "notes": self.notes})
 
@@ -736,11 +738,14 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
     dists, selfavg = _histograms(fin, g, s) if distributions else ({}, {})
     t_hist = time.perf_counter() - t1
 
+    from campaign import systems as sysmod
     from campaign import tradeoff
 
     variants, vnotes = tradeoff.compare(everything, extrapolated, s.reference, n_boot=s.n_boot,
                                         seed=s.boot_seed, usable=good)
     notes += vnotes
+    systems = sysmod.compare(rows, extrapolated, variant_systems(fin.attrs, variants=g.cv),
+                             reference=s.reference)
     alpha_e, theta, alpha_v = fits.three_disk_peaks(species_radii(fin.attrs))
     meta = {"sources": fin.paths, "done": int(len(fin)), "excluded": int(g.n_excluded.sum()),
             "pending": int(g.n_pending.sum()), "failed": int(g.n_failed.sum()),
@@ -754,7 +759,7 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                      area_hist=area_hist, fits=fit_records, residuals=residuals,
                      width_scaling=width, rows=rows, extrapolated=extrapolated,
                      peaks={"alpha_e": alpha_e, "theta": theta, "alpha_v": alpha_v},
-                     notes=notes, meta=meta, variants=variants)
+                     notes=notes, meta=meta, variants=variants, systems=systems)
 
 
 # =========================================================================== tables
@@ -927,6 +932,8 @@ def write_reduced(red: Reduction, h5path, *, mode="w"):
         _write_columns(g.create_group("peaks"), red.peaks)
         if red.variants:
             _write_columns(g.create_group("variants"), red.variants)
+        if red.systems:
+            _write_columns(g.create_group("systems"), red.systems)
 
 
 def write_outputs(red: Reduction, out_dir, *, write_h5=True):
@@ -940,6 +947,11 @@ def write_outputs(red: Reduction, out_dir, *, write_h5=True):
         "variants.csv": records_csv(red.variants),
         "summary.json": json.dumps(red.to_json(), indent=1) + "\n",
     }
+    if red.systems:
+        from campaign import systems
+
+        files["systems.csv"] = systems.table_csv(red.systems)
+        files["systems.md"] = systems.table_markdown(red.systems)
     for name, text in files.items():
         (out / name).write_text(text)
     written = [out / n for n in files]
