@@ -469,6 +469,147 @@ def fig_pareto(red, plt):
     return fig
 
 
+# --------------------------------------------------------------------------- systems
+_MARKERS = ("o", "s", "^", "D", "v", "P", "X", "<", ">")
+
+
+def _system_label(r):
+    return rf"{r['variant']}: $\alpha={r['alpha']:g}$, {r['sizes']}"
+
+
+def _system_colors(red):
+    return dict(zip((r["variant"] for r in red.systems), _colors(len(red.systems))))
+
+
+def _universality_points(red, v, N):
+    """``(x, dA, fit)`` of one (variant, N_G): the cells' mean Delta Z and
+    ``<A_G> - A_G*(Delta Z = 0)``, with the fit of A_G against delta_Z; cells where either is
+    not positive are left out (log axes). ``(None, None, None)`` without a fit."""
+    f = _fit_for(red, v, N, "A_G", "delta_Z")
+    if not f or not f["ok"] or not np.isfinite(f["intercept"]):
+        return None, None, None
+    c = red.cells
+    i = np.flatnonzero((c["variant"] == v) & (c["N"] == N) & (c["n_packings"] > 0))
+    x = c["mean_delta_Z"][i]
+    y = c["mean_A_G"][i] - f["intercept"]
+    ok = np.isfinite(x) & np.isfinite(y) & (x > 0) & (y > 0)
+    return x[ok], y[ok], f
+
+
+def fig_universality(red, plt):
+    """(a) Delta A_G against Delta Z for every system and N_G, with the fitted power laws;
+    (b) the same divided by each fit's coefficient: one line x^beta_Z if beta_Z is universal."""
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.8))
+    cols = _system_colors(red)
+    ref = next((r for r in red.systems if r["variant"] == r["reference"]), red.systems[0])
+    xs = []
+    sizes = sorted({int(n) for n in red.cells["N"]})  # one marker per N_G, the same in every system
+    for r in red.systems:
+        v = r["variant"]
+        Ns = sorted({int(n) for n in red.cells["N"][red.cells["variant"] == v]})
+        for k, N in enumerate(Ns):
+            x, y, f = _universality_points(red, v, N)
+            if x is None or not len(x):
+                continue
+            largest = k == len(Ns) - 1
+            light = 1.0 if largest else 0.25 + 0.5 * (k + 1) / len(Ns)
+            kw = dict(color=cols[v], alpha=light, ms=4 if largest else 3, ls="none",
+                      marker=_MARKERS[sizes.index(N) % len(_MARKERS)])
+            lab = _system_label(r) + rf", $\beta_Z={f['exponent']:.3f}$ ($N_G={N}$)" if largest else None
+            a1.plot(x, y, label=lab, **kw)
+            xs.append(x)
+            line = f["x_min"] > 0 and f["x_max"] > f["x_min"]
+            if line:
+                xx = np.geomspace(f["x_min"], f["x_max"], 50)
+                a1.plot(xx, f["coeff"] * xx ** f["exponent"], color=cols[v], alpha=light, lw=0.8)
+            if np.isfinite(f["coeff"]) and f["coeff"] > 0:
+                a2.plot(x, y / f["coeff"], **kw)
+                if line:
+                    a2.plot(xx, xx ** f["exponent"], color=cols[v], alpha=light, lw=0.8)
+    for N in sizes:  # the markers' key
+        a2.plot([], [], ls="none", marker=_MARKERS[sizes.index(N) % len(_MARKERS)], color="0.4",
+                label=rf"$N_G={N}$")
+    if xs:
+        x_all = np.concatenate(xs)
+        bz = ref["beta_Z"] if np.isfinite(ref["beta_Z"]) else ref["beta_Z_largest"]
+        if np.isfinite(bz):
+            xx = np.geomspace(x_all.min(), x_all.max(), 50)
+            a2.plot(xx, xx ** bz, "k--", lw=1,
+                    label=rf"$\Delta Z^{{\beta_Z}}$, $\beta_Z={bz:.3f}$ ({ref['variant']})")
+        for ax in (a1, a2):
+            ax.set(xscale="log", yscale="log")
+            if ax.get_legend_handles_labels()[0]:
+                ax.legend()
+    else:
+        for ax in (a1, a2):
+            _placeholder(ax, "no fit of A_G against Delta Z")
+    a1.set(xlabel=r"$\langle\Delta Z\rangle$",
+           ylabel=r"$\Delta A_G = \langle A_G\rangle - A_G^*(\Delta Z=0)$",
+           title="(a) every system; lighter: smaller $N_G$")
+    a2.set(xlabel=r"$\langle\Delta Z\rangle$", ylabel=r"$\Delta A_G / B$",
+           title=r"(b) rescaled by each fit's $B$ in $\Delta A_G = B\,\Delta Z^{\beta_Z}$")
+    return fig
+
+
+def _alpha_offsets(records, step=0.03):
+    """x positions: alpha, systems of the same alpha spread by ``step`` around it."""
+    groups = {}
+    for r in records:
+        groups.setdefault(r["alpha"], []).append(r["variant"])
+    out = {}
+    for a, vs in groups.items():
+        for k, v in enumerate(vs):
+            out[v] = a + step * (k - (len(vs) - 1) / 2)
+    return out
+
+
+def fig_exponents_vs_alpha(red, plt):
+    """beta_E and beta_Z against the potential exponent alpha: extrapolated (filled, with
+    errors) and at the largest N_G (open); the prediction beta_Z/(2 alpha) from the reference
+    system's beta_Z, with its error band."""
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.5))
+    recs = red.systems
+    cols = _system_colors(red)
+    xpos = _alpha_offsets(recs)
+    ref = next((r for r in recs if r["variant"] == r["reference"]), recs[0])
+
+    def errs(e):
+        return e if np.isfinite(e) else 0.0
+
+    for ax, key in ((a1, "beta_E"), (a2, "beta_Z")):
+        for r in recs:
+            v, x = r["variant"], xpos[r["variant"]]
+            if np.isfinite(r[key]):
+                ax.errorbar([x], [r[key]], [errs(r[f"{key}_err"])], fmt="o", ms=4, capsize=2,
+                            color=cols[v], label=_system_label(r))
+            if np.isfinite(r[f"{key}_largest"]):
+                ax.errorbar([x + 0.01], [r[f"{key}_largest"]], [errs(r[f"{key}_largest_err"])],
+                            fmt="o", ms=4, mfc="none", capsize=2, color=cols[v],
+                            label=None if np.isfinite(r[key]) else _system_label(r))
+    alphas = np.array([r["alpha"] for r in recs], float)
+    aa = np.linspace(alphas.min() - 0.2, alphas.max() + 0.2, 100)
+    bz, bz_err, which = ref["beta_Z"], ref["beta_Z_err"], r"N_G\to\infty"
+    if not np.isfinite(bz):
+        bz, bz_err, which = ref["beta_Z_largest"], ref["beta_Z_largest_err"], rf"N_G={ref['N_G_largest']}"
+    if np.isfinite(bz):
+        a1.plot(aa, bz / (2 * aa), "k--", lw=1,
+                label=rf"$\beta_Z/(2\alpha)$, $\beta_Z={bz:.3f}$ ({ref['variant']}, ${which}$)")
+        a2.axhline(bz, color="k", ls="--", lw=1, label=rf"$\beta_Z$ of {ref['variant']}")
+        if np.isfinite(bz_err):
+            a1.fill_between(aa, (bz - bz_err) / (2 * aa), (bz + bz_err) / (2 * aa), color="0.8", lw=0)
+            a2.axhspan(bz - bz_err, bz + bz_err, color="0.8", lw=0)
+    for ax, lab in ((a1, r"$\beta_E$"), (a2, r"$\beta_Z$")):
+        ax.set(xlabel=r"potential exponent $\alpha$", ylabel=lab,
+               title=lab + r": filled $N_G\to\infty$, open largest $N_G$")
+        ax.set_xlim(aa[0], aa[-1])
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend()
+    return fig
+
+
+SYSTEM_FIGURES = {"universality": fig_universality, "exponents_vs_alpha": fig_exponents_vs_alpha}
+
+
 def make_figures(red, out_dir, *, dpi=90):
     """Write every figure for every variant; return the list of PNG paths."""
     plt = _plt()
@@ -493,4 +634,11 @@ def make_figures(red, out_dir, *, dpi=90):
         fig.savefig(p, dpi=dpi)
         plt.close(fig)
         written.append(p)
+    if red.systems:  # two physical systems or more (campaign.systems)
+        for name, fn in SYSTEM_FIGURES.items():
+            fig = fn(red, plt)
+            p = out / f"{name}.png"
+            fig.savefig(p, dpi=dpi)
+            plt.close(fig)
+            written.append(p)
     return written

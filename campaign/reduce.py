@@ -279,6 +279,97 @@ def species_radii(attrs):
         return DEFAULT_RADII
 
 
+def _merge_system(base: dict, over: dict) -> dict:
+    """A variant's ``system`` over the base's, key by key: ``potential`` (and a ``sizes`` over
+    a ``sizes``) merge their own keys; ``sizes`` replaces ``species`` and vice versa; any other
+    key (``box``) is replaced."""
+    out = dict(base)
+    for k, v in over.items():
+        if k == "sizes":
+            out.pop("species", None)
+        elif k == "species":
+            out.pop("sizes", None)
+        if k in ("potential", "sizes") and isinstance(out.get(k), dict) and isinstance(v, dict):
+            out[k] = {**out[k], **v}
+        else:
+            out[k] = v
+    return out
+
+
+def _num_label(x) -> str:
+    return f"{float(x):.3g}"
+
+
+def _sizes_label(system: dict) -> str:
+    """``bidisperse 1.4:1`` from species radii (with the fractions when unequal), or
+    ``lognormal 20%`` from a continuous ``sizes`` distribution."""
+    sizes = system.get("sizes")
+    if isinstance(sizes, dict):
+        name = str(sizes.get("distribution", "polydisperse"))
+        if "polydispersity" in sizes:
+            return f"{name} {_num_label(100 * float(sizes['polydispersity']))}%"
+        rest = ", ".join(f"{k} {v}" for k, v in sorted(sizes.items()) if k != "distribution")
+        return f"{name} {rest}".strip()
+    species = system.get("species")
+    if isinstance(species, list) and species:
+        sp = sorted(((float(s["radius"]), float(s.get("fraction", 1.0))) for s in species),
+                    key=lambda t: -t[0])
+        radii = [r for r, _ in sp]
+        if max(radii) == min(radii):
+            return "monodisperse"
+        kind = {2: "bidisperse", 3: "tridisperse"}.get(len(sp), f"{len(sp)} species")
+        label = f"{kind} " + ":".join(_num_label(r / radii[-1]) for r in radii)
+        fr = [f for _, f in sp]
+        if max(fr) - min(fr) > 1e-9:
+            label += ", " + ":".join(_num_label(100 * f / sum(fr)) for f in fr)
+        return label
+    return _sizes_label({"species": [{"radius": r, "fraction": 0.5} for r in DEFAULT_RADII]})
+
+
+def _describe_system(system: dict) -> dict:
+    pot = system.get("potential")
+    exponent = float(pot["exponent"]) if isinstance(pot, dict) and "exponent" in pot else 2.0
+    box = system.get("box")
+    box = tuple(float(x) for x in box) if isinstance(box, (list, tuple)) and len(box) == 2 else (1.0, 1.0)
+    return {"exponent": exponent, "sizes": _sizes_label(system), "box": box}
+
+
+def variant_systems(attrs, variants=()) -> dict:
+    """The physical system of every variant, from the spec text stored in the file.
+
+    ``{variant: {"exponent": alpha, "sizes": label, "box": (L_x, L_y)}}`` for "default" (the
+    spec's ``system``) and each of the spec's variants, whose ``system`` key merges over the
+    base's (``_merge_system``); a variant without one has the base system. ``variants``: names
+    found in the data; those the spec does not list get the base system. An old or foreign spec
+    gives every variant exponent 2 and the paper's mixture.
+    """
+    fallback = _describe_system({})
+    try:
+        import yaml
+
+        spec = yaml.safe_load(attrs.get("spec_yaml", "")) or {}
+        base = spec.get("system") or {}
+        if not isinstance(base, dict):
+            raise TypeError("system is not a mapping")
+        out = {"default": _describe_system(base)}
+        for item in spec.get("variants") or []:
+            if not isinstance(item, dict) or "name" not in item:
+                continue
+            over = item.get("system")
+            desc = dict(out["default"])  # a protocol-only variant: the base system
+            if isinstance(over, dict):
+                try:
+                    desc = _describe_system(_merge_system(base, over))
+                except Exception:  # noqa: BLE001 -- a system this reader does not understand
+                    pass
+            out[str(item["name"])] = desc
+    except Exception:  # noqa: BLE001 -- an old or foreign spec
+        out = {"default": fallback}
+    for v in variants:
+        out.setdefault(str(v), dict(out["default"]))
+    return out
+
+
 # =========================================================================== reduction
 @dataclass
 class Reduction:
@@ -297,6 +388,7 @@ class Reduction:
     notes: list                  # human-readable: what is missing, what was skipped
     meta: dict
     variants: list = field(default_factory=list)  # campaign.tradeoff records, one per variant
+    systems: list = field(default_factory=list)   # campaign.systems records, with two systems or more
 
     def to_json(self):
         def clean(v):
@@ -311,6 +403,7 @@ class Reduction:
             return v
 
         return clean({"rows": self.rows, "extrapolated": self.extrapolated, "variants": self.variants,
+                      "systems": self.systems,
                       "status": {k: self.meta[k] for k in ("done", "pending", "failed", "total")},
                       "notes": self.notes})
 
@@ -645,11 +738,14 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
     dists, selfavg = _histograms(fin, g, s) if distributions else ({}, {})
     t_hist = time.perf_counter() - t1
 
+    from campaign import systems as sysmod
     from campaign import tradeoff
 
     variants, vnotes = tradeoff.compare(everything, extrapolated, s.reference, n_boot=s.n_boot,
                                         seed=s.boot_seed, usable=good)
     notes += vnotes
+    systems = sysmod.compare(rows, extrapolated, variant_systems(fin.attrs, variants=g.cv),
+                             reference=s.reference)
     alpha_e, theta, alpha_v = fits.three_disk_peaks(species_radii(fin.attrs))
     meta = {"sources": fin.paths, "done": int(len(fin)), "excluded": int(g.n_excluded.sum()),
             "pending": int(g.n_pending.sum()), "failed": int(g.n_failed.sum()),
@@ -663,7 +759,7 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                      area_hist=area_hist, fits=fit_records, residuals=residuals,
                      width_scaling=width, rows=rows, extrapolated=extrapolated,
                      peaks={"alpha_e": alpha_e, "theta": theta, "alpha_v": alpha_v},
-                     notes=notes, meta=meta, variants=variants)
+                     notes=notes, meta=meta, variants=variants, systems=systems)
 
 
 # =========================================================================== tables
@@ -836,6 +932,8 @@ def write_reduced(red: Reduction, h5path, *, mode="w"):
         _write_columns(g.create_group("peaks"), red.peaks)
         if red.variants:
             _write_columns(g.create_group("variants"), red.variants)
+        if red.systems:
+            _write_columns(g.create_group("systems"), red.systems)
 
 
 def write_outputs(red: Reduction, out_dir, *, write_h5=True):
@@ -849,6 +947,11 @@ def write_outputs(red: Reduction, out_dir, *, write_h5=True):
         "variants.csv": records_csv(red.variants),
         "summary.json": json.dumps(red.to_json(), indent=1) + "\n",
     }
+    if red.systems:
+        from campaign import systems
+
+        files["systems.csv"] = systems.table_csv(red.systems)
+        files["systems.md"] = systems.table_markdown(red.systems)
     for name, text in files.items():
         (out / name).write_text(text)
     written = [out / n for n in files]

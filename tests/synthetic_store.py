@@ -5,7 +5,12 @@ against the truth:
 
     A_G   = A_inf + a_N / N + c_A E_G**beta_A + noise(sigma_A / sqrt(N))
     psi_O = P_inf + p_N / N + c_P E_G**beta_P + noise(sigma_P / sqrt(N))
-    delta_Z = c_Z E_G**(1/4) (1 + noise)
+    delta_Z = c_Z E_G**(1/(2 alpha)) (1 + noise)     (alpha = 2 by default: E_G**(1/4))
+
+so ``A_G - A* = B delta_Z**beta_Z`` with ``beta_Z = 2 alpha beta_A`` (``Truth.jamming``).
+``SyntheticCampaign.variant_truth`` gives variants their own truths; the spec text then lists
+the variants, with a ``system.potential.exponent`` override where the truth's alpha differs
+from the base's (and ``variant_system``, any other ``system`` override).
 
 Histograms are Poisson counts around fixed shapes (uniform angles with the
 three-disk peaks, etc.); they only need to be plausible and additive.
@@ -50,6 +55,23 @@ class Truth:
     c_Z: float = 3.0
     sigma_Z: float = 0.05
     iso_E: float = 0.0   # below this E_G every packing is isostatic: delta_Z = 0 exactly
+    alpha: float = 2.0   # potential exponent: delta_Z ~ E_G**(1/(2 alpha))
+    z_exponent: float | None = None  # exponent of delta_Z in E_G; None: 1/(2 alpha)
+
+    @classmethod
+    def jamming(cls, alpha, beta_Z, **kw):
+        """The truth of a system obeying jamming scaling with exponent ``alpha`` and a given
+        ``beta_Z``: ``beta_E = beta_Z / (2 alpha)``."""
+        return cls(alpha=alpha, beta_A=beta_Z / (2.0 * alpha), **kw)
+
+    @property
+    def z_power(self):
+        return 1.0 / (2.0 * self.alpha) if self.z_exponent is None else self.z_exponent
+
+    @property
+    def beta_Z(self):
+        """The exponent of A_G - A* against delta_Z."""
+        return self.beta_A / self.z_power
 
     def A_star(self, N):
         return self.A_inf + self.a_N / np.asarray(N, float)
@@ -113,6 +135,27 @@ class SyntheticCampaign:
     histograms: tuple = tuple(DEFAULT_EDGES)
     hist_scale: float = 0.05     # expected counts per bin per disk (keeps files small)
     seed: int = 0
+    variant_truth: dict = field(default_factory=dict)    # variant -> Truth (default: truth)
+    variant_system: dict = field(default_factory=dict)   # variant -> extra system overrides
+
+    def truth_of(self, variant):
+        return self.variant_truth.get(variant, self.truth)
+
+    def spec_yaml(self):
+        """SPEC_YAML; with per-variant truths or systems, also the variants and their
+        system overrides."""
+        if not self.variant_truth and not self.variant_system:
+            return SPEC_YAML
+        text = SPEC_YAML.replace("exponent: 2.0", f"exponent: {float(self.truth.alpha)!r}")
+        items = []
+        for v in self.variants:
+            if v == "default":
+                continue
+            system = dict(self.variant_system.get(v, {}))
+            if self.truth_of(v).alpha != self.truth.alpha:
+                system["potential"] = {"exponent": float(self.truth_of(v).alpha)}
+            items.append({"name": v, **({"system": system} if system else {})})
+        return text + "variants: " + json.dumps(items) + "\n"
 
     @property
     def n_tasks(self):
@@ -128,15 +171,22 @@ def task_table(c: SyntheticCampaign):
 
 
 def scalars_for(c: SyntheticCampaign, variant, N, E, rng):
-    t = c.truth
     T = len(N)
     N = N.astype(float)
     E_G = E * (1.0 + 0.1 * rng.random(T))
     vshift = np.array([0.01 * c.variants.index(x) for x in variant])
-    A_G = t.A_star(N) + vshift + t.c_A * E_G**t.beta_A + rng.normal(0, 1, T) * t.sigma_A / np.sqrt(N)
-    psi = t.P_star(N) + t.c_P * E_G**t.beta_P + rng.normal(0, 1, T) * t.sigma_P / np.sqrt(N)
-    dZ = t.c_Z * E_G**0.25 * (1 + t.sigma_Z * rng.normal(0, 1, T))
-    dZ = np.where(E_G < t.iso_E, 0.0, dZ)
+    noise_A = rng.normal(0, 1, T)
+    noise_P = rng.normal(0, 1, T)
+    noise_Z = rng.normal(0, 1, T)
+    A_G, psi, dZ = np.empty(T), np.empty(T), np.empty(T)
+    variant = np.asarray(variant, dtype=object)
+    for v in dict.fromkeys(variant):  # the laws, variant by variant
+        m = variant == v
+        t = c.truth_of(v)
+        n, e = N[m], E_G[m]
+        A_G[m] = t.A_star(n) + vshift[m] + t.c_A * e**t.beta_A + noise_A[m] * t.sigma_A / np.sqrt(n)
+        psi[m] = t.P_star(n) + t.c_P * e**t.beta_P + noise_P[m] * t.sigma_P / np.sqrt(n)
+        dZ[m] = np.where(e < t.iso_E, 0.0, t.c_Z * e**t.z_power * (1 + t.sigma_Z * noise_Z[m]))
     N_R = rng.binomial(N.astype(np.int64), 0.04)
     N_G = N - N_R
     z_iso = 4.0 - 2.0 / N_G
@@ -171,7 +221,8 @@ def write_store(path, c: SyntheticCampaign | None = None, *, status=None, block=
     sel = np.arange(T_full) if rows is None else np.asarray(rows)
     T = len(sel)
     with h5py.File(path, "w") as f:
-        f.attrs.update(schema="jamming-campaign/1", format_version=2, name="synthetic", spec_yaml=SPEC_YAML,
+        f.attrs.update(schema="jamming-campaign/1", format_version=2, name="synthetic",
+                       spec_yaml=c.spec_yaml(),
                        spec_hash="0" * 32, package_version="0", git_commit="unknown",
                        versions=json.dumps({}), runs=json.dumps([]))
         g = f.create_group("tasks")

@@ -15,7 +15,7 @@ def configure(parser):
     parser.add_argument("files", nargs="+", metavar="FILE",
                         help="campaign HDF5 file(s); several files are reduced together "
                              "(a packing done in more than one counts once)")
-    parser.add_argument("--out", metavar="DIR",
+    parser.add_argument("-o", "--out", metavar="DIR",
                         help="output directory (default: <FILE stem>_reduced next to FILE)")
     parser.add_argument("--json", action="store_true",
                         help="print one JSON object (rows, extrapolated) on stdout; "
@@ -69,6 +69,12 @@ def main(args) -> int:
           + f"; {len(red.rows)} (variant, N_G) rows; bootstrap {m['n_boot']}", file=text)
     print("", file=text)
     print(R.table_markdown(red), file=text)
+    if red.systems:
+        from campaign import systems
+
+        print(f"Systems (beta_E against the prediction beta_Z/(2 alpha); beta_Z against "
+              f"{red.systems[0]['reference']!r}'s; tensions in standard deviations)\n", file=text)
+        print(systems.table_markdown(red.systems), file=text)
     if red.variants:
         from campaign import tradeoff
 
