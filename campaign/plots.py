@@ -305,8 +305,9 @@ def fig_connectivity(red, cs, plt):
 def fig_polygon_areas(red, cs, plt):
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.5))
     N = 2048 if 2048 in cs.Ns else cs.largest_N()
-    for ax, name, lab, peaks in ((a1, "alpha_e", r"\alpha_e", red.peaks["alpha_e"]),
-                                 (a2, "alpha_v", r"\alpha_v", red.peaks["alpha_v"])):
+    pk = red.peaks.get(cs.v) or {"alpha_e": (), "alpha_v": ()}
+    for ax, name, lab, peaks in ((a1, "alpha_e", r"\alpha_e", pk["alpha_e"]),
+                                 (a2, "alpha_v", r"\alpha_v", pk["alpha_v"])):
         if _per_E(red, cs, plt, ax, name, N, positive=True, step=True):
             for k, p in enumerate(peaks):
                 ax.axvline(p, color="0.4", lw=0.6, ls="--",

@@ -37,7 +37,6 @@ TABLE_KEYS = ("A_G_star_E", "beta_E", "A_G_star_Z", "beta_Z", "psi_O_star",
               "psi_O_star_Z", "psi_beta_E", "psi_beta_Z")
 #: Histograms whose self-averaging is tested (radial pair counts are not per-object variables).
 SELF_AVERAGING_SKIP = ("radial_grains", "radial_contacts")
-DEFAULT_RADII = (1.4, 1.0)
 
 
 @dataclass
@@ -266,108 +265,45 @@ def load_finished(paths) -> Finished:
                     scalars=scalars, edges=edges or {}, tasks=tasks, _rows=per_file)
 
 
-def species_radii(attrs):
-    """Distinct radii from the spec text stored in the file (default: 1.4 and 1.0)."""
-    try:
-        import yaml
-
-        spec = yaml.safe_load(attrs.get("spec_yaml", "")) or {}
-        sp = spec["system"]["species"]
-        radii = [float(s["radius"]) for s in sp]
-        return tuple(radii) if radii else DEFAULT_RADII
-    except Exception:  # noqa: BLE001 -- an old or foreign spec: fall back to the paper's mixture
-        return DEFAULT_RADII
-
-
-def _merge_system(base: dict, over: dict) -> dict:
-    """A variant's ``system`` over the base's, key by key: ``potential`` (and a ``sizes`` over
-    a ``sizes``) merge their own keys; ``sizes`` replaces ``species`` and vice versa; any other
-    key (``box``) is replaced."""
-    out = dict(base)
-    for k, v in over.items():
-        if k == "sizes":
-            out.pop("species", None)
-        elif k == "species":
-            out.pop("sizes", None)
-        if k in ("potential", "sizes") and isinstance(out.get(k), dict) and isinstance(v, dict):
-            out[k] = {**out[k], **v}
-        else:
-            out[k] = v
-    return out
-
-
-def _num_label(x) -> str:
-    return f"{float(x):.3g}"
-
-
-def _sizes_label(system: dict) -> str:
-    """``bidisperse 1.4:1`` from species radii (with the fractions when unequal), or
-    ``lognormal 20%`` from a continuous ``sizes`` distribution."""
-    sizes = system.get("sizes")
-    if isinstance(sizes, dict):
-        name = str(sizes.get("distribution", "polydisperse"))
-        if "polydispersity" in sizes:
-            return f"{name} {_num_label(100 * float(sizes['polydispersity']))}%"
-        rest = ", ".join(f"{k} {v}" for k, v in sorted(sizes.items()) if k != "distribution")
-        return f"{name} {rest}".strip()
-    species = system.get("species")
-    if isinstance(species, list) and species:
-        sp = sorted(((float(s["radius"]), float(s.get("fraction", 1.0))) for s in species),
-                    key=lambda t: -t[0])
-        radii = [r for r, _ in sp]
-        if max(radii) == min(radii):
-            return "monodisperse"
-        kind = {2: "bidisperse", 3: "tridisperse"}.get(len(sp), f"{len(sp)} species")
-        label = f"{kind} " + ":".join(_num_label(r / radii[-1]) for r in radii)
-        fr = [f for _, f in sp]
-        if max(fr) - min(fr) > 1e-9:
-            label += ", " + ":".join(_num_label(100 * f / sum(fr)) for f in fr)
-        return label
-    return _sizes_label({"species": [{"radius": r, "fraction": 0.5} for r in DEFAULT_RADII]})
-
-
-def _describe_system(system: dict) -> dict:
-    pot = system.get("potential")
-    exponent = float(pot["exponent"]) if isinstance(pot, dict) and "exponent" in pot else 2.0
-    box = system.get("box")
-    box = tuple(float(x) for x in box) if isinstance(box, (list, tuple)) and len(box) == 2 else (1.0, 1.0)
-    return {"exponent": exponent, "sizes": _sizes_label(system), "box": box}
-
-
 def variant_systems(attrs, variants=()) -> dict:
     """The physical system of every variant, from the spec text stored in the file.
 
-    ``{variant: {"exponent": alpha, "sizes": label, "box": (L_x, L_y)}}`` for "default" (the
-    spec's ``system``) and each of the spec's variants, whose ``system`` key merges over the
-    base's (``_merge_system``); a variant without one has the base system. ``variants``: names
-    found in the data; those the spec does not list get the base system. An old or foreign spec
-    gives every variant exponent 2 and the paper's mixture.
+    ``{variant: {"exponent": alpha, "sizes": label, "box": (L_x, L_y), "radii": distinct
+    discrete radii or () for a continuous distribution}}`` for "default" and each of the
+    spec's variants (``campaign.spec``: a variant's ``system`` overrides the spec's).
+    ``variants``: names found in the data; those the spec does not list get the base system.
+    A spec this version cannot read gives every variant the paper's system (exponent 2, the
+    1.4:1 mixture).
     """
-    fallback = _describe_system({})
-    try:
-        import yaml
+    from campaign.spec import System, parse_spec
 
-        spec = yaml.safe_load(attrs.get("spec_yaml", "")) or {}
-        base = spec.get("system") or {}
-        if not isinstance(base, dict):
-            raise TypeError("system is not a mapping")
-        out = {"default": _describe_system(base)}
-        for item in spec.get("variants") or []:
-            if not isinstance(item, dict) or "name" not in item:
-                continue
-            over = item.get("system")
-            desc = dict(out["default"])  # a protocol-only variant: the base system
-            if isinstance(over, dict):
-                try:
-                    desc = _describe_system(_merge_system(base, over))
-                except Exception:  # noqa: BLE001 -- a system this reader does not understand
-                    pass
-            out[str(item["name"])] = desc
-    except Exception:  # noqa: BLE001 -- an old or foreign spec
-        out = {"default": fallback}
+    try:
+        spec = parse_spec(str(attrs.get("spec_yaml", "")), "the stored spec")
+        out = {v.name: _describe_system(v.system) for v in spec.variants}
+    except UserError:  # an old or foreign spec
+        out = {"default": _describe_system(System())}
     for v in variants:
         out.setdefault(str(v), dict(out["default"]))
     return out
+
+
+def _describe_system(system) -> dict:
+    radii = () if system.sizes is not None else tuple(sorted({s.radius for s in system.species}, reverse=True))
+    return {"exponent": float(system.exponent), "sizes": system.sizes_label(), "box": tuple(system.box),
+            "radii": radii}
+
+
+def three_disk_peaks(system: dict) -> dict:
+    """The exact three-disk peaks of a variant's system (``variant_systems``): of its discrete
+    radii; for a continuous size distribution only the equal-disk edge triangle
+    (``alpha_e = sqrt(3)/4``, ``theta = pi/3``), the centre of the continuum of peaks a
+    polydisperse packing smears out, and no ``alpha_v`` (its scale, the packing's largest
+    radius, is itself random)."""
+    if system["radii"]:
+        alpha_e, theta, alpha_v = fits.three_disk_peaks(system["radii"])
+    else:
+        alpha_e, theta, alpha_v = np.array([math.sqrt(3) / 4]), np.array([math.pi / 3]), np.array([])
+    return {"alpha_e": alpha_e, "theta": theta, "alpha_v": alpha_v}
 
 
 # =========================================================================== reduction
@@ -384,7 +320,7 @@ class Reduction:
     width_scaling: list          # records per (variant, E)
     rows: list                   # table rows per (variant, N)
     extrapolated: dict           # variant -> {key: value, key_err: ...}
-    peaks: dict                  # alpha_e, theta, alpha_v
+    peaks: dict                  # variant -> {alpha_e, theta, alpha_v} (``three_disk_peaks``)
     notes: list                  # human-readable: what is missing, what was skipped
     meta: dict
     variants: list = field(default_factory=list)  # campaign.tradeoff records, one per variant
@@ -741,12 +677,19 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
     from campaign import systems as sysmod
     from campaign import tradeoff
 
-    variants, vnotes = tradeoff.compare(everything, extrapolated, s.reference, n_boot=s.n_boot,
-                                        seed=s.boot_seed, usable=good)
+    # speed against accuracy compares packings of one physical system: the reference's
+    vsys = variant_systems(fin.attrs, variants=g.cv)
+    ref_sys = vsys.get(s.reference)
+    same = np.array([vsys[str(v)] == ref_sys for v in everything.variant], bool)
+    if not same.all() and ref_sys is not None:
+        others = sorted({str(v) for v in everything.variant[~same]})
+        notes.append(f"variants {', '.join(others)} are other systems than {s.reference!r}: compared in "
+                     "systems.md, not packing by packing")
+    pick = same if ref_sys is not None else np.ones(len(everything), bool)
+    variants, vnotes = tradeoff.compare(everything.subset(pick), extrapolated, s.reference, n_boot=s.n_boot,
+                                        seed=s.boot_seed, usable=good[pick])
     notes += vnotes
-    systems = sysmod.compare(rows, extrapolated, variant_systems(fin.attrs, variants=g.cv),
-                             reference=s.reference)
-    alpha_e, theta, alpha_v = fits.three_disk_peaks(species_radii(fin.attrs))
+    systems = sysmod.compare(rows, extrapolated, vsys, reference=s.reference)
     meta = {"sources": fin.paths, "done": int(len(fin)), "excluded": int(g.n_excluded.sum()),
             "pending": int(g.n_pending.sum()), "failed": int(g.n_failed.sum()),
             "total": int(g.n_tasks.sum()), "n_boot": s.n_boot,
@@ -758,7 +701,7 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
     return Reduction(cells=cells, distributions=dists, self_averaging=selfavg,
                      area_hist=area_hist, fits=fit_records, residuals=residuals,
                      width_scaling=width, rows=rows, extrapolated=extrapolated,
-                     peaks={"alpha_e": alpha_e, "theta": theta, "alpha_v": alpha_v},
+                     peaks={v: three_disk_peaks(vsys[v]) for v in sorted(set(g.cv))},
                      notes=notes, meta=meta, variants=variants, systems=systems)
 
 
@@ -929,7 +872,9 @@ def write_reduced(red: Reduction, h5path, *, mode="w"):
         ex = [{"variant": v, **x} for v, x in sorted(red.extrapolated.items())]
         if ex:
             _write_columns(g.create_group("extrapolated"), ex)
-        _write_columns(g.create_group("peaks"), red.peaks)
+        pk = g.create_group("peaks")
+        for v, d in red.peaks.items():
+            _write_columns(pk.create_group(str(v)), d)
         if red.variants:
             _write_columns(g.create_group("variants"), red.variants)
         if red.systems:

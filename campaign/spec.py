@@ -83,16 +83,24 @@ class System:
             out["sizes"] = {"distribution": self.sizes[0], "polydispersity": self.sizes[1]}
         return out
 
+    def sizes_label(self) -> str:
+        """``bidisperse 1.4:1`` (radii over the smallest; fractions when unequal), ``monodisperse``
+        or ``lognormal 20%``."""
+        if self.sizes is not None:
+            return f"{self.sizes[0]} {100 * self.sizes[1]:.3g}%"
+        sp = sorted(self.species, key=lambda s: -s.radius)
+        radii = [s.radius for s in sp]
+        if max(radii) == min(radii):
+            return "monodisperse"
+        kind = {2: "bidisperse", 3: "tridisperse"}.get(len(sp), f"{len(sp)} species")
+        label = f"{kind} " + ":".join(f"{r / radii[-1]:.3g}" for r in radii)
+        if max(s.fraction for s in sp) - min(s.fraction for s in sp) > 1e-9:
+            label += ", " + ":".join(f"{100 * s.fraction:.3g}" for s in sp)
+        return label
+
     def label(self) -> str:
         """Short description: ``alpha=2.5, bidisperse 1.4:1`` or ``alpha=2, lognormal 20%``."""
-        if self.sizes is not None:
-            sizes = f"{self.sizes[0]} {100 * self.sizes[1]:g}%"
-        elif len(self.species) == 1:
-            sizes = "monodisperse"
-        else:
-            kind = {2: "bidisperse", 3: "tridisperse"}.get(len(self.species), f"{len(self.species)} species")
-            sizes = f"{kind} " + ":".join(f"{s.radius:g}" for s in self.species)
-        return f"alpha={self.exponent:g}, {sizes}"
+        return f"alpha={self.exponent:g}, {self.sizes_label()}"
 
 
 @dataclass(frozen=True)
@@ -441,7 +449,12 @@ def _system(c, value, path, base: System | None = None) -> System:
                     species = tuple(out)
     elif "sizes" in sysmap:
         p = path + ("sizes",)
-        m = c.mapping(sysmap["sizes"], p, ("distribution", "polydispersity"), ("distribution", "polydispersity"))
+        # over a base that has sizes, either key alone overrides it
+        given = {} if base.sizes is None else {"distribution": base.sizes[0], "polydispersity": base.sizes[1]}
+        m = c.mapping(sysmap["sizes"], p, ("distribution", "polydispersity"),
+                      () if given else ("distribution", "polydispersity"))
+        if m is not None:
+            m = {**given, **m}
         if m is not None and "distribution" in m and "polydispersity" in m:
             name = c.string(m["distribution"], p + ("distribution",),
                             what=f"one of {', '.join(SIZE_DISTRIBUTIONS)}")

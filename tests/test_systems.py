@@ -104,6 +104,9 @@ def test_markdown_table(multi):
 
 
 SPEC = """
+name: s
+seed: 1
+grid: {N_G: [16], E_G: [1.0e-3], seeds: 1}
 system:
   box: [1.0, 1.0]
   species: [{name: A, fraction: 0.5, radius: 1.4}, {name: B, fraction: 0.5, radius: 1.0}]
@@ -128,7 +131,8 @@ def test_variant_systems_merges_overrides():
     assert s["default"]["exponent"] == 2.0 and s["default"]["sizes"] == "bidisperse 1.4:1"
     assert s["hertz"]["exponent"] == 2.5 and s["hertz"]["sizes"] == "bidisperse 1.4:1"
     assert s["alpha3"]["exponent"] == 3.0
-    assert s["poly20"] == {"exponent": 2.0, "sizes": "lognormal 20%", "box": (1.0, 1.0)}
+    assert s["poly20"] == {"exponent": 2.0, "sizes": "lognormal 20%", "box": (1.0, 1.0), "radii": ()}
+    assert s["hertz"]["radii"] == (1.4, 1.0)
     assert s["loose"] == s["default"]  # protocol-only: the base system
     assert s["wide"]["box"] == (2.0, 1.0) and s["wide"]["exponent"] == 2.5
     # data variants the spec does not list have the base system
@@ -137,6 +141,9 @@ def test_variant_systems_merges_overrides():
 
 def test_variant_systems_species_and_sizes_replace_each_other():
     spec = """
+name: s
+seed: 1
+grid: {N_G: [16], E_G: [1.0e-3], seeds: 1}
 system:
   sizes: {distribution: uniform, polydispersity: 0.1}
   potential: {exponent: 2.5}
@@ -242,3 +249,11 @@ def test_cli_reduce_prints_the_systems_table(multi, tmp_path):
     assert p.stdout.index("A_G*(E_G=0)") < p.stdout.index("| system | N_G | alpha |")
     with open(out / "systems.csv") as f:
         assert sorted(r["variant"] for r in csv.DictReader(f)) == sorted(TRUTHS)
+
+
+def test_speed_accuracy_compares_only_packings_of_the_reference_system(multi):
+    """Pairing (N, E, seed) across physical systems means nothing: those variants are left out
+    of campaign.tradeoff and named in the notes."""
+    _, red = multi
+    assert red.variants == []  # every other variant is another system
+    assert any("other systems than 'default'" in n for n in red.notes)
