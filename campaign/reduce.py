@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from campaign import fits
+from campaign.tables import _csv_val, fmt_err, records_csv  # noqa: F401 - also used as reduce.fmt_err
 from campaign.errors import UserError
 
 STATUS_PENDING, STATUS_DONE, STATUS_FAILED = 0, 1, 2
@@ -706,22 +707,6 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
 
 
 # =========================================================================== tables
-def fmt_err(value, err):
-    """``0.4416(2)``: the value rounded at the error's first significant digit."""
-    if value is None or not np.isfinite(value):
-        return "--"
-    if err is None or not np.isfinite(err) or err <= 0:
-        return f"{value:.4g}"
-    digits = max(0, -int(math.floor(math.log10(err))))
-    e = round(err * 10**digits)
-    if e >= 10:  # 0.096 -> 0.1
-        digits = max(0, digits - 1)
-        e = round(err * 10**digits)
-    if digits == 0:
-        return f"{value:.0f}({e})"
-    return f"{value:.{digits}f}({e})"
-
-
 TABLE_HEADER = ("N_G", "A_G*(E_G=0)", "beta_E", "A_G*(Delta Z=0)", "beta_Z", "Psi_O*")
 TEX_HEADER = (r"$N_G$", r"$A_G^*(E_G=0)$", r"$\beta_E$", r"$A_G^*(\Delta Z=0)$", r"$\beta_Z$",
               r"$\Psi_O^*$")
@@ -780,24 +765,6 @@ def table_csv(red: Reduction) -> str:
     for v, x in sorted(red.extrapolated.items()):
         w.writerow([_csv_val(v if k == "variant" else "inf" if k == "N_G" else x.get(k, ""))
                     for k in keys])
-    return buf.getvalue()
-
-
-def _csv_val(v):
-    if isinstance(v, (float, np.floating)):
-        return "" if not np.isfinite(v) else repr(float(v))
-    return "" if v is None else v
-
-
-def records_csv(records) -> str:
-    if not records:
-        return ""
-    keys = list(records[0].keys())
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(keys)
-    for r in records:
-        w.writerow([_csv_val(r.get(k)) for k in keys])
     return buf.getvalue()
 
 

@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from campaign.reduce import fmt_err, records_csv
+from campaign.tables import fmt_err, records_csv
 
 #: finite-size table entries carried into a record (each with ``_err``)
 KEYS = ("A_G_star_E", "beta_E", "beta_Z", "psi_O_star")
