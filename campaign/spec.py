@@ -6,6 +6,10 @@
 
     ci.yaml:7: grid.E_G[1]: expected a number > 0, got 'small'
 
+A variant overrides protocol keys and, optionally, the ``system`` (key by key over the
+spec's: ``box``, ``species`` or ``sizes``, ``potential``) and the energies ``E_G``; each
+variant is its own sub-campaign (``Variant.protocol``, ``.system``, ``.E``).
+
 Nothing is defaulted silently except what is documented here: ``system``
 defaults to the paper's bidisperse mixture in a unit box, ``protocol`` to
 ``{window: 0.1, force_tolerance: 1e-6}``, ``observables`` to all of them,
