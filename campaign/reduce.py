@@ -51,6 +51,9 @@ class Settings:
     # the scaling fits use the cells whose grid energy lies in [lo, hi] (all by default;
     # the paper's exponents come out with (0, 1e-5): docs/PAPER.md)
     fit_energies: tuple = (0.0, float("inf"))
+    # and whose typical relative overlap (alpha E_G / 2)^(1/alpha) is at most this (alpha: the
+    # variant's exponent): one distance from jamming for systems of different exponents
+    fit_overlap: float = float("inf")
 
 
 # =========================================================================== reading
@@ -505,9 +508,17 @@ def _area_distributions(fin, g: _Grid, s: Settings, cells):
     return {"edges": a_edges, "counts": a_counts}, width
 
 
-def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes):
+def typical_overlap(E, alpha):
+    """The typical relative overlap ``(alpha E_G / 2)^(1/alpha)`` of a packing at energy per
+    grain ``E_G`` (two contacts per disk carrying it): the distance from jamming that is
+    comparable across exponents, where ``E_G`` is not."""
+    return (alpha * np.asarray(E, float) / 2.0) ** (1.0 / alpha)
+
+
+def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
     """The power-law fits of A_G and Psi_O against E_G and Delta Z per (variant, N), with
-    bootstrap errors; returns (fit records, normalised residuals per cell, table rows)."""
+    bootstrap errors; returns (fit records, normalised residuals per cell, table rows).
+    ``exponents``: variant -> alpha, for ``s.fit_overlap``."""
     C, cv, cN, cE, n_done = g.C, g.cv, g.cN, g.cE, g.n_done
     fit_records, residuals, rows = [], [], []
     cols = ["E_G", "delta_Z", "A_G", "psi_O"]
@@ -523,6 +534,13 @@ def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes):
         in_range = (cE[in_group] >= lo * (1 - 1e-9)) & (cE[in_group] <= hi * (1 + 1e-9))
         if not in_range.all() and gi == 0:
             notes.append(f"scaling fits use the cells with E_G in [{lo:g}, {hi:g}] only")
+        if math.isfinite(s.fit_overlap):
+            alpha = (exponents or {}).get(v, 2.0)
+            in_range &= typical_overlap(cE[in_group], alpha) <= s.fit_overlap * (1 + 1e-9)
+            if n == min(int(x) for x in cN[cv == v]):
+                e_max = 2.0 / alpha * s.fit_overlap ** alpha
+                notes.append(f"{v}: scaling fits use the cells with typical overlap <= {s.fit_overlap:g} "
+                             f"(E_G <= {e_max:.3g} at alpha = {alpha:g})")
         in_group = in_group[in_range]
         small = in_group[n_done[in_group] < s.min_packings]
         usable = in_group[n_done[in_group] >= s.min_packings]
@@ -669,7 +687,9 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
     cells = _cell_table(fin, g)
     notes = _count_notes(fin, g, reasons)
     area_hist, width = _area_distributions(fin, g, s, cells)
-    fit_records, residuals, rows = _scaling_fits(fin, g, s, cells, notes)
+    vsys = variant_systems(fin.attrs, variants=g.cv)
+    fit_records, residuals, rows = _scaling_fits(fin, g, s, cells, notes,
+                                                 {v: d["exponent"] for v, d in vsys.items()})
     extrapolated = _extrapolate(rows, notes)
     t1 = time.perf_counter()
     dists, selfavg = _histograms(fin, g, s) if distributions else ({}, {})
@@ -679,7 +699,6 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
     from campaign import tradeoff
 
     # speed against accuracy compares packings of one physical system: the reference's
-    vsys = variant_systems(fin.attrs, variants=g.cv)
     ref_sys = vsys.get(s.reference)
     same = np.array([vsys[str(v)] == ref_sys for v in everything.variant], bool)
     if not same.all() and ref_sys is not None:
@@ -695,7 +714,7 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
             "pending": int(g.n_pending.sum()), "failed": int(g.n_failed.sum()),
             "total": int(g.n_tasks.sum()), "n_boot": s.n_boot,
             "boot_seed": s.boot_seed, "min_packings": s.min_packings,
-            "fit_energies": [float(x) for x in s.fit_energies],
+            "fit_energies": [float(x) for x in s.fit_energies], "fit_overlap": float(s.fit_overlap),
             "spec_hash": fin.attrs.get("spec_hash", ""), "name": fin.attrs.get("name", ""),
             "seconds": {"load": t_load, "histograms": t_hist,
                         "total": time.perf_counter() - t0}}

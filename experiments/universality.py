@@ -1,22 +1,24 @@
-"""Corrections to scaling in the universality campaign: the exponents of every system fitted
-over matched windows of the distance to jamming, and the premise Delta Z ~ E_G^(1/(2 alpha)).
+"""Corrections to scaling in the universality campaign: every system's exponents fitted over
+matched windows of the distance to jamming, and the premise Delta Z ~ E_G^(1/(2 alpha)).
 
     python experiments/universality.py results/universality.h5 results/universality-1024.h5 \
-        [--boot 200] [--json FILE]
+        [--boot 1000] [--json FILE]
 
-Reads the usable packings (converged, identities held) of the store(s), per variant (each a
-physical system; its exponent alpha from the stored spec, ``campaign.reduce.variant_systems``)
-and N_G, groups them into cells and fits, with the reducer's code (``fit_power_law``, bootstrap
-over packings; ``experiments/paper_hypotheses.py``'s ``cells`` and ``fit``):
+For each window of the typical relative overlap ``delta = (alpha E_G / 2)^(1/alpha)`` (``inf``:
+every energy, the reducer's default; then 0.01 and 0.003) this runs the reducer with
+``campaign reduce --fit-overlap DMAX`` (``Settings.fit_overlap``) and prints, per system:
 
-* ``Delta Z = a + c E_G^x``: the premise of ``beta_E = beta_Z / (2 alpha)`` is ``x = 1/(2 alpha)``;
-* ``A_G = A* + c E_G^beta_E`` and ``A_G = A* + c Delta Z^beta_Z`` over the cells whose typical
-  relative overlap ``delta = (alpha E_G / 2)^(1/alpha)`` (two contacts per disk carrying the
-  energy) lies below ``delta_max`` -- the same distance from jamming for every system, where a
-  window in E_G would not be (E_G = 1e-5 is delta = 3e-3 for alpha = 2 but 0.03 for alpha = 3);
-  ``delta_max = inf`` is the reducer's default full range;
+* ``beta_E``, ``beta_Z`` per N_G and extrapolated in 1/N_G (the reducer's rows and extrapolation);
+* ``x``, the exponent of ``Delta Z = c E_G^x``: a straight line in log-log through the cells of
+  the window with at least four excess contacts (``N_G Delta Z / 2 >= 4``: below that a finite
+  packing sits on its isostatic plateau), bootstrap errors; the premise of
+  ``beta_E = beta_Z / (2 alpha)`` is ``x = 1/(2 alpha)``, and ``beta_E = beta_Z x`` holds whenever
+  both power laws do;
+* whether the systems share one ``beta_Z``: chi^2 of their extrapolated values about the weighted
+  mean, and its p-value.
 
-then extrapolates each exponent linearly in 1/N_G (``fit_inverse_n``), as the reducer does.
+A window in E_G would not compare like with like: E_G = 1e-5 is delta = 3e-3 for alpha = 2 but
+0.03 for alpha = 3.
 """
 
 from __future__ import annotations
@@ -29,18 +31,31 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from paper_hypotheses import cells, fit, fmt  # noqa: E402
+from scipy import stats
 
-from campaign.fits import fit_inverse_n  # noqa: E402
-from campaign.reduce import load_finished, variant_systems  # noqa: E402
+from campaign.fits import bootstrap_cell_means, fit_inverse_n
+from campaign.reduce import Settings, fmt_err, reduce_campaign, typical_overlap
 
 WINDOWS = (math.inf, 1e-2, 3e-3)
 
 
-def overlap(E, alpha):
-    """Typical relative overlap of a packing at energy per grain E (two contacts per disk)."""
-    return (alpha * np.asarray(E, float) / 2.0) ** (1.0 / alpha)
+def loglog_exponent(groups, N, boot):
+    """Slope of log <Delta Z> against log <E_G> over the cells (rows (E, Delta Z)) with
+    N Delta Z / 2 >= 4, weighted by the cells' relative errors; bootstrap error."""
+    groups = [g for g in groups if g[:, 1].mean() * N / 2 >= 4]
+    if len(groups) < 3:
+        return None
+
+    def slope(xm, ym, rel):
+        return np.polyfit(np.log(xm), np.log(ym), 1, w=1 / rel)[0]
+
+    xm = np.array([g[:, 0].mean() for g in groups])
+    ym = np.array([g[:, 1].mean() for g in groups])
+    rel = np.array([g[:, 1].std(ddof=1) / math.sqrt(len(g)) for g in groups]) / ym
+    x = slope(xm, ym, rel)
+    reps = bootstrap_cell_means(groups, boot, seed=2)
+    err = float(np.std([slope(r[:, 0], r[:, 1], rel) for r in reps], ddof=1))
+    return {"beta": x, "beta_err": err, "cells": len(groups)}
 
 
 def extrapolate(per_n, key="beta"):
@@ -51,68 +66,81 @@ def extrapolate(per_n, key="beta"):
     return {key: res.value, key + "_err": res.err, "chi2_dof": res.chi2_dof}
 
 
+def exponents_x(fin, alpha, dmax, boot):
+    """``x`` of ``Delta Z = c E_G^x`` per N_G in the window, and extrapolated."""
+    out = {}
+    usable, _ = fin.usable()
+    E, dZ = fin.scalars["E_G"], fin.scalars["delta_Z"]
+    for N in np.unique(fin.N):
+        groups = []
+        for e in np.unique(fin.E[fin.N == N]):
+            if typical_overlap(e, alpha) > dmax * (1 + 1e-9):
+                continue
+            m = usable & (fin.N == N) & (fin.E == e) & np.isfinite(dZ)
+            if m.sum() >= 3:
+                groups.append(np.column_stack([E[m], dZ[m]]))
+        out[int(N)] = loglog_exponent(groups, int(N), boot)
+    out["inf"] = extrapolate(out)
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("store", nargs="+")
-    ap.add_argument("--boot", type=int, default=200)
+    ap.add_argument("--boot", type=int, default=1000)
     ap.add_argument("--json", metavar="FILE")
     args = ap.parse_args(argv)
 
-    everything = load_finished(args.store)
-    usable, _ = everything.usable()
-    systems = variant_systems(everything.attrs, variants=np.unique(everything.variant))
-    out = {}
-    for v in sorted(systems, key=lambda k: (systems[k]["exponent"], k)):
-        var = np.asarray(everything.variant, dtype=str)
-        fin = everything.subset(usable & (var == v))
-        if len(fin) == 0:
-            continue
-        alpha = systems[v]["exponent"]
-        s = fin.scalars
-        E, A, dZ = s["E_G"], s["A_G"], s["delta_Z"]
-        rec = {"alpha": alpha, "sizes": systems[v]["sizes"], "premise": 1.0 / (2.0 * alpha), "dZ_vs_E": {},
-               "windows": {}}
-        for N, groups in cells(fin, dZ, E).items():
-            rec["dZ_vs_E"][N] = fit(groups, args.boot)
-        rec["dZ_vs_E"]["inf"] = extrapolate(rec["dZ_vs_E"])
-        for dmax in WINDOWS:
-            emax = 2.0 / alpha * dmax ** alpha if math.isfinite(dmax) else math.inf
-            keep = (lambda e, emax=emax: e <= emax * 1.01)
-            w = {"E_max": emax, "beta_E": {}, "beta_Z": {}}
-            for N, groups in cells(fin, A, E, keep).items():
-                w["beta_E"][N] = fit(groups, args.boot)
-            for N, groups in cells(fin, A, dZ, lambda e, emax=emax: e <= emax * 1.01).items():
-                w["beta_Z"][N] = fit(groups, args.boot)
-            w["beta_E"]["inf"] = extrapolate(w["beta_E"])
-            w["beta_Z"]["inf"] = extrapolate(w["beta_Z"])
-            rec["windows"][str(dmax)] = w
-        out[v] = rec
+    from campaign.reduce import load_finished
 
-    sizes = sorted({n for r in out.values() for n in r["dZ_vs_E"] if n != "inf"}) + ["inf"]
-    head = "| system | alpha | " + " | ".join(f"N_G={n}" for n in sizes) + " | 1/(2 alpha) |"
-    print("Delta Z = a + c E_G^x: the exponent x\n")
-    print(head)
-    print("|" + "---|" * (len(sizes) + 3))
-    for v, r in out.items():
-        print(f"| {v} | {r['alpha']:g} | " + " | ".join(fmt(r["dZ_vs_E"].get(n)) for n in sizes)
-              + f" | {r['premise']:.3f} |")
+    everything = load_finished(args.store)
+    out = {}
     for dmax in WINDOWS:
+        red = reduce_campaign(args.store, Settings(n_boot=args.boot, fit_overlap=dmax), distributions=False)
+        systems = {r["variant"]: r for r in red.systems}
+        order = sorted(systems, key=lambda v: (systems[v]["alpha"], v))
+        sizes = sorted({r["N_G"] for r in red.rows})
         label = "every energy" if not math.isfinite(dmax) else f"typical overlap <= {dmax:g}"
-        print(f"\nbeta_E and beta_Z over {label} (E_G max per system: "
-              + ", ".join(f"{v} {r['windows'][str(dmax)]['E_max']:.2g}" for v, r in out.items()) + ")\n")
-        print("| system | alpha | " + " | ".join(f"beta_E {n}" for n in sizes) + " | "
-              + " | ".join(f"beta_Z {n}" for n in sizes) + " | beta_Z(inf)/(2 alpha) |")
-        print("|" + "---|" * (2 * len(sizes) + 3))
-        for v, r in out.items():
-            w = r["windows"][str(dmax)]
-            bz = w["beta_Z"].get("inf")
-            pred = f"{bz['beta'] / (2 * r['alpha']):.3f}" if bz else "-"
-            print(f"| {v} | {r['alpha']:g} | " + " | ".join(fmt(w["beta_E"].get(n)) for n in sizes) + " | "
-                  + " | ".join(fmt(w["beta_Z"].get(n)) for n in sizes) + f" | {pred} |")
+        print(f"\n## Fits over {label}: `campaign reduce --fit-overlap {dmax:g}`\n")
+        print("| system | alpha | sizes | " + " | ".join(f"beta_Z {n}" for n in sizes) + " | beta_Z inf | "
+              "beta_E inf | x inf | beta_Z x | beta_Z/(2 alpha) |")
+        print("|" + "---|" * (len(sizes) + 8))
+        win = {}
+        for v in order:
+            r = systems[v]
+            var = np.asarray(everything.variant, dtype=str)
+            x = exponents_x(everything.subset(var == v), r["alpha"], dmax, min(args.boot, 200))
+            rows = {row["N_G"]: row for row in red.rows if row["variant"] == v}
+            xi = x["inf"]
+            bzx = r["beta_Z"] * xi["beta"] if xi else math.nan
+            bzx_err = (math.hypot(r["beta_Z_err"] * xi["beta"], r["beta_Z"] * xi["beta_err"]) if xi else math.nan)
+            print(f"| {v} | {r['alpha']:g} | {r['sizes']} | "
+                  + " | ".join(fmt_err(rows[n]["beta_Z"], rows[n]["beta_Z_err"]) if n in rows else "-" for n in sizes)
+                  + f" | {fmt_err(r['beta_Z'], r['beta_Z_err'])} | {fmt_err(r['beta_E'], r['beta_E_err'])} | "
+                  + (fmt_err(xi["beta"], xi["beta_err"]) if xi else "-")
+                  + f" | {fmt_err(bzx, bzx_err)} | {fmt_err(r['beta_Z_over_2alpha'], r['beta_Z_over_2alpha_err'])} |")
+            win[v] = {"system": r, "x": x, "rows": rows}
+        val = np.array([systems[v]["beta_Z"] for v in order])
+        err = np.array([systems[v]["beta_Z_err"] for v in order])
+        ok = np.isfinite(val) & np.isfinite(err) & (err > 0)
+        common = None
+        if ok.sum() >= 2:
+            wts = 1 / err[ok] ** 2
+            mean = float(np.sum(wts * val[ok]) / np.sum(wts))
+            chi2 = float(np.sum(((val[ok] - mean) / err[ok]) ** 2))
+            dof = int(ok.sum()) - 1
+            common = {"mean": mean, "err": 1 / math.sqrt(float(np.sum(wts))), "chi2": chi2, "dof": dof,
+                      "p": float(stats.chi2.sf(chi2, dof))}
+            print(f"\none beta_Z for every system (N_G -> inf): weighted mean "
+                  f"{fmt_err(common['mean'], common['err'])}, chi^2 = {chi2:.1f} for {dof} degrees of freedom, "
+                  f"p = {common['p']:.2g}")
+        out[str(dmax)] = {"systems": win, "common_beta_Z": common}
     if args.json:
         def clean(x):
             if isinstance(x, dict):
                 return {str(k): clean(y) for k, y in x.items()}
+            if isinstance(x, (list, tuple)):
+                return [clean(y) for y in x]
             if isinstance(x, (float, np.floating)):
                 return float(x) if np.isfinite(x) else None
             if isinstance(x, np.integer):

@@ -257,3 +257,29 @@ def test_speed_accuracy_compares_only_packings_of_the_reference_system(multi):
     _, red = multi
     assert red.variants == []  # every other variant is another system
     assert any("other systems than 'default'" in n for n in red.notes)
+
+
+@pytest.mark.parametrize("dmax", [1e-2, 1e-3])
+def test_fit_overlap_picks_the_same_distance_from_jamming_per_system(multi, dmax):
+    """--fit-overlap keeps, per variant, the cells whose (alpha E / 2)^(1/alpha) <= dmax."""
+    path, _ = multi
+    red = R.reduce_campaign(path, R.Settings(n_boot=0, fit_overlap=dmax), distributions=False)
+    grid = np.asarray(SyntheticCampaign().E)
+    for row in red.rows:
+        alpha = TRUTHS[row["variant"]].alpha
+        # E_G <= (2 / alpha) dmax^alpha, counted here from the grid, not by the reducer's helper
+        assert row["n_cells"] == int(np.sum(grid <= 2.0 / alpha * dmax ** alpha * (1 + 1e-9))), row
+    kept = {r["variant"]: r["n_cells"] for r in red.rows if r["N_G"] == 64}
+    assert kept["alpha3"] <= kept["hertz"] <= kept["default"] and kept["alpha3"] < kept["default"]
+    assert any("typical overlap <= " in n for n in red.notes)
+
+
+def test_fit_overlap_is_checked(multi, capsys):
+    from campaign import cli
+
+    path, _ = multi
+    assert cli.main(["reduce", str(path), "--fit-overlap", "0"]) == 2
+    assert "--fit-overlap expects a relative overlap > 0" in capsys.readouterr().err
+    # campaign plot takes the same fit-range options
+    assert cli.main(["plot", str(path), "--fit-overlap", "-1"]) == 2
+    assert "--fit-overlap expects a relative overlap > 0" in capsys.readouterr().err

@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from campaign.commands.reduce import add_fit_range, fit_range
 from campaign.errors import UserError
 
 HELP = "Plot the paper's figures from a campaign file (PNG; needs the plot extra)"
@@ -22,6 +23,7 @@ def configure(parser):
     parser.add_argument("--reference", default="default", metavar="VARIANT",
                         help="the variant the Pareto figure compares the others with (default: default)")
     parser.add_argument("--dpi", type=int, default=90, help="resolution of the PNGs (default 90)")
+    add_fit_range(parser)
 
 
 def main(args) -> int:
@@ -33,8 +35,9 @@ def main(args) -> int:
     if args.min_packings < 2:
         raise UserError(f"--min-packings must be at least 2, got {args.min_packings}")
     plots._plt()  # fail early, before the reduction, when matplotlib is missing
-    red = R.reduce_campaign(args.files, R.Settings(min_packings=args.min_packings,
-                                                   n_boot=args.boot, reference=args.reference))
+    settings = fit_range(args, R.Settings(min_packings=args.min_packings, n_boot=args.boot,
+                                          reference=args.reference))
+    red = R.reduce_campaign(args.files, settings)
     out = Path(args.out) if args.out else R.default_out_dir(args.files[0]) / "figures"
     written = plots.make_figures(red, out, dpi=args.dpi)
     gallery = _gallery(args.files, out, args.dpi)

@@ -27,16 +27,39 @@ def configure(parser):
     parser.add_argument("--min-packings", type=int, default=3, metavar="K",
                         help="cells with fewer finished packings are left out of the fits "
                              "(default 3)")
-    parser.add_argument("--fit-energies", type=float, nargs=2, default=None, metavar=("LO", "HI"),
-                        help="fit the scaling laws to the cells with E_G in [LO, HI] only "
-                             "(default: every energy; '0 1e-5' gives the paper's exponents, "
-                             "see docs/PAPER.md)")
+    add_fit_range(parser)
     parser.add_argument("--reference", default="default", metavar="VARIANT",
                         help="the variant every other one is compared with: cost ratio and deviations "
                              "(default: default, the spec's base protocol)")
     parser.add_argument("--in-place", action="store_true",
                         help="also write the /reduced group into FILE itself (refused while "
                              "tasks are pending or while a run holds the file)")
+
+
+def add_fit_range(parser):
+    """The fit-range options ``reduce`` and ``plot`` share."""
+    parser.add_argument("--fit-energies", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                        help="fit the scaling laws to the cells with E_G in [LO, HI] only "
+                             "(default: every energy; '0 1e-5' gives the paper's exponents, "
+                             "see docs/PAPER.md)")
+    parser.add_argument("--fit-overlap", type=float, default=None, metavar="DMAX",
+                        help="fit the scaling laws to the cells whose typical relative overlap "
+                             "(alpha E_G / 2)^(1/alpha) is at most DMAX, alpha each variant's exponent: "
+                             "the same distance from jamming for every system (docs/UNIVERSALITY.md)")
+
+
+def fit_range(args, settings):
+    """Check the fit-range options and set them on ``settings``."""
+    if args.fit_energies is not None:
+        lo, hi = args.fit_energies
+        if not (lo >= 0 and hi > lo and lo < float("inf")):
+            raise UserError(f"--fit-energies expects 0 <= LO < HI, got {lo:g} {hi:g}")
+        settings.fit_energies = (lo, hi)
+    if args.fit_overlap is not None:
+        if not args.fit_overlap > 0:
+            raise UserError(f"--fit-overlap expects a relative overlap > 0, got {args.fit_overlap:g}")
+        settings.fit_overlap = args.fit_overlap
+    return settings
 
 
 def main(args) -> int:
@@ -49,12 +72,8 @@ def main(args) -> int:
                         f"packings), got {args.min_packings}")
     if args.in_place and len(args.files) != 1:
         raise UserError("--in-place needs exactly one FILE")
-    settings = R.Settings(min_packings=args.min_packings, n_boot=args.boot, reference=args.reference)
-    if args.fit_energies is not None:
-        lo, hi = args.fit_energies
-        if not (lo >= 0 and hi > lo and lo < float("inf")):
-            raise UserError(f"--fit-energies expects 0 <= LO < HI, got {lo:g} {hi:g}")
-        settings.fit_energies = (lo, hi)
+    settings = fit_range(args, R.Settings(min_packings=args.min_packings, n_boot=args.boot,
+                                          reference=args.reference))
     if args.seed is not None:
         settings.boot_seed = args.seed
     red = R.reduce_campaign(args.files, settings)
