@@ -7,6 +7,8 @@ figures. Every function takes a ``Reduction`` (campaign.reduce) and never reads 
 
 from __future__ import annotations
 
+import math
+
 from pathlib import Path
 
 import numpy as np
@@ -636,8 +638,15 @@ def make_figures(red, out_dir, *, dpi=90):
         plt.close(fig)
         written.append(p)
     if red.systems:  # two physical systems or more (campaign.systems)
+        lo, hi = red.meta.get("fit_energies", (0.0, math.inf))
+        window = [f"E_G in [{lo:g}, {hi:g}]"] if (lo > 0 or math.isfinite(hi)) else []
+        if math.isfinite(red.meta.get("fit_overlap", math.inf)):
+            window.append(f"typical overlap <= {red.meta['fit_overlap']:g}")
         for name, fn in SYSTEM_FIGURES.items():
             fig = fn(red, plt)
+            if window:  # the fit range the exponents come from
+                fig.suptitle("fits over " + ", ".join(window), fontsize=9)
+                fig.tight_layout()
             p = out / f"{name}.png"
             fig.savefig(p, dpi=dpi)
             plt.close(fig)
