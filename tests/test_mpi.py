@@ -176,3 +176,49 @@ def test_ci_campaign_with_the_kernels_is_identical_for_1_2_3_workers(tmp_path):
         for k in timing:  # wall-clock timings are the only scalars allowed to differ
             got[k] = ref[k]
         _same(ref, got)
+
+
+SYSTEMS_SPEC = """\
+name: systems
+seed: 31
+grid: {N_G: [24], E_G: [1.0e-4], seeds: 2}
+variants:
+  - {name: hertz, system: {potential: {exponent: 2.5}}, E_G: [1.0e-4, 1.0e-7]}
+  - {name: poly, system: {sizes: {distribution: uniform, polydispersity: 0.2}}}
+observables: [scalars]
+store: {configurations: true}
+"""
+
+
+def test_system_variants_under_mpi_jam_each_variants_system(tmp_path):
+    """Each worker rank jams with its task's system: the same file as in-process, Hertz packings
+    in their window under the Hertz potential, polydisperse radii all different."""
+    import kernels
+
+    spec = tmp_path / "s.yaml"
+    spec.write_text(SYSTEMS_SPEC)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env.pop("CAMPAIGN_TASK_FUNCTION", None)
+    files = {}
+    for label, n, extra in (("inline", None, ["--launcher", "inline"]), ("mpi", 3, [])):
+        files[label] = tmp_path / f"{label}.h5"
+        r = _campaign(["run", str(spec), "--out", str(files[label])] + extra, n=n, env=env, timeout=600)
+        assert r.returncode == 0, r.stderr
+    ref, ref_attrs, _ = _datasets(files["inline"])
+    got, attrs, _ = _datasets(files["mpi"])
+    assert attrs == ref_attrs
+    for k in [k for k in ref if k.endswith("_seconds")]:
+        got[k] = ref[k]
+    _same(ref, got)
+    assert (ref["tasks/status"] == 1).all() and len(ref["tasks/status"]) == 2 + 4 + 2
+    with h5py.File(files["mpi"], "r") as f:
+        variant = [v.decode() for v in f["tasks/variant"][()]]
+        for i, tid in enumerate(f["tasks/id"][()]):
+            g = f[f"configurations/{tid.decode()}"]
+            pos, rad, box = g["positions"][()], g["radii"][()], g["box"][()]
+            E = f["tasks/E"][i]
+            alpha = 2.5 if variant[i] == "hertz" else 2.0
+            e = kernels.analyze(pos, rad, box, exponent=alpha).scalars["E_G"]
+            assert E <= e <= 1.1 * E * (1 + 1e-9), (variant[i], E, e)
+            distinct = len(np.unique(rad))
+            assert distinct == (24 if variant[i] == "poly" else 2), (variant[i], distinct)
