@@ -213,3 +213,13 @@ def test_an_integer_of_too_many_digits_is_a_user_error(capsys, tmp_path):
     p.write_text(MINIMAL.replace("seed: 7", "seed: " + "9" * 5000))
     assert cli.main(["validate", str(p)]) == 2
     assert "Traceback" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "campaigns").glob("*.yaml")), ids=lambda p: p.stem)
+def test_every_shipped_campaign_validates(path):
+    """The specs in campaigns/ parse and keep every (variant, N_G) above its float64 floor."""
+    from campaign.tasks import energy_floor_problems, expand
+
+    spec = load_spec(path)
+    assert energy_floor_problems(spec) == []
+    assert len(expand(spec)) == spec.n_tasks > 0
