@@ -700,7 +700,7 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
 
     # speed against accuracy compares packings of one physical system: the reference's
     ref_sys = vsys.get(s.reference)
-    same = np.array([vsys[str(v)] == ref_sys for v in everything.variant], bool)
+    same = np.isin(np.asarray(everything.variant, dtype=str), [v for v, d in vsys.items() if d == ref_sys])
     if not same.all() and ref_sys is not None:
         others = sorted({str(v) for v in everything.variant[~same]})
         notes.append(f"variants {', '.join(others)} are other systems than {s.reference!r}: compared in "

@@ -32,7 +32,7 @@ from typing import Any
 import yaml
 
 from campaign.errors import UserError
-from kernels.names import HISTOGRAMS, OBSERVABLES  # noqa: F401 - re-exported
+from kernels.names import HISTOGRAMS, MAX_POLYDISPERSITY, OBSERVABLES, SIZE_DISTRIBUTIONS  # noqa: F401 - re-exported
 
 #: protocol keys a spec may set (forwarded to ``kernels.jam`` as keyword arguments)
 PROTOCOL_DEFAULTS = {"window": 0.1, "force_tolerance": 1e-6}
@@ -64,11 +64,6 @@ class Species:
     name: str
     fraction: float
     radius: float
-
-
-#: continuous size distributions (``kernels.jamming.SIZE_DISTRIBUTIONS``) and the widest accepted
-SIZE_DISTRIBUTIONS = ("uniform", "lognormal")
-MAX_POLYDISPERSITY = 0.5
 
 
 @dataclass(frozen=True)

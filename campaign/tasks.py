@@ -98,8 +98,7 @@ def expand(spec: Spec) -> list[Task]:
         # other initial states); variants of one system share the seed words
         sys_json = canonical_json(v.system.canonical())
         tail = ',"system":' + sys_json + "}"
-        words_of = _hash_json('{"E":', tail)
-        id_of = words_of
+        hash_of = _hash_json('{"E":', tail)  # the id and the seed words share the key order
         proto = dict(v.protocol)
         ladder = proto.get("start") == "ladder"
         proto_json = canonical_json(proto)
@@ -112,10 +111,10 @@ def expand(spec: Spec) -> list[Task]:
                     i = len(out)
                     w = words.get((sys_json, N, E, s))
                     if w is None:
-                        w = int.from_bytes(words_of(f'{head}"seed":{canonical_json(s)}'), "little")
+                        w = int.from_bytes(hash_of(f'{head}"seed":{canonical_json(s)}'), "little")
                         if shared:
                             words[(sys_json, N, E, s)] = w
-                    out.append(Task(index=i, id=id_of(id_head + canonical_json(s)).hex(), variant=v.name, N=N,
+                    out.append(Task(index=i, id=hash_of(id_head + canonical_json(s)).hex(), variant=v.name, N=N,
                                     E=E, seed=s, words=w, campaign_seed=cseed, protocol=v.protocol,
                                     parent=i + n_seeds if upper else None,
                                     parent_E=v.E[k + 1] if upper else None))

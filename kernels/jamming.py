@@ -19,6 +19,7 @@ import numpy as np
 from kernels.barostat import BARO_SCALE, STAGE_STEP, _pressure_core
 from kernels.cells import _candidate_pairs_core
 from kernels.fire import _contacts_core, _nonrattler_mask_core
+from kernels.names import MAX_POLYDISPERSITY, SIZE_DISTRIBUTIONS
 from kernels.potential import ALPHA_RANGE, check_exponent
 from kernels.protocol import (MINIMIZER_NAMES, SEARCH_NAMES, STATUS_NAMES, _ohern_core)
 
@@ -45,12 +46,6 @@ DEFAULTS = dict(
     sizes=None,
 )
 
-#: Continuous size distributions (``sizes=(name, polydispersity)``): relative radii of mean 1
-#: and standard deviation ``polydispersity``, drawn per disk from the task's random stream.
-SIZE_DISTRIBUTIONS = ("uniform", "lognormal")
-#: Largest polydispersity accepted: at 0.5 the uniform distribution's smallest disk is 0.13
-#: of the mean, the log-normal's 1st percentile 0.28; wider ones make most small disks rattlers.
-MAX_POLYDISPERSITY = 0.5
 
 #: Routes to a packing in the window: the O'Hern ladder (``kernels.protocol``) or fixed-pressure
 #: minimisation with the radius scale as a degree of freedom (``kernels.barostat``).

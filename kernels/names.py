@@ -1,7 +1,8 @@
-"""Names of the observables and the histograms they produce (no numba: cheap to import).
+"""Names of the observables and the histograms they produce, and of the continuous size
+distributions (no numba: cheap to import).
 
-The campaign's spec validation and the analysis kernels both read this one table
-(docs/CONTRACTS.md, ``kernels.analyze``).
+The campaign's spec validation and the kernels both read these tables
+(docs/CONTRACTS.md, ``kernels.analyze``, ``kernels.jam``).
 """
 
 #: observable name -> the histograms it produces
@@ -17,3 +18,10 @@ OBSERVABLES = {
     "radial_contacts": ("radial_contacts",),
 }
 HISTOGRAMS = tuple(h for names in OBSERVABLES.values() for h in names)
+
+#: Continuous size distributions (``kernels.jam(..., sizes=(name, polydispersity))``): relative
+#: radii of mean 1 and standard deviation ``polydispersity``, drawn per disk from the task's stream.
+SIZE_DISTRIBUTIONS = ("uniform", "lognormal")
+#: Largest polydispersity accepted: at 0.5 the uniform distribution's smallest disk is 0.13
+#: of the mean, the log-normal's 1st percentile 0.28; wider ones make most small disks rattlers.
+MAX_POLYDISPERSITY = 0.5
