@@ -12,26 +12,14 @@ steepest descent (``d = F``) every ``RESTART_EVERY`` iterations, when ``d`` is n
 descent direction (``F.d <= 0``), and after a line search that had to stop at the
 displacement cap or fell back to a shorter step.
 
-Line search along ``d`` from ``x``, on ``phi(t) = E(x + t d)``: a bracketing secant
-search on the *directional derivative* ``phi'(t) = -F(x + t d).d``. The potential is
-one-sided, so ``phi`` is piecewise smooth (C1 for alpha = 2: ``phi''`` jumps where a
-contact opens or closes); ``phi'`` is nearly linear between such events and the secant
-step through two derivatives is exact for a quadratic. A step ``t`` is accepted when
-
-* ``|phi'(t)| <= SIGMA |phi'(0)|`` (strong Wolfe curvature condition), and
-* ``phi(t) <= phi(0) + C1 t phi'(0)`` (Armijo), or, when the two energies differ by
-  less than their float64 resolution ``eps_E``, ``phi(t) <= phi(0) + eps_E``.
-
-The second branch is the "approximate Wolfe" idea of Hager and Zhang (SIAM J. Optim.
-16, 170 (2005)): near a minimum at ``E_G ~ 1e-16`` energy differences between line
-search points are far below rounding, while forces are still accurate, so the
-derivative decides. With ``SIGMA < 1 - 2 C1`` the curvature condition implies the
-Armijo condition of the local quadratic model. The resolution of a computed total
-energy is taken as ``eps_E = E_ROUND eps max(Lx, Ly) sum_contacts |f|`` (each pair
-energy inherits the rounding of its overlap, ``eps L`` from coordinates of size ``L``,
-times its force). Hence the guarantee: **across an accepted step the computed
-energy never rises by more than eps_E, and it falls by at least C1 t |phi'(0)| whenever
-the fall is resolved.** A line search that finds no acceptable step within
+Line search along ``d`` (``kernels.linesearch``, shared with the Newton endgame): a
+bracketing secant search on the directional derivative ``phi'(t) = -F(x + t d).d`` with the
+strong Wolfe curvature condition (``SIGMA``) and Armijo's condition, or, where two energies
+differ by less than their float64 resolution, the "approximate Wolfe" rule of Hager and
+Zhang. With ``SIGMA < 1 - 2 C1`` the curvature condition implies the Armijo condition of the
+local quadratic model. Hence the guarantee: **across an accepted step the computed energy
+never rises by more than its resolution, and it falls by at least C1 t |phi'(0)| whenever the
+fall is resolved.** A line search that finds no acceptable step within
 ``LS_MAX`` evaluations takes no step and restarts from steepest descent; two such
 failures in a row end the minimisation with status ``STALLED``.
 
@@ -70,69 +58,16 @@ from numba import njit
 from kernels.fire import (BELOW, CHECK_EVERY, CONVERGED, DT_FACTOR, MAX_STEPS, STALLED,
                           _checked_minimize_inputs, _residual_core, _starting_timestep,
                           _verlet_rows, _wrap_inplace, fire_result)
+from kernels.linesearch import (C1, E_ROUND, LS_MAX, _dot, _line_search,  # noqa: F401 (C1, E_ROUND, LS_MAX: re-exported)
+                                _max_norm2, _wrap_with, energy_resolution)
 from kernels.potential import _energy_forces_rows
 
 SIGMA = 0.1  # strong Wolfe curvature parameter
-C1 = 1e-4  # Armijo parameter
-LS_MAX = 30  # force evaluations per line search before it counts as failed
 RESTART_EVERY = 1000  # iterations between forced steepest-descent restarts
 DISP_CAP = 0.5  # largest displacement of any disk in one trial point, in units of the skin
-E_ROUND = 8.0  # eps_E = E_ROUND * eps * max(Lx, Ly) * sum of contact forces
-EPS = np.finfo(np.float64).eps
 FAILS_MAX = 2  # consecutive failed line searches that end the minimisation (STALLED)
 STALL_MIN = 20_000  # iterations without the force residual halving that end it (STALLED) ...
 STALL_PER_DISK = 100  # ... or this many per disk, whichever is larger
-
-
-@njit(cache=True)
-def _dot(a, b):
-    s = 0.0
-    for i in range(a.shape[0]):
-        s += a[i, 0] * b[i, 0] + a[i, 1] * b[i, 1]
-    return s
-
-
-@njit(cache=True)
-def _max_norm2(a):
-    m = 0.0
-    for i in range(a.shape[0]):
-        v = a[i, 0] * a[i, 0] + a[i, 1] * a[i, 1]
-        if v > m:
-            m = v
-    return m
-
-
-@njit(cache=True)
-def _max_disp2(a, b):
-    m = 0.0
-    for i in range(a.shape[0]):
-        dx = a[i, 0] - b[i, 0]
-        dy = a[i, 1] - b[i, 1]
-        v = dx * dx + dy * dy
-        if v > m:
-            m = v
-    return m
-
-
-@njit(cache=True)
-def _wrap_with(positions, ref, box):
-    """Fold ``positions`` into the box and shift ``ref`` by the same lattice vectors
-    (so that a Verlet list built at ``ref`` stays valid)."""
-    for i in range(positions.shape[0]):
-        for k in range(2):
-            L = box[k]
-            s = L * np.floor(positions[i, k] / L)
-            if s != 0.0:
-                positions[i, k] -= s
-                ref[i, k] -= s
-
-
-@njit(cache=True)
-def _along(positions, t, d, out):
-    """``out = positions + t d``: the trial point at step ``t`` of the line search."""
-    for i in range(positions.shape[0]):
-        out[i, 0] = positions[i, 0] + t * d[i, 0]
-        out[i, 1] = positions[i, 1] + t * d[i, 1]
 
 
 @njit(cache=True)
@@ -150,7 +85,6 @@ def _cg_core(positions, radii, box, alpha, tol, max_steps, skin, step0, e_abort,
     n_contacts)`` as ``_fire_core``.
     """
     n = positions.shape[0]
-    lmax = max(box[0], box[1])
     frc = np.empty((n, 2))
     ftr = np.empty((n, 2))
     d = np.empty((n, 2))
@@ -159,7 +93,6 @@ def _cg_core(positions, radii, box, alpha, tol, max_steps, skin, step0, e_abort,
     _wrap_inplace(positions, box)
     ref = np.empty((n, 2))
     pi, pj, start, nbr, inv_s = _verlet_rows(positions, radii, box, skin, radii, ref)
-    half2 = 0.25 * skin * skin
     cap = DISP_CAP * skin
     energy, virial, nc, fsum = _energy_forces_rows(positions, box, start, nbr, inv_s, alpha, frc)
     nforce = 1
@@ -240,72 +173,11 @@ def _cg_core(positions, radii, box, alpha, tol, max_steps, skin, step0, e_abort,
             t = step0
         if t > t_cap:
             t = t_cap
-        e_res = E_ROUND * EPS * lmax * fsum
-        t_lo = 0.0
-        g_lo = g0
-        t_hi = -1.0
-        g_hi = 0.0
-        hi_secant = False
-        t_last = 0.0
-        g_last = g0
-        accepted = False
-        at_cap = False
-        e_t = energy
-        w_t = virial
-        nc_t = nc
-        fs_t = fsum
-        for ls in range(LS_MAX):
-            _along(positions, t, d, trial)
-            if _max_disp2(trial, ref) > half2:
-                pi, pj, start, nbr, inv_s = _verlet_rows(trial, radii, box, skin, radii, ref)
-            e_t, w_t, nc_t, fs_t = _energy_forces_rows(trial, box, start, nbr, inv_s, alpha, ftr)
-            nforce += 1
-            g_t = -_dot(ftr, d)
-            ok_energy = e_t <= energy + C1 * t * g0 or abs(e_t - energy) <= e_res
-            if ok_energy and abs(g_t) <= SIGMA * (-g0):
-                accepted = True
-                break
-            if ok_energy and g_t < 0.0 and t >= t_cap:
-                # still descending at the largest step allowed: take it, then restart
-                accepted = True
-                at_cap = True
-                break
-            if g_t >= 0.0 or not ok_energy:
-                t_hi = t
-                g_hi = g_t
-                # secant only across a sign change of phi'; a rise while phi' < 0 bisects
-                hi_secant = g_t >= 0.0 and ok_energy
-            else:
-                t_lo = t
-                g_lo = g_t
-            if t_hi < 0.0:
-                # no bracket yet: extrapolate with the secant of the last two derivatives
-                t_new = 4.0 * t
-                if g_t > g_last:
-                    t_sec = t - g_t * (t - t_last) / (g_t - g_last)
-                    t_new = min(max(t_sec, 1.05 * t), 10.0 * t)
-                if t_new > t_cap:
-                    t_new = t_cap
-            else:
-                w = t_hi - t_lo
-                t_new = t_lo + 0.5 * w
-                if hi_secant and g_hi > g_lo:
-                    t_sec = t_lo - g_lo * w / (g_hi - g_lo)
-                    t_new = min(max(t_sec, t_lo + 0.01 * w), t_hi - 0.01 * w)
-            t_last = t
-            g_last = g_t
-            t = t_new
-        if not accepted and t_lo > 0.0:
-            # fall back to the longest step known to descend, if it lowered the energy
-            t = t_lo
-            _along(positions, t, d, trial)
-            if _max_disp2(trial, ref) > half2:
-                pi, pj, start, nbr, inv_s = _verlet_rows(trial, radii, box, skin, radii, ref)
-            e_t, w_t, nc_t, fs_t = _energy_forces_rows(trial, box, start, nbr, inv_s, alpha, ftr)
-            nforce += 1
-            if e_t <= energy + C1 * t * g0 or abs(e_t - energy) <= e_res:
-                accepted = True
-                at_cap = True  # not a Wolfe step: restart the directions
+        e_res = energy_resolution(box, fsum)
+        accepted, at_cap, t, e_t, w_t, nc_t, fs_t, nf, pi, pj, start, nbr, inv_s = _line_search(
+            positions, d, t, t_cap, g0, energy, e_res, SIGMA, ref, radii, box, skin, alpha, pi, pj,
+            start, nbr, inv_s, trial, ftr)
+        nforce += nf
         if not accepted:
             fails += 1
             restart = True
