@@ -315,6 +315,28 @@ def test_gsd_frames_read_with_the_gsd_package(real, tmp_path, capsys):
     assert _bits_equal(logged["log/campaign/A_G"], s["A_G"][rows])
 
 
+def test_float32_positions_alone_are_not_the_packing(real, tmp_path, capsys):
+    """Why the frames keep float64: at E_G = 1e-12 the schema's float32 data give another
+    contact network (here for one of the two packings at N = 64)."""
+    import gsd.hoomd
+
+    from kernels.analysis import analyze
+
+    out = tmp_path / "p.gsd"
+    assert _export(capsys, real, "--out", out)[0] == 0
+    t, s, _, good = _h5(real)
+    rows = np.flatnonzero(good)
+    differ = 0
+    with gsd.hoomd.open(str(out), "r") as traj:
+        for k, r in enumerate(rows):
+            fr = traj[k]
+            L = fr.log["campaign/box64"]
+            a = analyze(fr.particles.position[:, :2].astype(np.float64) + L / 2,
+                        fr.particles.diameter.astype(np.float64) / 2, L, ["scalars"])
+            differ += t["E"][r] == 1e-12 and a.scalars["N_C"] != s["N_C"][r]
+    assert differ >= 1
+
+
 def test_extended_xyz_read_by_ase(real, tmp_path, capsys, monkeypatch):
     import ase.io as ase_io
 
