@@ -77,6 +77,8 @@ def export(path, out, fmt, *, variant=None, good=True) -> dict:
         raise UserError(f"--out {out}: is a directory; expected a file name")
     if not out.parent.is_dir():
         raise UserError(f"--out {out}: no directory {str(out.parent)!r}")
+    if out.exists() and os.path.exists(path) and os.path.samefile(out, path):
+        raise UserError(f"--out {out}: is the campaign store itself; give another file name")
     with Packings(path, variant, good) as pk:
         if fmt in ("gsd", "xyz") and pk.n_configurations == 0:
             raise UserError(f"{pk.path}: the store holds no configurations, so there is nothing to write as "

@@ -473,6 +473,7 @@ def test_export_refusals(real, synth, tmp_path, capsys):
         (["export", real, "--format", "csv", "--out", tmp_path / "nodir" / "o.csv"], ["no directory"]),
         (["export", real, "--format", "csv", "--out", tmp_path], ["is a directory"]),
         (["export", tmp_path / "missing.h5", "--format", "csv", "--out", tmp_path / "m.csv"], ["no such file"]),
+        (["export", real, "--format", "csv", "--out", real], ["is the campaign store itself"]),
     ]
     for argv, expect in cases:
         _user_error(capsys, argv, expect)
