@@ -278,7 +278,7 @@ def _log_value(value):
         flat = a.ravel().tolist()
         text = [x.decode("utf-8", "replace") if isinstance(x, bytes) else str(x) for x in flat]
         return text[0] if len(text) == 1 else text
-    if a.dtype in (np.int8, np.uint8) and a.ndim == 1 and a.size != 1:
+    if a.dtype in (np.int8, np.uint8) and a.ndim == 1:  # campaign export writes numbers as int64/float64
         return a.astype(np.uint8).tobytes().split(b"\0", 1)[0].decode("utf-8", "replace")
     if a.size == 1:
         return a.reshape(()).item()
@@ -351,10 +351,10 @@ _XYZ_DIAMETER = ("diameter", "diameters")
 _XYZ_TYPE = ("type", "species", "element", "atom_types")
 
 
-def parse_xyz_header(text, where="header"):
+def parse_xyz_header(text, where="header", quoted=None):
     """The key=value pairs of an extended XYZ comment line, as strings (quotes removed; a key
     without a value is ``True``). Values may be bare, "double quoted" (with \" inside), or in
-    {braces} or [brackets]."""
+    {braces} or [brackets]. ``quoted``: a set that receives the keys whose value was quoted."""
     out = {}
     i, n = 0, len(text)
     while True:
@@ -389,6 +389,8 @@ def parse_xyz_header(text, where="header"):
                 raise UserError(f"{where}: the value of {key!r} opens a quote that is never closed")
             value = "".join(chars)
             i += 1
+            if quoted is not None:
+                quoted.add(key)
         elif i < n and text[i] in "{[":
             close = "}" if text[i] == "{" else "]"
             end = text.find(close, i)
@@ -405,9 +407,9 @@ def parse_xyz_header(text, where="header"):
     return out
 
 
-def _xyz_scalar(key, value):
+def _xyz_scalar(key, value, quoted=()):
     """A header value as int, float or str (``id`` and quoted text stay strings)."""
-    if value is True or key == "id":
+    if value is True or key == "id" or key in quoted:
         return value
     for cast in (int, float):
         try:
@@ -565,7 +567,8 @@ def _read_xyz(path, frame):
 
 def _parse_xyz_frame(path, k, n_frames, start, n, comment, lines):
     where = f"{path}, line {start + 1}"
-    header = parse_xyz_header(comment, where)
+    quoted = set()
+    header = parse_xyz_header(comment, where, quoted)
     box = _xyz_box(where, header)
     cols, width = _xyz_columns(where, header)
     pos_col = next((cols[c] for c in _XYZ_POS if c in cols), None)
@@ -611,7 +614,7 @@ def _parse_xyz_frame(path, k, n_frames, start, n, comment, lines):
         else:
             codes = {}
             species = np.array([codes.setdefault(x, len(codes)) for x in labels], dtype=np.int64)
-    info = {key: _xyz_scalar(key, v) for key, v in header.items()
+    info = {key: _xyz_scalar(key, v, quoted) for key, v in header.items()
             if key.lower() not in ("lattice", "properties", "pbc")}
     rows = [f"line {start + 2 + i}" for i in range(n)]
     exponent = info.get("exponent")

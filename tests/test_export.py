@@ -561,3 +561,32 @@ def test_malformed_gsd_exits_2(tmp_path, capsys):
     with gsd.hoomd.open(str(tmp_path / "empty.gsd"), "w"):
         pass
     _user_error(capsys, ["analyze", tmp_path / "empty.gsd"], ["holds no frames"])
+
+
+def test_extended_xyz_header_parser():
+    from campaign.configio import parse_xyz_header
+
+    quoted = set()
+    h = parse_xyz_header('Lattice="1 0 0 0 2 0 0 0 1" a = 3  name="say \\"hi\\"" v="1e5" flag '
+                         'arr={1 2 3} b=[4, 5] Properties=pos:R:2', quoted=quoted)
+    assert h == {"Lattice": "1 0 0 0 2 0 0 0 1", "a": "3", "name": 'say "hi"', "v": "1e5", "flag": True,
+                 "arr": "1 2 3", "b": "4, 5", "Properties": "pos:R:2"}
+    assert quoted == {"Lattice", "name", "v"}
+    with pytest.raises(UserError, match="never closed"):
+        parse_xyz_header('x="open')
+
+
+def test_frame_columns_keep_their_types(tmp_path):
+    """Strings stay strings (a variant named like a number, a one-letter one), numbers numbers."""
+    from campaign.configio import read_configuration
+    from campaign.export import xyz_frame
+
+    conf = {"positions": np.array([[0.1, 0.2], [0.6, 0.7]]), "radii": np.array([0.1, 0.12]),
+            "box": np.array([1.0, 1.0]), "species": np.array([0, 1])}
+    cols = {"row": np.int64(3), "id": "0123456789e12345678901234567890a", "variant": "1e5", "N": np.int64(2),
+            "E": np.float64(1e-12), "status": np.int8(1), "A_G": np.float64(0.1 + 0.2), "psi_O": np.float64("nan")}
+    (tmp_path / "f.xyz").write_text(xyz_frame(cols, conf, ["big one", "B"], 2.5))
+    c = read_configuration(tmp_path / "f.xyz")
+    assert c.info["variant"] == "1e5" and c.info["id"] == cols["id"] and c.info["row"] == 3
+    assert c.info["A_G"] == 0.1 + 0.2 and np.isnan(c.info["psi_O"]) and c.exponent == 2.5
+    assert c.species.tolist() == [0, 1] and _bits_equal(c.positions, conf["positions"])
