@@ -14,7 +14,7 @@
 
 The store is opened read-only with ``locking=False`` (fine while a run writes it), the task
 table and the scalars are read in blocks of ``BLOCK_ROWS`` rows, and the histograms are never
-read: a store of 10^6 packings loads in the memory of its scalars. The scalar ``N`` (the
+read: a store of 10^6 packings loads in the memory of its scalars and task ids. The scalar ``N`` (the
 analysis' disk count) is the task's ``N`` and is not repeated. pandas comes with the
 ``frames`` (or ``export``) extra; without it these functions raise ``MissingExtra``.
 """
