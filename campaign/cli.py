@@ -18,7 +18,7 @@ import traceback
 from campaign import __version__
 from campaign.errors import UserError
 
-SUBCOMMANDS = ("validate", "run", "status", "reduce", "plot", "analyze", "draw", "slurm")
+SUBCOMMANDS = ("validate", "run", "status", "reduce", "plot", "analyze", "draw", "slurm", "export")
 
 
 class _Parser(argparse.ArgumentParser):

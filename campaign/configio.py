@@ -1,10 +1,16 @@
-"""Reading disk configurations written by other programs (text, .npz, HDF5).
+"""Reading disk configurations written by other programs (text, .npz, HDF5, GSD, extended XYZ).
 
 The formats are documented in ``docs/CONFIG_FORMAT.md``. Every problem is raised as
-``campaign.errors.UserError`` naming the file, the line (text) or array (npz/HDF5)
-where it applies, what was expected and what came.
+``campaign.errors.UserError`` naming the file, the line (text, XYZ), array (npz/HDF5) or
+frame (GSD, XYZ) where it applies, what was expected and what came.
 
-``read_configuration(path, fmt="auto", group="/") -> Configuration``
+``read_configuration(path, fmt="auto", group="/", frame=None) -> Configuration``
+
+GSD (the ``gsd`` package, the ``export`` extra) and extended XYZ files may hold several
+frames; ``frame`` picks one (negative counts from the end; None: the only one). A frame
+written by ``campaign export`` carries the packing's float64 positions, radii and box
+(GSD: the log chunks named below; XYZ: full-precision text), which are used, so that the
+analysis gives the store's scalars exactly.
 """
 
 from __future__ import annotations
@@ -17,8 +23,19 @@ import numpy as np
 
 from campaign.errors import UserError
 
-FORMATS = ("auto", "text", "npz", "hdf5")
+FORMATS = ("auto", "text", "npz", "hdf5", "gsd", "xyz")
 _HDF5_SUFFIXES = (".h5", ".hdf5", ".hdf", ".he5")
+_XYZ_SUFFIXES = (".xyz", ".extxyz")
+#: formats holding several frames (``--frame``)
+FRAME_FORMATS = ("gsd", "xyz")
+
+#: GSD log chunks (``frame.log`` keys) written by ``campaign export`` next to the hoomd schema's
+#: float32 data: the float64 positions in the project's convention (``[0, L)``), radii and box
+#: sides; and ``campaign/<column>`` for the packing's task columns and scalars.
+GSD_POSITIONS64 = "particles/campaign/position64"
+GSD_RADII64 = "particles/campaign/radius64"
+GSD_BOX64 = "campaign/box64"
+GSD_PREFIX = "campaign/"
 
 #: How far outside the box a centre may lie, in box lengths, before the input is
 #: taken for a unit or column mix-up (centres are folded back periodically).
@@ -32,6 +49,11 @@ class Configuration:
     box: np.ndarray  # (2,) float64
     species: np.ndarray | None  # (n,) int or None
     source: str
+    exponent: float | None = None  # the pair potential's alpha, when the file says (campaign export)
+    info: dict | None = None  # a frame's key-value data (GSD log campaign/*, XYZ header keys)
+    frame: int | None = None  # the frame read (GSD, XYZ) and how many the file holds
+    n_frames: int | None = None
+    notes: tuple = ()  # what the reader wants the user to know (e.g. float32 positions)
 
 
 def detect_format(path: str) -> str:
@@ -40,27 +62,40 @@ def detect_format(path: str) -> str:
         return "npz"
     if low.endswith(_HDF5_SUFFIXES):
         return "hdf5"
+    if low.endswith(".gsd"):
+        return "gsd"
+    if low.endswith(_XYZ_SUFFIXES):
+        return "xyz"
     return "text"
 
 
-def read_configuration(path, fmt: str = "auto", group: str = "/") -> Configuration:
+def read_configuration(path, fmt: str = "auto", group: str = "/", frame: int | None = None) -> Configuration:
     path = os.fspath(path)
     if fmt not in FORMATS:
         raise UserError(f"--format: expected one of {', '.join(FORMATS)}, got {fmt!r}")
     if not os.path.exists(path):
-        raise UserError(f"{path}: no such file (expected a configuration: text, .npz or HDF5)")
+        raise UserError(f"{path}: no such file (expected a configuration: text, .npz, HDF5, .gsd or "
+                        "extended XYZ)")
     if os.path.isdir(path):
         raise UserError(f"{path}: is a directory (expected a configuration file)")
     kind = detect_format(path) if fmt == "auto" else fmt
+    if frame is not None and kind not in FRAME_FORMATS:
+        raise UserError(f"--frame {frame}: picks a frame of a .gsd or extended XYZ file; {path} is read as "
+                        f"{kind}, which holds one configuration")
+    extra = {}
     if kind == "text":
         pos, rad, box, where = _read_text(path)
         species = None
     elif kind == "npz":
         pos, rad, box, species, where = _read_npz(path)
-    else:
+    elif kind == "hdf5":
         pos, rad, box, species, where = _read_hdf5(path, group)
+    elif kind == "gsd":
+        pos, rad, box, species, where, extra = _read_gsd(path, frame)
+    else:
+        pos, rad, box, species, where, extra = _read_xyz(path, frame)
     _check_geometry(path, pos, rad, box, where)
-    return Configuration(pos, rad, box, species, path)
+    return Configuration(pos, rad, box, species, path, **extra)
 
 
 # ----------------------------------------------------------------------------- text
@@ -127,8 +162,9 @@ def _read_text(path):
 # ----------------------------------------------------------------------------- npz / HDF5
 
 
-def _check_arrays(path, pos, rad, box, species):
-    """Shapes and values of arrays read from npz/HDF5 (rows named 'positions[k]')."""
+def _check_arrays(path, pos, rad, box, species, rows=None):
+    """Shapes and values of arrays read from npz/HDF5/GSD (rows named "array 'positions', row k",
+    or ``rows(k)``)."""
     if pos.ndim != 2 or pos.shape[1] != 2:
         raise UserError(f"{path}: array 'positions': expected shape (n, 2), got {pos.shape}")
     n = pos.shape[0]
@@ -156,7 +192,7 @@ def _check_arrays(path, pos, rad, box, species):
         if species.shape != (n,) or not np.issubdtype(species.dtype, np.integer):
             raise UserError(f"{path}: array 'species': expected ({n},) integers, got shape {species.shape} "
                             f"dtype {species.dtype}")
-    where = [f"array 'positions', row {k}" for k in range(n)]
+    where = [rows(k) if rows else f"array 'positions', row {k}" for k in range(n)]
     return pos, rad, box, species, (where, "array 'box'")
 
 
@@ -211,6 +247,380 @@ def _read_hdf5(path, group):
         box = np.asarray(g["box"][()])
         species = np.asarray(g["species"][()]) if "species" in g else None
     return _check_arrays(path, *_as_float(path, pos, rad, box), species)
+
+
+# ----------------------------------------------------------------------------- frames
+
+
+def _pick_frame(path, frame, n):
+    """The index of the frame to read among ``n``; ``frame`` None means the only one."""
+    if n == 0:
+        raise UserError(f"{path}: holds no frames")
+    if frame is None:
+        if n == 1:
+            return 0
+        raise UserError(f"{path}: holds {n} frames; choose one with --frame K (0 to {n - 1}, or -1 for "
+                        "the last)")
+    k = frame + n if frame < 0 else frame
+    if not 0 <= k < n:
+        raise UserError(f"--frame {frame}: {path} holds {n} frame(s), 0 to {n - 1} (negative K counts from "
+                        "the end)")
+    return k
+
+
+def _log_value(value):
+    """A GSD log value as a Python value: a one-element array as its number, a char array
+    (int8/uint8, HOOMD's and OVITO's strings) or a string chunk as ``str``."""
+    if isinstance(value, (str, bytes)):
+        return value.decode("utf-8", "replace") if isinstance(value, bytes) else value
+    a = np.asarray(value)
+    if a.dtype.kind in ("U", "O", "S"):
+        flat = a.ravel().tolist()
+        text = [x.decode("utf-8", "replace") if isinstance(x, bytes) else str(x) for x in flat]
+        return text[0] if len(text) == 1 else text
+    if a.dtype in (np.int8, np.uint8) and a.ndim == 1:  # campaign export writes numbers as int64/float64
+        return a.astype(np.uint8).tobytes().split(b"\0", 1)[0].decode("utf-8", "replace")
+    if a.size == 1:
+        return a.reshape(()).item()
+    return a
+
+
+def _read_gsd(path, frame):
+    from campaign.errors import require
+
+    hoomd = require("gsd.hoomd", "export", f"reading {path} (a GSD file)")
+    try:
+        traj = hoomd.open(path, "r")
+    except Exception as exc:  # noqa: BLE001 - whatever gsd says of a file it cannot read
+        raise UserError(f"{path}: not a readable GSD file of the hoomd schema ({exc})") from None
+    with traj:
+        n_frames = len(traj)
+        k = _pick_frame(path, frame, n_frames)
+        try:
+            fr = traj[k]
+        except Exception as exc:  # noqa: BLE001
+            raise UserError(f"{path}, frame {k}: cannot read the frame ({exc})") from None
+    where = f"{path}, frame {k}"
+    dims = int(fr.configuration.dimensions)
+    if dims != 2:
+        raise UserError(f"{where}: a {dims}-dimensional frame (configuration/dimensions); expected a 2D "
+                        "configuration of disks")
+    log = dict(fr.log or {})
+    notes = []
+    box6 = np.asarray(fr.configuration.box, dtype=np.float64).ravel()
+    n = int(fr.particles.N)
+    if GSD_POSITIONS64 in log and GSD_RADII64 in log:
+        pos = np.asarray(log[GSD_POSITIONS64])
+        rad = np.asarray(log[GSD_RADII64])
+        box = np.asarray(log[GSD_BOX64]) if GSD_BOX64 in log else box6[:2]
+        if pos.shape[:1] != (n,):
+            raise UserError(f"{where}: log chunk {GSD_POSITIONS64!r} has {pos.shape[:1]} rows, the frame "
+                            f"{n} particles")
+    else:
+        if box6.size != 6 or np.any(box6[3:] != 0):
+            raise UserError(f"{where}: configuration/box {box6.tolist()} is tilted; expected a rectangular "
+                            "box [Lx, Ly, Lz, 0, 0, 0]")
+        p3 = np.asarray(fr.particles.position, dtype=np.float64).reshape(n, -1)
+        if p3.shape[1] == 3 and n and np.any(p3[:, 2] != p3[0, 2]):
+            raise UserError(f"{where}: particles at different z; expected a 2D configuration")
+        box = box6[:2]
+        pos = p3[:, :2] + 0.5 * box  # HOOMD's box is centred on the origin: [-L/2, L/2)
+        rad = 0.5 * np.asarray(fr.particles.diameter, dtype=np.float64)
+        if np.asarray(fr.particles.position).dtype == np.float32:
+            notes.append(f"{where}: positions and diameters are GSD's float32 (the frame has no float64 copy "
+                         f"{GSD_POSITIONS64!r}); near jamming float32 rounding can change the contact network")
+    species = np.asarray(fr.particles.typeid).astype(np.int64)
+    if species.shape != (n,):
+        species = None
+    pos, rad, box, species, geom = _check_arrays(
+        where, *_as_float(where, pos, rad, box), species, rows=lambda i: f"frame {k}, particle {i}")
+    info = {key[len(GSD_PREFIX):]: _log_value(v) for key, v in log.items()
+            if key.startswith(GSD_PREFIX) and key != GSD_BOX64}
+    exponent = info.get("exponent")
+    extra = dict(exponent=float(exponent) if isinstance(exponent, (int, float)) else None, info=info,
+                 frame=k, n_frames=n_frames, notes=tuple(notes))
+    return pos, rad, box, species, geom, extra
+
+
+# ----------------------------------------------------------------------------- extended XYZ
+
+#: column names (lower case) of the extended XYZ ``Properties`` that the reader understands
+_XYZ_POS = ("pos", "positions")
+_XYZ_RADIUS = ("radius", "radii")
+_XYZ_DIAMETER = ("diameter", "diameters")
+_XYZ_TYPE = ("type", "species", "element", "atom_types")
+
+
+def parse_xyz_header(text, where="header", quoted=None):
+    """The key=value pairs of an extended XYZ comment line, as strings (quotes removed; a key
+    without a value is ``True``). Values may be bare, "double quoted" (with \" inside), or in
+    {braces} or [brackets]. ``quoted``: a set that receives the keys whose value was quoted."""
+    out = {}
+    i, n = 0, len(text)
+    while True:
+        while i < n and text[i].isspace():
+            i += 1
+        if i >= n:
+            return out
+        start = i
+        while i < n and not text[i].isspace() and text[i] != "=":
+            i += 1
+        key = text[start:i]
+        if not key:
+            raise UserError(f"{where}: expected a key before '=' at column {i + 1}")
+        j = i
+        while j < n and text[j].isspace():
+            j += 1
+        if j >= n or text[j] != "=":
+            out[key] = True
+            continue
+        i = j + 1
+        while i < n and text[i].isspace():
+            i += 1
+        if i < n and text[i] == '"':
+            i += 1
+            chars = []
+            while i < n and text[i] != '"':
+                if text[i] == "\\" and i + 1 < n:
+                    i += 1
+                chars.append(text[i])
+                i += 1
+            if i >= n:
+                raise UserError(f"{where}: the value of {key!r} opens a quote that is never closed")
+            value = "".join(chars)
+            i += 1
+            if quoted is not None:
+                quoted.add(key)
+        elif i < n and text[i] in "{[":
+            close = "}" if text[i] == "{" else "]"
+            end = text.find(close, i)
+            if end < 0:
+                raise UserError(f"{where}: the value of {key!r} opens {text[i]!r} that is never closed")
+            value = text[i + 1:end]
+            i = end + 1
+        else:
+            start = i
+            while i < n and not text[i].isspace():
+                i += 1
+            value = text[start:i]
+        out[key] = value
+    return out
+
+
+def _xyz_scalar(key, value, quoted=()):
+    """A header value as int, float or str (``id`` and quoted text stay strings)."""
+    if value is True or key == "id" or key in quoted:
+        return value
+    for cast in (int, float):
+        try:
+            return cast(value)
+        except ValueError:
+            pass
+    return value
+
+
+def _xyz_bool(token):
+    low = token.lower()
+    if low in ("t", "true", "1"):
+        return True
+    if low in ("f", "false", "0"):
+        return False
+    return None
+
+
+def _xyz_columns(where, header):
+    """(column layout, total columns): name -> (first column, count, type) from ``Properties``."""
+    props = next((v for k, v in header.items() if k.lower() == "properties"), None)
+    if props is None or props is True:
+        raise UserError(f"{where}: no Properties=... in the comment line; expected an extended XYZ header "
+                        "with pos and a radius (or diameter) column, e.g. "
+                        "Properties=type:S:1:pos:R:3:radius:R:1")
+    parts = props.split(":")
+    if len(parts) % 3:
+        raise UserError(f"{where}: Properties={props}: expected name:type:columns triples")
+    cols, at = {}, 0
+    for name, typ, count in zip(parts[0::3], parts[1::3], parts[2::3]):
+        if typ.upper() not in ("S", "R", "I", "L"):
+            raise UserError(f"{where}: Properties: column {name!r} has type {typ!r}; expected S, R, I or L")
+        try:
+            m = int(count)
+        except ValueError:
+            m = 0
+        if m < 1:
+            raise UserError(f"{where}: Properties: column {name!r} has {count!r} columns; expected a "
+                            "positive integer")
+        cols[name.lower()] = (at, m, typ.upper())
+        at += m
+    return cols, at
+
+
+def _xyz_box(where, header):
+    lat = next((v for k, v in header.items() if k.lower() == "lattice"), None)
+    if lat is None or lat is True:
+        raise UserError(f"{where}: no Lattice=\"...\" in the comment line; expected the periodic box "
+                        "Lattice=\"Lx 0 0 0 Ly 0 0 0 Lz\"")
+    try:
+        v = [float(x) for x in lat.replace(",", " ").split()]
+    except ValueError:
+        v = []
+    if len(v) != 9 or not all(math.isfinite(x) for x in v):
+        raise UserError(f"{where}: Lattice=\"{lat}\": expected 9 finite numbers (three cell vectors)")
+    a, b = v[0:3], v[3:6]
+    if a[1] != 0 or a[2] != 0 or b[0] != 0 or b[2] != 0:
+        raise UserError(f"{where}: Lattice=\"{lat}\": a tilted cell; expected a rectangular box with its first "
+                        "vector along x and its second along y (\"Lx 0 0 0 Ly 0 0 0 Lz\")")
+    if a[0] <= 0 or b[1] <= 0:
+        raise UserError(f"{where}: Lattice=\"{lat}\": expected positive box sides, got {a[0]!r} and {b[1]!r}")
+    pbc = next((v for k, v in header.items() if k.lower() == "pbc"), None)
+    if isinstance(pbc, str):
+        flags = [_xyz_bool(t) for t in pbc.split()]
+        if len(flags) < 2 or None in flags:
+            raise UserError(f"{where}: pbc=\"{pbc}\": expected T or F for each direction")
+        if not (flags[0] and flags[1]):
+            raise UserError(f"{where}: pbc=\"{pbc}\": the box is not periodic in x and y; the analysis "
+                            "needs a periodic box")
+    return np.array([a[0], b[1]], dtype=np.float64)
+
+
+def _xyz_count(path, lineno, line):
+    tokens = line.split()
+    if len(tokens) == 1:
+        try:
+            n = int(tokens[0])
+        except ValueError:
+            n = -1
+        if n >= 0:
+            return n
+    hint = " (a plain text configuration 'Lx Ly' then 'x y radius' rows? use --format text)" if lineno == 1 else ""
+    raise UserError(f"{path}, line {lineno}: expected the number of particles of an extended XYZ frame, got "
+                    f"{line.strip()[:80]!r}{hint}")
+
+
+def _xyz_frames(fh, path):
+    """Yield ``(first line number, n, comment line, reader)`` per frame; ``reader()`` returns the
+    frame's n particle lines (call it, or the lines are skipped)."""
+    lineno = 0
+    while True:
+        line = fh.readline()
+        lineno += 1
+        if not line:
+            return
+        if not line.strip():
+            rest = fh.read()
+            if rest.strip():
+                raise UserError(f"{path}, line {lineno}: a blank line where a frame's particle count was "
+                                "expected")
+            return
+        start = lineno
+        n = _xyz_count(path, lineno, line)
+        comment = fh.readline()
+        lineno += 1
+        if not comment:
+            raise UserError(f"{path}, line {lineno}: the file ends before the comment line of the frame "
+                            f"at line {start}")
+        lines = []
+        for _ in range(n):
+            text = fh.readline()
+            lineno += 1
+            if not text:
+                raise UserError(f"{path}, line {lineno}: the file ends inside the frame at line {start} "
+                                f"({len(lines)} of {n} particle lines)")
+            lines.append(text)
+        yield start, n, comment.rstrip("\r\n"), lines
+
+
+def _open_text(path):
+    try:
+        return open(path, encoding="utf-8")
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read ({exc.strerror})") from None
+
+
+def _read_xyz(path, frame):
+    try:
+        if frame is not None and frame >= 0:  # read up to the frame asked for
+            seen = 0
+            with _open_text(path) as fh:
+                for j, fr in enumerate(_xyz_frames(fh, path)):
+                    seen = j + 1
+                    if j == frame:
+                        return _parse_xyz_frame(path, frame, None, *fr)
+            _pick_frame(path, frame, seen)  # out of range: says how many frames there are
+        first, total = None, 0  # the only frame, or one counted from the end: count them all
+        with _open_text(path) as fh:
+            for fr in _xyz_frames(fh, path):
+                first = first or fr
+                total += 1
+        k = _pick_frame(path, frame, total)
+        chosen = first
+        if k:
+            with _open_text(path) as fh:
+                for j, fr in enumerate(_xyz_frames(fh, path)):
+                    if j == k:
+                        chosen = fr
+                        break
+        return _parse_xyz_frame(path, k, total, *chosen)
+    except UnicodeDecodeError:
+        raise UserError(f"{path}: not a text file (expected extended XYZ; use --format for other "
+                        "formats)") from None
+
+
+def _parse_xyz_frame(path, k, n_frames, start, n, comment, lines):
+    where = f"{path}, line {start + 1}"
+    quoted = set()
+    header = parse_xyz_header(comment, where, quoted)
+    box = _xyz_box(where, header)
+    cols, width = _xyz_columns(where, header)
+    pos_col = next((cols[c] for c in _XYZ_POS if c in cols), None)
+    if pos_col is None or pos_col[2] != "R" or pos_col[1] not in (2, 3):
+        raise UserError(f"{where}: Properties needs a position column pos:R:3 (or pos:R:2)")
+    scale, rad_col = 1.0, next((cols[c] for c in _XYZ_RADIUS if c in cols), None)
+    if rad_col is None:
+        scale, rad_col = 0.5, next((cols[c] for c in _XYZ_DIAMETER if c in cols), None)
+    if rad_col is None or rad_col[2] != "R" or rad_col[1] != 1:
+        raise UserError(f"{where}: Properties has no radius:R:1 (or diameter:R:1) column; the analysis needs "
+                        "each disk's size")
+    type_col = next((cols[c] for c in _XYZ_TYPE if c in cols and cols[c][1] == 1), None)
+    pos = np.empty((n, pos_col[1]), dtype=np.float64)
+    rad = np.empty(n, dtype=np.float64)
+    labels = []
+    for i, raw in enumerate(lines):
+        lineno = start + 2 + i
+        tokens = raw.split()
+        if len(tokens) != width:
+            raise UserError(f"{path}, line {lineno}: expected {width} columns (Properties of line {start + 1}), "
+                            f"got {len(tokens)}")
+        a, m, _ = pos_col
+        for c in range(m):
+            pos[i, c] = _number(path, lineno, tokens[a + c], "xyz"[c])
+        rad[i] = _number(path, lineno, tokens[rad_col[0]], "the radius" if scale == 1.0 else "the diameter")
+        if type_col is not None:
+            labels.append(tokens[type_col[0]])
+    rad *= scale
+    bad = np.flatnonzero(rad <= 0)
+    if bad.size:
+        raise UserError(f"{path}, line {start + 2 + bad[0]}: expected a positive radius, got {rad[bad[0]]!r}")
+    if pos.shape[1] == 3 and n and np.any(pos[:, 2] != pos[0, 2]):
+        raise UserError(f"{where}: particles at different z; expected a 2D configuration")
+    species = None
+    if type_col is not None:
+        if type_col[2] == "I":
+            try:
+                species = np.array([int(x) for x in labels], dtype=np.int64)
+            except ValueError:
+                k_bad = next(i for i, x in enumerate(labels) if not x.lstrip("+-").isdigit())
+                raise UserError(f"{path}, line {start + 2 + k_bad}: expected an integer type, got "
+                                f"{labels[k_bad]!r}") from None
+        else:
+            codes = {}
+            species = np.array([codes.setdefault(x, len(codes)) for x in labels], dtype=np.int64)
+    info = {key: _xyz_scalar(key, v, quoted) for key, v in header.items()
+            if key.lower() not in ("lattice", "properties", "pbc")}
+    rows = [f"line {start + 2 + i}" for i in range(n)]
+    exponent = info.get("exponent")
+    extra = dict(exponent=float(exponent) if isinstance(exponent, (int, float)) and not isinstance(exponent, bool)
+                 else None, info=info, frame=k, n_frames=n_frames)
+    return np.ascontiguousarray(pos[:, :2]), rad, box, species, (rows, f"line {start + 1}"), extra
 
 
 # ----------------------------------------------------------------------------- geometry

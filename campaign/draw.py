@@ -467,13 +467,15 @@ def store_packings(path):
     return table, ids, rows
 
 
-def read_source(path, *, task=None, index=None, fmt="auto", group="/", exponent=None) -> Source:
-    """The configuration to draw: a configuration file, or one packing of a campaign store."""
+def read_source(path, *, task=None, index=None, fmt="auto", group="/", exponent=None, frame=None) -> Source:
+    """The configuration to draw: a configuration file (``frame`` K of a GSD or extended XYZ
+    file), or one packing of a campaign store."""
     from campaign.configio import detect_format, read_configuration
 
     path = str(path)
     if not os.path.exists(path):
-        raise UserError(f"{path}: no such file (expected a configuration: text, .npz or HDF5, or a campaign store)")
+        raise UserError(f"{path}: no such file (expected a configuration: text, .npz, HDF5, .gsd or extended XYZ, "
+                        "or a campaign store)")
     kind = detect_format(path) if fmt == "auto" else fmt
     if kind == "hdf5" and not os.path.isdir(path) and _is_store(path):
         table, ids, rows = store_packings(path)
@@ -482,6 +484,9 @@ def read_source(path, *, task=None, index=None, fmt="auto", group="/", exponent=
                             "'store: {configurations: true}'); draw a configuration file instead")
         if task is not None and index is not None:
             raise UserError("give --task or --index, not both")
+        if frame is not None:
+            raise UserError(f"--frame {frame}: picks a frame of a .gsd or extended XYZ file; in a campaign store "
+                            "--task ID or --index ROW picks the packing")
         if task is not None:
             match = np.flatnonzero(np.char.startswith(ids.astype(str), task))
             if match.size == 0:
@@ -513,9 +518,17 @@ def read_source(path, *, task=None, index=None, fmt="auto", group="/", exponent=
     if task is not None or index is not None:
         raise UserError(f"{path}: --task and --index choose a packing of a campaign store; this is a "
                         "configuration file")
-    conf = read_configuration(path, fmt=fmt, group=group)
-    alpha = 2.0 if exponent is None else exponent
-    return Source(conf.positions, conf.radii, conf.box, conf.species, alpha, Path(path).name, Path(path).stem)
+    conf = read_configuration(path, fmt=fmt, group=group, frame=frame)
+    alpha = exponent if exponent is not None else (conf.exponent or 2.0)
+    label, stem = Path(path).name, Path(path).stem
+    if conf.frame is not None:
+        info = conf.info or {}
+        label += f": frame {conf.frame}"
+        if all(k in info for k in ("variant", "N", "E", "seed")):
+            label += f", {info['variant']}, N = {info['N']}, E = {float(info['E']):.3g}, seed {info['seed']}"
+        if conf.n_frames != 1:
+            stem += f"_{conf.frame}"
+    return Source(conf.positions, conf.radii, conf.box, conf.species, alpha, label, stem)
 
 
 def title_of(src: Source, sc: Scene) -> str:

@@ -78,6 +78,35 @@ def _columns(f, names):
     return out
 
 
+def usable_mask(scalars, n):
+    """``(mask, reasons)``: which of ``n`` finished packings are fit for statistics -- the jam
+    converged (``jam_status == 0``) and the analysis identities held (``identities_ok == 1``).
+    ``scalars`` maps names to (n,) arrays; ``reasons`` maps each failed condition to its (n,)
+    bool mask. Without one of the two columns a packing is taken as passing that condition.
+    The one definition of the packings the reducer uses (also ``campaign.frames``)."""
+    reasons = {}
+    if "jam_status" in scalars:
+        reasons["jam_status != 0"] = ~(np.asarray(scalars["jam_status"]) == 0)
+    if "identities_ok" in scalars:
+        reasons["identities_ok != 1"] = ~(np.asarray(scalars["identities_ok"]) == 1)
+    bad = np.zeros(n, bool)
+    for m in reasons.values():
+        bad |= m
+    return ~bad, reasons
+
+
+def first_done(ids, status, seen):
+    """Bool mask of the rows that count as finished packings: status 1 (done), and the first
+    such row of a task id not in ``seen`` (a set, updated), so that a packing done in several
+    rows or files is used once."""
+    keep = np.zeros(len(status), bool)
+    for r in np.flatnonzero(np.asarray(status) == STATUS_DONE):
+        if ids[r] not in seen:
+            seen.add(ids[r])
+            keep[r] = True
+    return keep
+
+
 @dataclass
 class Finished:
     """Finished packings of one or more campaign files (rows with status 1, deduplicated by id)."""
@@ -98,19 +127,8 @@ class Finished:
         return len(self.N)
 
     def usable(self):
-        """``(mask, reasons)``: the packings fit for statistics -- the jam converged
-        (``jam_status == 0``) and the analysis identities held (``identities_ok == 1``).
-        ``reasons`` maps each failed condition to its (n,) bool mask. A file without one
-        of the two columns is taken as passing that condition."""
-        reasons = {}
-        if "jam_status" in self.scalars:
-            reasons["jam_status != 0"] = ~(self.scalars["jam_status"] == 0)
-        if "identities_ok" in self.scalars:
-            reasons["identities_ok != 1"] = ~(self.scalars["identities_ok"] == 1)
-        bad = np.zeros(len(self), bool)
-        for m in reasons.values():
-            bad |= m
-        return ~bad, reasons
+        """``(mask, reasons)`` of ``usable_mask`` for these packings."""
+        return usable_mask(self.scalars, len(self))
 
     def subset(self, mask):
         """The finished packings where ``mask`` (n,) is true, in the same order."""
@@ -236,12 +254,7 @@ def load_finished(paths) -> Finished:
                     raise UserError(f"{path}: histogram {n!r} has other bin edges than "
                                     f"{paths[0]}; files with different bins cannot be summed")
             edges = {n: edges[n] for n in set(edges) & set(hedges)}
-        keep = np.zeros(T, bool)
-        for r in np.flatnonzero(status == STATUS_DONE):
-            if ids[r] not in seen:
-                seen.add(ids[r])
-                keep[r] = True
-        rows = np.flatnonzero(keep)
+        rows = np.flatnonzero(first_done(ids, status, seen))
         per_file.append((rows, np.arange(offset, offset + len(rows))))
         offset += len(rows)
         for k, v in (("variant", variant), ("N", cols["N"]), ("E", cols["E"]), ("status", status),

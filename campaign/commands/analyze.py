@@ -4,15 +4,21 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 
-HELP = "analyse one configuration (text, .npz or HDF5): scalars and identity checks"
+HELP = "analyse one configuration (text, .npz, HDF5, GSD or extended XYZ): scalars and identity checks"
 
 EPILOG = """\
 CONFIG formats (docs/CONFIG_FORMAT.md): plain text with a box line 'Lx Ly' then one
 'x y radius' row per disk ('#' starts a comment); .npz with arrays positions (n, 2),
-radii (n,), box (2,); HDF5 with datasets positions, radii, box (in --group).
+radii (n,), box (2,); HDF5 with datasets positions, radii, box (in --group); .gsd
+(HOOMD-blue's schema; the gsd package, the export extra) and .xyz/.extxyz (extended
+XYZ: Lattice, Properties with pos and radius or diameter), one frame chosen with
+--frame K. Frames written by 'campaign export' carry the float64 positions and radii,
+which are used: the analysis gives the store's scalars exactly.
 Exit status: 0 analysed (identity failures are reported in the output, not as an
-error), 2 unreadable or malformed input, 1 internal fault.
+error), 2 unreadable or malformed input, a frame out of range, a missing extra,
+1 internal fault.
 """
 
 
@@ -21,17 +27,22 @@ def configure(parser):
 
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = EPILOG
-    parser.add_argument("config", help="configuration file (text, .npz or HDF5)")
+    parser.add_argument("config", help="configuration file (text, .npz, HDF5, .gsd or extended XYZ)")
     parser.add_argument("--json", action="store_true",
                         help="print the scalars and identity flags as one JSON object")
-    parser.add_argument("--format", default="auto", choices=("auto", "text", "npz", "hdf5"),
-                        help="file format (default: from the suffix; .npz, .h5/.hdf5, else text)")
+    parser.add_argument("--format", default="auto", choices=("auto", "text", "npz", "hdf5", "gsd", "xyz"),
+                        help="file format (default: from the suffix; .npz, .h5/.hdf5, .gsd, .xyz/.extxyz "
+                             "(extended XYZ), else text)")
+    parser.add_argument("--frame", type=int, metavar="K",
+                        help="frame of a .gsd or extended XYZ file (0 the first, -1 the last; required "
+                             "when the file holds several)")
     parser.add_argument("--group", default="/",
                         help="HDF5 group holding positions, radii, box (default: /), "
                              "e.g. /configurations/<task id> of a campaign store")
-    parser.add_argument("--exponent", type=float, default=2.0,
+    parser.add_argument("--exponent", type=float, default=None,
                         help="alpha of the pair potential (1/alpha)(1 - r/s)^alpha for E_G and "
-                             "pressure (default: 2, harmonic)")
+                             "pressure (default: the frame's, in files written by 'campaign export', "
+                             "else 2, harmonic)")
     parser.add_argument("--observables", default="scalars",
                         help="comma-separated observable names, or 'all' (default: scalars); "
                              "histograms are included in the JSON output")
@@ -64,13 +75,19 @@ def main(args) -> int:
         if unknown:
             raise UserError(f"--observables: unknown name(s) {', '.join(unknown)}; "
                             f"expected some of {', '.join(OBSERVABLES)} or 'all'")
-    if not (math.isfinite(args.exponent) and args.exponent > 1.0):
+    if args.exponent is not None and not (math.isfinite(args.exponent) and args.exponent > 1.0):
         raise UserError(f"--exponent: expected a finite number > 1, got {args.exponent}")
 
-    conf = read_configuration(args.config, fmt=args.format, group=args.group)
+    conf = read_configuration(args.config, fmt=args.format, group=args.group, frame=args.frame)
+    exponent = args.exponent if args.exponent is not None else (conf.exponent or 2.0)
+    if not (math.isfinite(exponent) and exponent > 1.0):
+        raise UserError(f"{conf.source}: the file's exponent {exponent} is not a finite number > 1; "
+                        "give --exponent")
+    for note in conf.notes:
+        print(f"note: {note}", file=sys.stderr)
     try:
         result = analyze(conf.positions, conf.radii, conf.box, names,
-                         exponent=args.exponent, species=conf.species)
+                         exponent=exponent, species=conf.species)
     except ValueError as exc:  # input the reader let through but the analysis cannot use
         raise UserError(f"{conf.source}: {exc}") from None
 
@@ -85,7 +102,8 @@ def main(args) -> int:
         print(json.dumps(out, indent=None, allow_nan=False))
         return 0
 
-    print(f"{conf.source}: {result.scalars['N']} disks, box {conf.box[0]:g} x {conf.box[1]:g}")
+    frame = f", frame {conf.frame}" if conf.frame is not None else ""
+    print(f"{conf.source}{frame}: {result.scalars['N']} disks, box {conf.box[0]:g} x {conf.box[1]:g}")
     for key, value in result.scalars.items():
         if isinstance(value, float):
             print(f"  {key:16s} {value:.10g}")

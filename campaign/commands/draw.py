@@ -8,10 +8,11 @@ import sys
 HELP = "draw one packing: disks, contacts, network, grain and void polygons (PNG, SVG or PDF)"
 
 EPILOG = """\
-SOURCE is a configuration file (text, .npz or HDF5, as for 'campaign analyze') or a
-campaign store that keeps configurations ('store: {configurations: true}'); in a store
---task ID (or a unique prefix) or --index ROW picks the packing (default: the first
-row with a configuration).
+SOURCE is a configuration file (text, .npz, HDF5, .gsd or extended XYZ, as for
+'campaign analyze'; --frame K picks a frame of a .gsd or XYZ file) or a campaign store
+that keeps configurations ('store: {configurations: true}'); in a store --task ID (or a
+unique prefix) or --index ROW picks the packing (default: the first row with a
+configuration).
 
 Layers: disks (by species; rattlers yellow), contacts (contact points, red), network
 (centre to centre, black), grains (grain polygons, blue), voids (void polygons,
@@ -39,12 +40,15 @@ def configure(parser):
                         help="draw the window [X, X+W] x [Y, Y+H] (box units) instead of the box")
     parser.add_argument("--layers", nargs="+", metavar="LAYER",
                         help="layers to draw (names, or 'all'; default: all but forces)")
-    parser.add_argument("--format", default="auto", choices=("auto", "text", "npz", "hdf5"),
+    parser.add_argument("--format", default="auto", choices=("auto", "text", "npz", "hdf5", "gsd", "xyz"),
                         help="configuration format (default: from the suffix)")
+    parser.add_argument("--frame", type=int, metavar="K",
+                        help="frame of a .gsd or extended XYZ file (0 the first, -1 the last; required "
+                             "when the file holds several)")
     parser.add_argument("--group", default="/", help="HDF5 group of a configuration file (default: /)")
     parser.add_argument("--exponent", type=float, default=None,
                         help="alpha of the pair potential, for the forces layer (default: the store's "
-                             "spec, else 2)")
+                             "spec or the exported frame's, else 2)")
 
 
 def main(args) -> int:
@@ -65,7 +69,7 @@ def main(args) -> int:
 
     plt = _plt()  # fail early when matplotlib is missing
     src = draw.read_source(args.source, task=args.task, index=args.index, fmt=args.format,
-                           group=args.group, exponent=args.exponent)
+                           group=args.group, exponent=args.exponent, frame=args.frame)
     try:
         sc = draw.scene(src.positions, src.radii, src.box, src.species, exponent=src.exponent,
                         region=args.region, layers=layers)
