@@ -126,6 +126,141 @@ def release(fd, nbytes):
 
 # --------------------------------------------------------------------------- HDF5 handles
 
+class GuardedFile:
+    """The file HDF5 writes a store through (h5py's ``fileobj`` driver), so that HDF5 never
+    sees a write fail.
+
+    HDF5 does not survive a failed write: its metadata cache then holds blocks that never
+    reached the disk, later writes fail inside object deallocation where nobody sees them,
+    and the process dies of a segmentation fault (reproduced with ENOSPC on a tmpfs). So a
+    write the file system refuses is recorded in ``failed`` and, like every write after it,
+    goes to an in-memory overlay instead: HDF5 carries on, reads back what it wrote, and the
+    file on disk keeps what it had at that moment. The store checks ``failed`` after each
+    write step and stops. ``discard()`` sends every later write to the overlay (closing a
+    handle that must not write any more).
+    """
+
+    def __init__(self, path, create=False):
+        self.path = str(path)
+        flags = os.O_RDWR | (os.O_CREAT | os.O_TRUNC if create else 0)
+        self.fd = os.open(self.path, flags, 0o644)
+        self.pos = 0
+        self.failed = None       # the OSError of the first refused write
+        self._overlay = None     # memfd holding what was written after it
+        self._ranges = []        # (start, end) of the overlay's written ranges, sorted, disjoint
+
+    # the file-object protocol h5py's fileobj driver uses
+    def seek(self, offset, whence=0):
+        if whence == 0:
+            self.pos = int(offset)
+        elif whence == 1:
+            self.pos += int(offset)
+        else:
+            end = os.fstat(self.fd).st_size
+            if self._ranges:
+                end = max(end, self._ranges[-1][1])
+            self.pos = end + int(offset)
+        return self.pos
+
+    def tell(self):
+        return self.pos
+
+    def read(self, n=-1):
+        n = int(n)
+        data = os.pread(self.fd, n, self.pos) if n > 0 else b""
+        if len(data) < n:  # past the end: zeros, as HDF5's own POSIX driver reads them
+            data += b"\0" * (n - len(data))
+        if self._ranges:
+            data = self._patch(bytearray(data), self.pos)
+        self.pos += n
+        return bytes(data)
+
+    def readinto(self, buf):
+        data = self.read(len(buf))
+        buf[:len(data)] = data
+        return len(data)
+
+    def write(self, data):
+        view = memoryview(data).cast("B")
+        if self.failed is None and self._overlay is None:
+            done = 0
+            try:
+                while done < len(view):
+                    done += os.pwrite(self.fd, view[done:], self.pos + done)
+            except OSError as exc:
+                self.failed = exc
+                self._to_overlay(view[done:], self.pos + done)
+        else:
+            self._to_overlay(view, self.pos)
+        self.pos += len(view)
+        return len(view)
+
+    def truncate(self, size=None):
+        size = self.pos if size is None else int(size)
+        if self.failed is None and self._overlay is None:
+            try:
+                os.ftruncate(self.fd, size)
+            except OSError as exc:
+                self.failed = exc
+        return size
+
+    def flush(self):
+        pass
+
+    def fileno(self):
+        return self.fd
+
+    def close(self):
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+        if self._overlay is not None:
+            os.close(self._overlay)
+            self._overlay = None
+
+    @property
+    def closed(self):
+        return self.fd is None
+
+    def readable(self):
+        return True
+
+    def writable(self):
+        return True
+
+    def seekable(self):
+        return True
+
+    # the overlay
+    def discard(self):
+        """From now on nothing reaches the file: every write goes to the overlay."""
+        if self._overlay is None:
+            self._overlay = os.memfd_create("campaign-discarded-hdf5-writes")
+
+    def _to_overlay(self, view, at):
+        self.discard()
+        done = 0
+        while done < len(view):
+            done += os.pwrite(self._overlay, view[done:], at + done)
+        start, end = at, at + len(view)
+        kept = []
+        for a, b in self._ranges:
+            if b < start or a > end:
+                kept.append((a, b))
+            else:
+                start, end = min(a, start), max(b, end)
+        kept.append((start, end))
+        self._ranges = sorted(kept)
+
+    def _patch(self, data, at):
+        end = at + len(data)
+        for a, b in self._ranges:
+            lo, hi = max(a, at), min(b, end)
+            if lo < hi:
+                data[lo - at:hi - at] = os.pread(self._overlay, hi - lo, lo)
+        return data
+
+
 def neutralise(h5file):
     """Close an h5py File whose last write failed without writing anything more to its
     file (see the module's docstring). Never raises."""

@@ -55,7 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import OutOfSpace, UserError
-from campaign.faults import neutralise, release, reserve, write_fault
+from campaign.faults import GuardedFile, release, reserve, write_fault
 from campaign.journal import (  # noqa: F401 - part of this module's interface
     MAX_RECORD, Journal, decode_payload, encode_record, read_journal, scan_journal)
 from campaign.storefile import (  # noqa: F401 - part of this module's interface
@@ -87,8 +87,8 @@ class Store:
         self.B = max(1, min(BLOCK_ROWS, self.T))
         self.edges = {k: np.asarray(v, np.float64) for k, v in sorted(edges.items())}
         self.log = log or (lambda msg: print(msg, file=sys.stderr))
-        self.f = None
-        self.poisoned = False  # HDF5 failed a write: this handle is never flushed or closed normally again
+        self.f = self.io = None
+        self.poisoned = False  # a write step failed: this handle writes nothing to the file any more
         self.record_bytes = []  # sizes of this run's journal records (the space estimate of a stop)
         self._ratio, self._seen = {}, {}  # compression ratio per column: learnt, and the last few seen
         self.space_log = []  # (bytes reserved, bytes the file grew) of the last HDF5 write steps
@@ -156,12 +156,13 @@ class Store:
             rebuilt = "the damaged part of the" if salvage_from else "the missing"
         self.written_blocks = set((np.flatnonzero(self.status != PENDING) // self.B).tolist())
         try:
-            self.f = h5py.File(self.path, "r+", locking=False, rdcc_nbytes=CHUNK_CACHE)
+            self.io = GuardedFile(self.path)
         except OSError as exc:
             fault = write_fault(exc, self.path, "opening the store for writing")
             if fault is None:
                 raise
             raise fault from None
+        self.f = h5py.File(self.io, "r+", rdcc_nbytes=CHUNK_CACHE)
         self._datasets = {}
         self.have_configs = set(self.f["configurations"].keys()) if "configurations" in self.f else set()
         self.have_failures = set(self.f["failures"].keys()) if "failures" in self.f else set()
@@ -228,7 +229,7 @@ class Store:
         failure is raised as a WriteFault."""
         if self.poisoned:
             raise RuntimeError("the store's HDF5 handle failed a write before; it must not be written again")
-        fd = self.f.id.get_vfd_handle()
+        fd = self.io.fd
         need = int(nbytes) + self._slack(new_blocks)
         size = os.fstat(fd).st_size
         reserved = reserve(fd, need, self.path, what)
@@ -237,14 +238,20 @@ class Store:
         except BaseException as exc:
             self.poisoned = True
             fault = write_fault(exc, self.path, what, needed=need)
-            if fault is not None:
-                fault.damaged = fault.path == str(self.path)  # HDF5 itself failed (not the journal)
-                if fault is not exc:
-                    raise fault from None
+            if fault is not None and fault is not exc:
+                raise fault from None
             raise
         finally:
+            if self.io.failed is not None:
+                self.poisoned = True
             if not self.poisoned:
                 release(fd, reserved)
+        if self.io.failed is not None:  # HDF5 wrote past the reservation into a full disk: the overlay took it
+            fault = write_fault(self.io.failed, self.path, what, needed=need)
+            if fault is None:
+                raise RuntimeError(f"writing {self.path} failed: {self.io.failed}") from self.io.failed
+            fault.damaged = True
+            raise fault
         self.space_log.append((need, os.fstat(fd).st_size - size))
         del self.space_log[:-64]
 
@@ -690,8 +697,9 @@ class Store:
             ok = True
         finally:
             if ok:
-                self.f.close()
+                self.f.close()  # writes nothing: the checkpoint flushed everything
                 self.f = None
+                self.io.close()
                 self.journal.close()
             else:
                 self.abandon()
@@ -699,16 +707,21 @@ class Store:
     def abandon(self):
         """Close without stamping the run's end (after a fault); the journal stays the record.
 
-        A poisoned handle (HDF5 failed a write) is neutralised instead of closed: its writes
-        go to an anonymous in-memory file, so that the file on disk keeps what it had."""
+        A poisoned handle (a write step failed) closes without writing anything more: its
+        writes go to an in-memory overlay, so that the file on disk keeps what it had."""
         try:
             if self.f is not None:
                 if self.poisoned:
-                    neutralise(self.f)
-                else:
+                    self.io.discard()
+                try:
                     self.f.close()
+                except Exception:  # noqa: BLE001 - after a fault: what the file holds is what the next start sees
+                    if not self.poisoned:
+                        raise
         finally:
             self.f = None
+            if getattr(self, "io", None) is not None:
+                self.io.close()
             if getattr(self, "journal", None) is not None:
                 try:
                     self.journal.close()  # closes its descriptor (the lock) even when the sync fails

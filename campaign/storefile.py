@@ -12,14 +12,13 @@ removes the temporary file.
 
 from __future__ import annotations
 
-import errno
 import os
 from pathlib import Path
 
 import numpy as np
 
-from campaign.errors import OutOfSpace, UserError
-from campaign.faults import NO_RESERVE_ENV, free_bytes, neutralise, reserve, write_fault
+from campaign.errors import UserError
+from campaign.faults import GuardedFile, release, reserve, write_fault
 
 SCHEMA = "jamming-campaign/1"
 #: Layout version of the store (root attribute ``format_version``). 1 (no attribute): dense
@@ -208,25 +207,34 @@ def create_file(path, spec, tasks, edges, B, *, salvage=False, state=None):
         tmp.unlink()
     need = creation_bytes(len(tasks), edges, path if salvage else None)
     what = "salvaging the damaged store into a new file" if salvage else "creating the store"
-    f = None
+    f = io = None
     try:
-        # look before creating (the superblock is the first write), then reserve on the new file
-        free = free_bytes(str(path.parent))
-        if free < need and os.environ.get(NO_RESERVE_ENV) != "1":
-            raise OutOfSpace(tmp, errno.ENOSPC, what, needed=need, free=free)
-        f = h5py.File(tmp, "w", locking=False)
-        reserve(f.id.get_vfd_handle(), need, tmp, what)
+        io = GuardedFile(tmp, create=True)
+        reserved = reserve(io.fd, need, tmp, what)  # before HDF5 writes its first byte
+        f = h5py.File(io, "w")
         _write_layout(f, spec, tasks, edges, B)
         if salvage:
             _salvage_into(f, path, tasks, edges, B, state)
         f.flush()
+        if io.failed is not None:
+            raise io.failed
         f.close()
         f = None
-        fsync_path(tmp)
+        if io.failed is not None:
+            raise io.failed
+        release(io.fd, reserved)
+        os.fsync(io.fd)
+        io.close()
         os.replace(tmp, path)
     except BaseException as exc:
         if f is not None:
-            neutralise(f)
+            io.discard()
+            try:
+                f.close()
+            except Exception:  # noqa: BLE001 - its writes go nowhere
+                pass
+        if io is not None:
+            io.close()
         try:
             tmp.unlink()
         except OSError:
