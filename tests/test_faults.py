@@ -2,7 +2,7 @@
 HDF5 itself meeting the full disk, an output on a read-only file system, a dead master seen by
 `campaign status`, worker processes and MPI ranks killed with SIGKILL.
 
-The file systems are real tmpfs mounts (this needs root, as CI runs; elsewhere these tests
+The file systems are real tmpfs mounts (this needs root, as CI runs; elsewhere those tests
 skip), filled with a plain file; every mount is removed when its test ends, whatever happens.
 Every case ends, once the fault is cleared, in a store equal to an uninterrupted run's, and no
 output of a faulty run has a traceback.
@@ -43,7 +43,7 @@ def _can_mount():
     return None
 
 
-pytestmark = pytest.mark.skipif(_can_mount() is not None, reason=str(_can_mount()))
+needs_root = pytest.mark.skipif(_can_mount() is not None, reason=str(_can_mount()))
 
 
 @contextlib.contextmanager
@@ -140,6 +140,7 @@ def _assert_stop_paragraph(r, disk, kept=True):
 
 # --------------------------------------------------------------------------- a full disk
 
+@needs_root
 @pytest.mark.parametrize("launcher", ["local", "mpi"])
 def test_disk_fills_during_a_run_then_resumes(tmp_path, reference, launcher):
     """The disk fills in the middle of a run: exit 3, one paragraph, nothing lost, the store
@@ -170,6 +171,7 @@ def test_disk_fills_during_a_run_then_resumes(tmp_path, reference, launcher):
         _assert_equal(out, ref)
 
 
+@needs_root
 def test_disk_full_before_a_run(tmp_path, reference):
     """No room for even a new store: exit 3 before any task starts, no store left behind; once
     there is room the run completes."""
@@ -188,6 +190,7 @@ def test_disk_full_before_a_run(tmp_path, reference):
         _assert_equal(out, ref)
 
 
+@needs_root
 def test_hdf5_itself_meets_the_full_disk(tmp_path, reference):
     """Past every reservation (CAMPAIGN_NO_RESERVE=1: as on a file system without fallocate whose
     free space another writer takes), a write of HDF5's fails in the middle of replaying the
@@ -228,6 +231,7 @@ def test_hdf5_itself_meets_the_full_disk(tmp_path, reference):
 
 # --------------------------------------------------------------------------- an output that cannot be written
 
+@needs_root
 def test_read_only_output_is_refused_before_any_worker_starts(tmp_path, reference):
     spec, ref = reference
     warm = tmp_path / "warm.log"
