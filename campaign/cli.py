@@ -108,10 +108,15 @@ def _write_fault_exit(command, exc):
     if fault.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
         text, code = f"error: cannot write {path or 'a file'}: {reason}; choose another output, or make it writable", 2
     else:
-        where = f" on {describe_filesystem(path)}" if path else ""
         head = "out of space" if fault.out_of_space else "cannot write"
-        text, code = (f"{head}: writing {path or 'a file'} failed: {reason}{where}. Free space there (or fix the "
-                      "file system) and run the command again"), 3
+        fix = "free space (or raise the quota)" if fault.out_of_space else "fix the file system"
+        if path:
+            text = (f"{head}: writing {path} failed: {reason}, on {describe_filesystem(path)}. {fix[0].upper() + fix[1:]} "
+                    "and run the command again")
+        else:
+            text = (f"{head}: a write failed: {reason} (the file system named no file). {fix[0].upper() + fix[1:]} "
+                    "where the command writes (its output) and run it again")
+        code = 3
     print(f"campaign {command}: {text}", file=sys.stderr)
     if m is not None and "h5py" in sys.modules:  # HDF5 failed a write
         sys.stdout.flush()

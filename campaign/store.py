@@ -382,11 +382,11 @@ class Store:
             # journal back (a checkpoint) may free enough; if not (OutOfSpace again), the run stops
             if not (self.staged or self.in_journal):
                 raise
-            self.log(f"campaign: {self.path.parent} is full; writing the store and cutting its journal back early "
-                     "to make room")
             self.checkpoint()
             size = self.journal.size
             self.journal.append(meta, arrays)
+            self.log(f"campaign: {self.path.parent} was full: wrote the store and cut its journal back early, "
+                     "which made room; going on")
         if len(self.record_bytes) < 4096:
             self.record_bytes.append(self.journal.size - size)
         self._stage(meta, arrays)

@@ -259,6 +259,23 @@ def test_read_only_output_is_refused_before_any_worker_starts(tmp_path, referenc
         _assert_equal(out, ref)
 
 
+@needs_root
+def test_other_commands_on_a_full_or_read_only_disk(tmp_path, reference):
+    """campaign reduce writing its tables into a full tmpfs: exit 3, one paragraph; into a read-only
+    one: exit 2; never a traceback."""
+    spec, ref = reference
+    with tmpfs(tmp_path / "disk", "200k") as disk:
+        _fill(disk, 8 << 10)
+        r = subprocess.run([sys.executable, "-m", "campaign", "reduce", str(ref), "-o", str(disk / "red")],
+                           env=_env(), capture_output=True, text=True, timeout=120)
+        assert r.returncode == 3 and "out of space" in r.stderr and "No space left on device" in r.stderr, r.stderr
+        assert "Traceback" not in r.stderr and r.stderr.strip().count("\n") == 0, r.stderr
+        subprocess.run(["mount", "-o", "remount,ro", str(disk)], check=True)
+        r = subprocess.run([sys.executable, "-m", "campaign", "reduce", str(ref), "-o", str(disk / "red2")],
+                           env=_env(), capture_output=True, text=True, timeout=120)
+        assert r.returncode == 2 and "Read-only file system" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
 # --------------------------------------------------------------------------- a dead writer
 
 def _wait_for(predicate, timeout=30.0, what="a condition"):
