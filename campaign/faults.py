@@ -73,8 +73,11 @@ def _fallocate(fd, mode, offset, length):
     global _libc
     if _libc is None:
         _libc = ctypes.CDLL(None, use_errno=True)
-        _libc.fallocate.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int64, ctypes.c_int64]
-        _libc.fallocate.restype = ctypes.c_int
+        if hasattr(_libc, "fallocate"):
+            _libc.fallocate.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int64, ctypes.c_int64]
+            _libc.fallocate.restype = ctypes.c_int
+    if not hasattr(_libc, "fallocate"):  # not Linux: look at the free space instead
+        raise OSError(errno.ENOSYS, "fallocate is not available")
     if _libc.fallocate(fd, mode, offset, length) != 0:
         e = ctypes.get_errno()
         raise OSError(e, os.strerror(e))
@@ -235,7 +238,7 @@ class GuardedFile:
     def discard(self):
         """From now on nothing reaches the file: every write goes to the overlay."""
         if self._overlay is None:
-            self._overlay = os.memfd_create("campaign-discarded-hdf5-writes")
+            self._overlay = _scratch_fd()
 
     def _to_overlay(self, view, at):
         self.discard()
@@ -261,13 +264,24 @@ class GuardedFile:
         return data
 
 
+def _scratch_fd():
+    """An anonymous file in memory (memfd) for writes that must go nowhere; elsewhere than Linux,
+    an unlinked temporary file."""
+    if hasattr(os, "memfd_create"):
+        return os.memfd_create("campaign-discarded-hdf5-writes")
+    import tempfile
+
+    with tempfile.TemporaryFile() as fh:
+        return os.dup(fh.fileno())
+
+
 def neutralise(h5file):
     """Close an h5py File whose last write failed without writing anything more to its
     file (see the module's docstring). Never raises."""
     try:
         fid = h5file.id if hasattr(h5file, "id") else h5file
         fd = fid.get_vfd_handle()
-        sink = os.memfd_create("campaign-discarded-hdf5-writes")
+        sink = _scratch_fd()
         try:
             os.dup2(sink, int(fd))
         finally:
