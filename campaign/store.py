@@ -62,6 +62,7 @@ from campaign.storefile import (  # noqa: F401 - part of this module's interface
     CHUNK_CACHE, COMPRESSION, DONE, ERROR_LEN, FAILED, FORMAT_VERSION, HOST_LEN, OLD_FORMAT_HELP, PENDING,
     ROW_FIELDS, SCHEMA, SLACK, TASK_FIELDS, VARIANT_LEN, check_file, check_format, create_file, dataset_kwargs,
     fill_value, fixed, format_problem, fsync_path, load_state, row_dtype)
+from campaign.storespace import SpaceModel
 
 FLUSH_SECONDS = 0.5     # staged complete blocks are written at least this often
 HOLD_SECONDS = 2.0      # a block still partly pending is written after waiting this long
@@ -90,7 +91,7 @@ class Store:
         self.f = self.io = None
         self.poisoned = False  # a write step failed: this handle writes nothing to the file any more
         self.record_bytes = []  # sizes of this run's journal records (the space estimate of a stop)
-        self._ratio, self._seen = {}, {}  # compression ratio per column: learnt, and the last few seen
+        self.space = SpaceModel(self.B, self.T, self.edges)  # what a write step may add to the file
         self.space_log = []  # (bytes reserved, bytes the file grew) of the last HDF5 write steps
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -221,6 +222,13 @@ class Store:
         return dataset_kwargs(self.B, shape, fill)
 
     # ---- writing HDF5 safely
+    def _slack(self, new_blocks=0) -> int:
+        return self.space.slack(self.path, len(self.scalar_names), len(self.written_blocks), new_blocks)
+
+    def _blocks_bytes(self, blocks) -> int:
+        return self.space.blocks_bytes(self.staged, blocks, self.scalar_names,
+                                       len(self.have_configs) + len(self.have_failures), self._row_values)
+
     @contextlib.contextmanager
     def _hdf5_writes(self, nbytes, what, new_blocks=0):
         """One step that writes the HDF5 file: the space it may need (``nbytes`` plus room for
@@ -254,101 +262,6 @@ class Store:
             raise fault
         self.space_log.append((need, os.fstat(fd).st_size - size))
         del self.space_log[:-64]
-
-    def _slack(self, new_blocks=0) -> int:
-        """Room for HDF5's metadata on top of an estimate: new nodes of the chunk indices (every
-        per-task dataset is chunked alike, so their indices grow together: a first node when a
-        dataset gets its first chunk, more once it has 64), object headers that grow, and a
-        little more for a large file's larger structures."""
-        columns = len(ROW_FIELDS) + 1 + len(self.scalar_names) + len(self.edges)
-        try:
-            size = os.path.getsize(self.path)
-        except OSError:
-            size = 0
-        index = 0
-        if not self.written_blocks or len(self.written_blocks) + new_blocks > 64:
-            index = 3072 * columns * (1 + new_blocks // 32)
-        return SLACK + index + size // 256
-
-    def _columns(self, names):
-        """(dataset name, bytes of one row, learnt key) of every per-task column written by block."""
-        cols = [(f"tasks/{n}", np.dtype(row_dtype(n)).itemsize, f"tasks/{n}") for n in ROW_FIELDS]
-        cols += [(f"scalars/{n}", 8, "scalars") for n in sorted(names)]
-        cols += [(f"histograms/{h}/counts", 8 * (len(e) - 1), f"histograms/{h}") for h, e in self.edges.items()]
-        return cols
-
-    def _blocks_bytes(self, blocks) -> int:
-        """What writing ``blocks`` may add to the file. Every chunk of their rows is rewritten
-        whole, compressed: its raw size times the compression ratio learnt for its column (from
-        the chunks this store wrote, or, before any, by compressing one block as HDF5 will),
-        with a margin of a quarter; plus configurations, failure records and new datasets,
-        which are not compressed."""
-        names = set(self.scalar_names)
-        extra = 0
-        for b in blocks:
-            for meta, arrays in self.staged[b].values():
-                if "scalar_names" in meta:
-                    names.update(n for n in meta["scalar_names"].split(",") if n)
-                else:
-                    names.update(meta.get("scalars", {}))
-                if "c/positions" in arrays:
-                    extra += sum(a.nbytes for k, a in arrays.items() if k.startswith("c/")) + 3584
-                if int(meta["status"]) == FAILED:
-                    extra += len(meta.get("message", "")) + len(meta.get("traceback", "")) + 4096
-        columns = self._columns(names)
-        if any(key not in self._ratio for _, _, key in columns):
-            self._calibrate(blocks[0], columns)
-        rows = sum(min(self.B, self.T - b * self.B) for b in blocks)
-        chunks = sum(rows * width * 1.25 * self._ratio.get(key, 1.0) + 512 * len(blocks) for _, width, key in columns)
-        new = 8192 * len(names - self.scalar_names)
-        if extra:  # the configuration and failure groups' name heaps double when they fill
-            extra += 96 * (len(self.have_configs) + len(self.have_failures))
-        return int(chunks + extra + new)
-
-    def _calibrate(self, b, columns):
-        """Compression ratios of the columns (shuffle, then deflate level 1: HDF5's filters),
-        from the values block ``b`` is about to get; used until the store's own chunks say more."""
-        import zlib
-
-        lo, hi = b * self.B, min((b + 1) * self.B, self.T)
-        rows = self.staged[b]
-        idx = np.fromiter(rows, np.int64, len(rows)) - lo
-        values = [self._row_values(m, a) for m, a in rows.values()]
-        for name, width, key in columns:
-            if key in self._ratio:
-                continue
-            shape = (len(self.edges[name.split("/")[1]]) - 1,) if name.startswith("histograms/") else ()
-            dtype = np.float64 if name.startswith(("scalars/", "histograms/")) else np.dtype(row_dtype(name[6:]))
-            fill = np.nan if name.startswith("scalars/") else (0 if shape else fill_value(name[6:]))
-            block = np.full((hi - lo,) + shape, fill, dtype=np.int64 if shape else dtype)
-            col = [v.get(name) for v in values]
-            if shape:
-                block[idx] = np.stack([np.zeros(shape, np.int64) if x is None else x for x in col])
-            else:
-                block[idx] = np.array([fill if x is None else x for x in col], dtype=block.dtype)
-            item = block.dtype.itemsize
-            raw = block.view(np.uint8).reshape(-1, item).T.tobytes()  # the shuffle filter
-            self._ratio[key] = min(1.02, (len(zlib.compress(raw, 1)) + 64) / max(1, len(raw)))
-            self._seen.setdefault(key, [])
-
-    def _learn(self, blocks):
-        """The stored size of the last chunk written in each column: the ratios follow the data
-        (the largest of the last few, so that one well-compressed block does not lower them)."""
-        b = max(blocks)
-        lo, hi = b * self.B, min((b + 1) * self.B, self.T)
-        now = {}
-        for name, width, key in self._columns(self.scalar_names):
-            try:
-                ds = self._dataset(name)[0]
-                info = ds.id.get_chunk_info_by_coord((lo,) + (0,) * (ds.ndim - 1))
-            except Exception:  # noqa: BLE001 - an old HDF5 without chunk info: keep the calibration
-                return
-            now[key] = max(now.get(key, 0.0), info.size / max(1, (hi - lo) * width))
-        for key, ratio in now.items():
-            seen = self._seen.setdefault(key, [])
-            seen.append(ratio)
-            del seen[:-8]
-            self._ratio[key] = max(seen)
 
     # ---- recording
     def finished(self, index: int) -> bool:
@@ -541,7 +454,7 @@ class Store:
         with self._hdf5_writes(self._blocks_bytes(blocks), "writing finished tasks into the store", len(fresh)):
             self._write_blocks_now(blocks)
         self.written_blocks.update(blocks)
-        self._learn(blocks)
+        self.space.learn(lambda name: self._dataset(name)[0], blocks, self.scalar_names)
 
     def _write_blocks_now(self, blocks):
         f = self.f
