@@ -259,6 +259,7 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
             sys.stderr.flush()
             time.sleep(0.5)  # let the launcher forward the message before MPI_Abort ends the job
             mpi_comm.Abort(fault.exit_code)  # workers busy with tasks nobody will collect
+            os._exit(fault.exit_code)  # MPICH's MPI_Abort can return before the launcher kills the job
         raise
     except BaseException:
         _abandon(comm, store, progress)

@@ -130,6 +130,7 @@ def _assert_consistent(out):
 def _assert_stop_paragraph(r, disk, kept=True):
     err = r.stderr
     assert r.returncode == 3, err
+    assert err.count("campaign run: out of space") == 1, err  # one paragraph (under MPI too)
     assert "Traceback" not in err and "internal error" not in err, err
     assert "out of space" in err and "No space left on device" in err, err
     assert f"on the file system {disk} (tmpfs" in err and "free" in err, err  # the file system, its space
