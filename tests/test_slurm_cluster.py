@@ -327,7 +327,7 @@ def test_one_mpi_world_across_two_nodes(tmp_path, jobs, launcher):
     if len(nodes) < 2:
         pytest.skip(f"the cluster has one node ({nodes}); start it with `slurm/testcluster.sh start --nodes 2` "
                     "(as .ci/run does)")
-    env = _env(CAMPAIGN_SYNTHETIC_DELAY="0.5")
+    env = _env(CAMPAIGN_SYNTHETIC_DELAY="1")  # about 7 s of work for three workers: seen part-way
     options = () if launcher == "srun" else ("--launcher", "mpiexec")
     script, _ = _script(tmp_path, ONE_JOB_SPEC, env, *options, nodes=2, per_node=2)
     out = tmp_path / "out.h5"
