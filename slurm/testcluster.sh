@@ -99,7 +99,7 @@ start_slurmd() {
 start() {
     install_packages
     [ "$(id -u)" -eq 0 ] || die "the test cluster runs its daemons and jobs as root; run it as root"
-    local dir ctld_port slurmd_port i k port nodes_line names state
+    local dir ctld_port slurmd_port i k port nodes_line names state first_job
     dir=$(mktemp -d "${TMPDIR:-/tmp}/campaign-slurm.XXXXXX")
     touch "$dir/testcluster"
     trap 'echo "testcluster: start failed; logs follow" >&2; tail -n 30 "$dir"/log/* >&2 || true; stop "$dir"' ERR
@@ -128,9 +128,14 @@ start() {
         done
         { cat /etc/hosts; echo "127.0.0.1 $(echo "$names" | tr , ' ')  # testcluster nodes"; } > "$dir/hosts"
     fi
+    # Job ids start at a random number: a rank killed by SIGKILL leaves MPICH's shared-memory segment
+    # in /dev/shm, named after the host and the job step, and a later cluster's job of the same id on
+    # the same host would attach to it and hang in MPI_Init.
+    first_job=$(( (RANDOM * 32768 + RANDOM) % 60000000 + 1 ))
     cat > "$dir/slurm.conf" <<EOF
 # written by slurm/testcluster.sh
 ClusterName=campaigntest
+FirstJobId=$first_job
 SlurmctldHost=localhost(127.0.0.1)
 SlurmctldPort=$ctld_port
 SlurmdPort=$slurmd_port

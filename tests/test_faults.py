@@ -337,6 +337,31 @@ def test_status_tells_a_live_writer_from_a_dead_one(tmp_path, reference):
 
 # --------------------------------------------------------------------------- killed workers
 
+SHM = Path("/dev/shm")
+
+
+def mpich_segments() -> set:
+    """The shared-memory segments of MPICH's jobs on this machine."""
+    return {p.name for p in SHM.glob("mpich_shm_*")} if SHM.is_dir() else set()
+
+
+def remove_segments_of_killed_jobs(before: set):
+    """A job killed with SIGKILL leaves MPICH's shared-memory segment in /dev/shm (a running job
+    keeps its own mapped): remove the ones that appeared since ``before`` and no process maps."""
+    new = mpich_segments() - before
+    if not new:
+        return
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                maps = (d / "maps").read_text()
+            except OSError:
+                continue
+            new = {n for n in new if n not in maps}
+    for n in new:
+        (SHM / n).unlink(missing_ok=True)
+
+
 def _ranks(out):
     """{MPI rank: pid} of the processes running `campaign run ... --out OUT` under mpiexec."""
     ranks = {}
@@ -359,6 +384,7 @@ def test_worker_rank_killed_under_mpiexec(tmp_path, reference):
     spec, ref = reference
     out = tmp_path / "out.h5"
     cmd = [str(MPIEXEC), "-n", "3", sys.executable, "-m", "campaign", "run", str(spec), "--out", str(out), "--quiet"]
+    segments = mpich_segments()
     p = subprocess.Popen(cmd, env=_env(CAMPAIGN_SYNTHETIC_DELAY="0.05"), stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
@@ -371,6 +397,7 @@ def test_worker_rank_killed_under_mpiexec(tmp_path, reference):
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
             p.wait(timeout=30)
+        remove_segments_of_killed_jobs(segments)
     assert p.returncode != 0, err
     kept = _assert_consistent(out)
     assert 0 < len(kept) < 240

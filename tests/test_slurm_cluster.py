@@ -30,6 +30,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from test_faults import mpich_segments, remove_segments_of_killed_jobs
 from test_kill_resume import SKIP_DATASETS, _contents, _durable
 
 pytestmark = pytest.mark.slurm
@@ -377,10 +378,16 @@ def test_worker_rank_killed_then_resubmitted(tmp_path, jobs):
     env = _env(CAMPAIGN_SYNTHETIC_DELAY="1")
     script, _ = _script(tmp_path, ONE_JOB_SPEC, env)
     out = tmp_path / "out.h5"
+    segments = mpich_segments()
     jobs.append(_submit(script, env))
-    _wait_done(out, env, 4, jobs[0])
-    os.kill(_rank_pid(jobs[0], 1), signal.SIGKILL)
-    job = _wait(jobs[:1])[jobs[0]]
+    try:
+        _wait_done(out, env, 4, jobs[0])
+        os.kill(_rank_pid(jobs[0], 1), signal.SIGKILL)
+        job = _wait(jobs[:1])[jobs[0]]
+    finally:
+        subprocess.run(["scancel", jobs[0]], env=_env(), capture_output=True)
+        _wait(jobs[:1])
+        remove_segments_of_killed_jobs(segments)
     log = _log(tmp_path, "onejob", jobs[0])
     assert job["JobState"] == "FAILED" and job["ExitCode"] != "0:0", (job, log)
     assert "task 1: Killed" in log and "Traceback" not in log, log
