@@ -139,6 +139,39 @@ def _assert_stop_paragraph(r, disk, kept=True):
         assert "kept everything it had finished" in err, err
 
 
+SHM = Path("/dev/shm")
+
+
+@contextlib.contextmanager
+def _removing_segments(before):
+    try:
+        yield
+    finally:
+        remove_segments_of_killed_jobs(before)
+
+
+def mpich_segments() -> set:
+    """The shared-memory segments of MPICH's jobs on this machine."""
+    return {p.name for p in SHM.glob("mpich_shm_*")} if SHM.is_dir() else set()
+
+
+def remove_segments_of_killed_jobs(before: set):
+    """A job killed with SIGKILL leaves MPICH's shared-memory segment in /dev/shm (a running job
+    keeps its own mapped): remove the ones that appeared since ``before`` and no process maps."""
+    new = mpich_segments() - before
+    if not new:
+        return
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                maps = (d / "maps").read_text()
+            except OSError:
+                continue
+            new = {n for n in new if n not in maps}
+    for n in new:
+        (SHM / n).unlink(missing_ok=True)
+
+
 # --------------------------------------------------------------------------- a full disk
 
 @needs_root
@@ -149,7 +182,8 @@ def test_disk_fills_during_a_run_then_resumes(tmp_path, reference, launcher):
     once the filler is gone the rerun completes to an uninterrupted run's store."""
     spec, ref = reference
     n = 3 if launcher == "mpi" else None
-    with tmpfs(tmp_path / "disk", DISK) as disk:
+    segments = mpich_segments()  # MPI_Abort(3) leaves the job's shared memory behind
+    with tmpfs(tmp_path / "disk", DISK) as disk, _removing_segments(segments):
         filler = _fill(disk, 1 << 20)
         out = disk / "out.h5"
         r = _run(spec, out, n=n, env=_env(CAMPAIGN_SYNTHETIC_DELAY="0.002"))
@@ -336,31 +370,6 @@ def test_status_tells_a_live_writer_from_a_dead_one(tmp_path, reference):
 
 
 # --------------------------------------------------------------------------- killed workers
-
-SHM = Path("/dev/shm")
-
-
-def mpich_segments() -> set:
-    """The shared-memory segments of MPICH's jobs on this machine."""
-    return {p.name for p in SHM.glob("mpich_shm_*")} if SHM.is_dir() else set()
-
-
-def remove_segments_of_killed_jobs(before: set):
-    """A job killed with SIGKILL leaves MPICH's shared-memory segment in /dev/shm (a running job
-    keeps its own mapped): remove the ones that appeared since ``before`` and no process maps."""
-    new = mpich_segments() - before
-    if not new:
-        return
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                maps = (d / "maps").read_text()
-            except OSError:
-                continue
-            new = {n for n in new if n not in maps}
-    for n in new:
-        (SHM / n).unlink(missing_ok=True)
-
 
 def _ranks(out):
     """{MPI rank: pid} of the processes running `campaign run ... --out OUT` under mpiexec."""
