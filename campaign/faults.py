@@ -10,7 +10,11 @@
   invisible in the file's size), or, on a file system that cannot (NFS, some parallel file
   systems), a look at its free space. Raises ``OutOfSpace``. ``release(fd, n)`` hands back
   what the write did not use.
-* ``neutralise(h5file)``: after HDF5 failed to write a file, its metadata cache holds blocks
+* ``GuardedFile``: the file object the store's HDF5 writes go through (h5py's ``fileobj``
+  driver): a refused write is recorded and goes, with every later one, to memory, so that
+  HDF5 never sees a failure it does not survive.
+* ``neutralise(h5file)``: the same after the fact, for a file HDF5 writes with its own driver
+  (the command line's last resort): after HDF5 failed a write, its metadata cache holds blocks
   that never reached the disk; flushing or closing that handle normally writes a damaged
   file, and the process then dies of a segmentation fault when the library shuts down. So
   its descriptor is pointed at an anonymous in-memory file (``memfd_create``) and then
