@@ -5,7 +5,9 @@ Each subcommand lives in its own module under ``campaign.commands`` and exposes
 imported only when their subcommand runs, so ``campaign analyze`` never pays
 for MPI or HDF5 start-up.
 
-Exit codes: 0 success, 2 user error (message, no traceback), 1 internal fault.
+Exit codes: 0 success, 2 user error (message, no traceback), 3 a file could not be written
+any more (a full disk or quota, a failing file system: one paragraph, no traceback; ``campaign
+run`` keeps what it finished and resumes when rerun), 1 internal fault (with its traceback).
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import sys
 import traceback
 
 from campaign import __version__
-from campaign.errors import UserError
+from campaign.errors import UserError, WriteFault
 
 SUBCOMMANDS = ("validate", "run", "status", "reduce", "plot", "analyze", "draw", "slurm", "export")
 
@@ -61,6 +63,9 @@ def main(argv=None) -> int:
     except UserError as exc:
         print(f"campaign {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except WriteFault as exc:  # campaign run's stop on a full disk: the paragraph says it all
+        print(f"campaign {args.command}: {exc}", file=sys.stderr)
+        return exc.exit_code
     except BrokenPipeError:  # output piped into `head` and the like: not an error
         import os
 
@@ -69,8 +74,52 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print(f"campaign {args.command}: interrupted", file=sys.stderr)
         return 130
-    except Exception:  # an internal fault: show everything
+    except Exception as exc:  # an internal fault: show everything (unless the file system refused a write)
+        code = _write_fault_exit(args.command, exc)
+        if code is not None:
+            return code
         traceback.print_exc()
         print(f"campaign {args.command}: internal error (a bug; please report it with the traceback above)",
               file=sys.stderr)
         return 1
+
+
+def _write_fault_exit(command, exc):
+    """The last resort for a write the file system refused in any command (a full disk while
+    ``campaign reduce`` writes its tables, a read-only directory): one paragraph and the exit
+    status, 3 (2 for a path that cannot be written at all), no traceback; None for any other
+    error. After a failed HDF5 write the HDF5 files this process had open for writing are
+    neutralised and the process ends at once, without shutting HDF5 down (which can crash
+    after a failed write)."""
+    import errno
+    import os
+    import re
+
+    from campaign.faults import describe_filesystem, neutralise_open_files, write_fault
+
+    m = re.search(r"filename = '([^']*)'", str(exc))
+    path = getattr(exc, "filename", None) or (m.group(1) if m else None)
+    fault = write_fault(exc, path or "?", "writing")
+    if fault is None:
+        return
+    if m is not None and "h5py" in sys.modules:
+        neutralise_open_files(path)
+    reason = os.strerror(fault.errno)
+    if fault.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+        text, code = f"error: cannot write {path or 'a file'}: {reason}; choose another output, or make it writable", 2
+    else:
+        head = "out of space" if fault.out_of_space else "cannot write"
+        fix = "free space (or raise the quota)" if fault.out_of_space else "fix the file system"
+        if path:
+            text = (f"{head}: writing {path} failed: {reason}, on {describe_filesystem(path)}. {fix[0].upper() + fix[1:]} "
+                    "and run the command again")
+        else:
+            text = (f"{head}: a write failed: {reason} (the file system named no file). {fix[0].upper() + fix[1:]} "
+                    "where the command writes (its output) and run it again")
+        code = 3
+    print(f"campaign {command}: {text}", file=sys.stderr)
+    if m is not None and "h5py" in sys.modules:  # HDF5 failed a write
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code

@@ -126,13 +126,32 @@ def node_warm_up(comm, context, first_warms):
         node.Free()
 
 
+def _resume_command(args, out, mpi_comm) -> str:
+    resume = " ".join(["campaign", "run"] + ([args.spec] if args.spec else []) + ["--out", str(out)])
+    return ("mpiexec -n K " + resume) if mpi_comm is not None else resume
+
+
+def _abandon(comm, store, progress):
+    """After a fault: stop the workers without waiting, close the store as it is (a poisoned
+    HDF5 handle is neutralised), and say in the progress file that nothing runs any more."""
+    if comm is not None:
+        try:
+            comm.close(abandon=True)
+        except Exception:  # noqa: BLE001
+            pass
+    store.abandon()
+    if progress is not None:
+        progress.stopped()
+
+
 def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     """Run (or resume) the campaign ``args`` describes (the options of ``campaign run``) on the
     master: with ``mpi_comm`` the MPI world's other ranks are the workers. Returns the exit code."""
     import numpy as np
 
     from campaign.comm import InlineComm, LocalComm, MPIComm
-    from campaign.errors import UserError
+    from campaign.errors import UserError, WriteFault
+    from campaign.faults import check_writable, stop_paragraph
     from campaign.master import Master
     from campaign.progress import Progress
     from campaign.spec import load_spec
@@ -143,6 +162,7 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     state = state if state is not None else {}
     spec = load_spec(args.spec)
     out = Path(args.out or spec.output)
+    check_writable(out, new=args.new)  # before any worker starts: exit 2 naming the path and the reason
     retries = spec.retries if args.retries is None else args.retries
     if retries < 0:
         raise UserError(f"--retries must be >= 0, got {retries}")
@@ -169,13 +189,24 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     edges = fn.histogram_edges(context)
     context["edges"] = {h: [float(x) for x in e] for h, e in edges.items()}
 
-    store = Store(out, spec, tasks, edges, new=args.new, provenance=provenance(launcher, n_workers, MPI),
-                  log=_log)
-    comm = None
+    resume = _resume_command(args, out, mpi_comm)
+    try:
+        store = Store(out, spec, tasks, edges, new=args.new, provenance=provenance(launcher, n_workers, MPI),
+                      log=_log)
+    except WriteFault as fault:  # a full disk before anything started: the store is as it was
+        fault.message = stop_paragraph(fault, out, resume=resume)
+        raise
+    comm = master = progress = None
     outcome = None
+    workers_stopped = False  # told to stop after the master loop (MPI: they exit cleanly)
     try:
         todo = int(np.count_nonzero((store.status == 0) | ((store.status == 2) if args.retry_failed else False)))
         context["warm_up"] = bool(todo)
+        show = not args.quiet
+        progress = Progress(len(tasks), sidecar=Path(str(out) + ".progress.json"),
+                            enabled=None if show else False)
+        c = store.counts_by_status()
+        progress.begin(done=c["done"], failed=c["failed"], remaining=c["pending"])  # a heartbeat from now on
         if todo and hasattr(fn, "warm_up") and launcher != "inline":
             if sys.stderr.isatty() and not args.quiet:
                 _log(f"campaign: compiling the kernels (once; cached in {os.environ.get('NUMBA_CACHE_DIR')})")
@@ -197,9 +228,6 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
         else:
             comm = LocalComm(context, min(n_workers, max(1, todo)))
         comm.dead = comm.wait_ready()  # workers have loaded (not compiled: see warm_up above) the kernels
-        show = not args.quiet
-        progress = Progress(len(tasks), sidecar=Path(str(out) + ".progress.json"),
-                            enabled=None if show else False)
         wall = None
         if args.deadline is not None:
             from campaign.walltime import Deadline
@@ -214,18 +242,27 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
         cpu = time.process_time() - cpu0
         progress.finish()
         comm.close(abandon=outcome["abandoned"] > 0)
-        comm = None
+        comm, workers_stopped = None, True
         counts = store.counts_by_status()
         store.close(completed=outcome["done"], failed=outcome["failed"], stopped=outcome["stopped"],
                     seconds=round(time.monotonic() - t0, 3), master_cpu_seconds=round(cpu, 3),
                     master_peak_rss_mb=peak_rss_mb())
+    except WriteFault as fault:
+        # A full disk (or a file system that failed) on the write path: stop at once. Everything
+        # finished is in the journal, the store is consistent; the tasks in flight are given up.
+        in_flight = master._running() if master is not None else 0
+        _abandon(comm, store, progress)
+        fault.message = stop_paragraph(fault, out, counts=store.counts_by_status(), total=len(tasks),
+                                       need=store.space_needed(), resume=resume)
+        if mpi_comm is not None and state.get("sent") and (in_flight or (comm is None and not workers_stopped)):
+            _log(f"campaign run: {fault.message}")
+            sys.stderr.flush()
+            time.sleep(0.5)  # let the launcher forward the message before MPI_Abort ends the job
+            mpi_comm.Abort(fault.exit_code)  # workers busy with tasks nobody will collect
+            os._exit(fault.exit_code)  # MPICH's MPI_Abort can return before the launcher kills the job
+        raise
     except BaseException:
-        if comm is not None:
-            try:
-                comm.close(abandon=True)
-            except Exception:  # noqa: BLE001
-                pass
-        store.abandon()
+        _abandon(comm, store, progress)
         raise
     msg = (f"campaign: {out}: {counts['done']} done, {counts['failed']} failed, {counts['pending']} pending "
            f"of {len(tasks)} tasks (this run: {outcome['done']} done, {outcome['failed']} failed)")
@@ -233,9 +270,6 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     if counts["failed"]:
         _log(f"campaign: see the failures with: campaign status {out}")
     if outcome["stopped"] is not None and counts["pending"]:
-        resume = " ".join(["campaign", "run"] + ([args.spec] if args.spec else []) + ["--out", str(out)])
-        if mpi_comm is not None:
-            resume = "mpiexec -n K " + resume
         from campaign.walltime import fit_from_store
 
         pending = [tasks[i] for i in np.flatnonzero(store.status == 0)]

@@ -267,6 +267,9 @@ class Master:
                     self.alive.discard(w)
                     lost = list(self.in_flight[w])
                     self.in_flight[w].clear()
+                    if self.alive:
+                        self.log(f"\ncampaign: {msg[1]}; its {len(lost)} task(s) go back into the queue "
+                                 f"({len(self.alive)} worker(s) left)")
                     for i in lost:
                         err = {"message": msg[1], "traceback": ""}
                         summary = {"id": self.tasks[i].id, "ok": False, "scalars": {}, "histograms": {},

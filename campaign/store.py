@@ -1,4 +1,4 @@
-"""The campaign's HDF5 store and its journal (the layout is documented in docs/STORE.md).
+"""The campaign's HDF5 store: the master's writer, and the readers (layout: docs/STORE.md).
 
 Two files per campaign, written only by the master:
 
@@ -6,13 +6,14 @@ Two files per campaign, written only by the master:
   T rows (T known from the spec), chunked by blocks of ``block`` rows and compressed
   (shuffle + deflate), so the file grows with the finished packings, not with the
   grid; a chunk never written costs nothing. ``tasks/status`` (one byte a task, not
-  compressed) is the commit marker: a row counts once its status says so.
-* ``OUT.journal``: a write-ahead log. One length-prefixed, CRC-checked record per
-  finished task, written with a single ``write()`` before anything touches the
-  HDF5 file. At a *checkpoint* (when the journal passes ``JOURNAL_BYTES``, and when
-  a run ends) every staged row is written into the store, the store is flushed and
-  ``fsync``ed, and only then is the journal cut back to its header: it never holds
-  what the store already holds.
+  compressed) is the commit marker: a row counts once its status says so. Its layout,
+  creation, checking and salvage: ``campaign.storefile``.
+* ``OUT.journal``: a write-ahead log (``campaign.journal``). One length-prefixed,
+  CRC-checked record per finished task, written with a single ``write()`` before
+  anything touches the HDF5 file. At a *checkpoint* (when the journal passes
+  ``JOURNAL_BYTES``, and when a run ends) every staged row is written into the store,
+  the store is flushed and ``fsync``ed, and only then is the journal cut back to its
+  header: it never holds what the store already holds.
 
 The master keeps O(1) per task in memory: status, attempts and wall time (the
 scheduler and the wall-time model need them). A finished task's scalars and
@@ -31,261 +32,43 @@ were lost; their tasks are pending again and run again. If the store is unreadab
 every readable committed row is salvaged into a new file (created under a temporary
 name and renamed into place), the journal is replayed on top, and the rows lost
 with the damage are counted and run again: packings are pure functions of the spec.
+
+A full disk (or quota, or a file system that fails) never leaves the two files
+disagreeing: every HDF5 write step first reserves the space it may need
+(``campaign.faults.reserve``) and raises ``OutOfSpace`` before writing anything when it
+is not there; a journal append that fails is cut back to the previous record. Should
+HDF5 itself still meet a failed write, its handle is *poisoned*: never flushed or closed
+normally again (``campaign.faults.neutralise``), since its cache then holds blocks that
+never reached the disk; the journal holds every finished task and the next start
+salvages the store. Either way the run stops with a ``WriteFault`` (exit status 3).
 """
 
 from __future__ import annotations
 
-import errno
-import fcntl
+import contextlib
 import json
 import os
-import struct
 import sys
 import time
-import zlib
 from pathlib import Path
 
 import numpy as np
 
-from campaign.errors import UserError
+from campaign.errors import OutOfSpace, UserError
+from campaign.faults import GuardedFile, release, reserve, write_fault
+from campaign.journal import (  # noqa: F401 - part of this module's interface
+    MAX_RECORD, Journal, decode_payload, encode_record, read_journal, scan_journal)
+from campaign.storefile import (  # noqa: F401 - part of this module's interface
+    CHUNK_CACHE, COMPRESSION, DONE, ERROR_LEN, FAILED, FORMAT_VERSION, HOST_LEN, OLD_FORMAT_HELP, PENDING,
+    ROW_FIELDS, SCHEMA, SLACK, TASK_FIELDS, VARIANT_LEN, check_file, check_format, create_file, dataset_kwargs,
+    fill_value, fixed, format_problem, fsync_path, load_state, row_dtype)
+from campaign.storespace import SpaceModel
 
-SCHEMA = "jamming-campaign/1"
-#: Layout version of the store (root attribute ``format_version``). 1 (no attribute): dense
-#: histograms, journal holding every row, A_G and A_V absolute areas, rattlers without the
-#: half-plane rule. 2: chunked compressed rows, checkpointed journal, A_G and A_V as
-#: fractions of the box area, a grain whose contacts lie in a closed half-plane is a rattler.
-FORMAT_VERSION = 2
-PENDING, DONE, FAILED = 0, 1, 2
-HOST_LEN, ERROR_LEN, VARIANT_LEN = 64, 512, 64
-TASK_FIELDS = ("id", "variant", "N", "E", "seed", "status", "attempts", "wall", "rank", "host", "error")
-ROW_FIELDS = ("attempts", "wall", "rank", "host", "error")  # written when a task finishes
 FLUSH_SECONDS = 0.5     # staged complete blocks are written at least this often
 HOLD_SECONDS = 2.0      # a block still partly pending is written after waiting this long
 BUFFER_BYTES = 96 << 20  # staged rows beyond this are written whether their block is complete or not
 JOURNAL_BYTES = 64 << 20  # checkpoint when the journal grows past this
 BLOCK_ROWS = 256        # rows per chunk of every per-task dataset
-COMPRESSION = dict(compression="gzip", compression_opts=1, shuffle=True)
-CHUNK_CACHE = 1 << 20  # HDF5 chunk cache per open dataset (whole blocks are written; little to cache)
-
-
-def _fill(name):
-    return {"attempts": 0, "wall": np.nan, "rank": -1, "host": b"", "error": b""}[name]
-
-
-def _dtype(name):
-    return {"attempts": np.int32, "wall": np.float64, "rank": np.int32, "host": f"S{HOST_LEN}",
-            "error": f"S{ERROR_LEN}"}[name]
-
-
-# --------------------------------------------------------------------------- format version
-
-OLD_FORMAT_HELP = (
-    "this version writes store format {new} (chunked, compressed rows and a checkpointed journal); "
-    "besides the layout, the per-packing results changed meaning: A_G and A_V are now fractions of the "
-    "box area (they were absolute areas) and a grain whose contacts lie in a closed half-plane is now a "
-    "rattler, so the old rows cannot be converted. Run the spec again into a new file (packings are pure "
-    "functions of the spec, so the rerun is reproducible; a few jams stop at another step than before, "
-    "since the force residual uses the new rattler rule): campaign run SPEC --out NEW.h5 (or --new to "
-    "replace this file); the spec is stored in the file's 'spec_yaml' attribute")
-
-
-def format_problem(attrs, path) -> str | None:
-    """Why a campaign file of another store format cannot be used (None if it can)."""
-    schema = attrs.get("schema")
-    if isinstance(schema, bytes):
-        schema = schema.decode(errors="replace")
-    if schema != SCHEMA:
-        return (f"{str(path)!r} is not a campaign store of this program (schema {schema!r}, expected "
-                f"{SCHEMA!r})")
-    try:
-        version = int(attrs.get("format_version", 1))
-    except (TypeError, ValueError):
-        version = -1
-    if version == FORMAT_VERSION:
-        return None
-    if version < FORMAT_VERSION:
-        return (f"{str(path)!r} was written in store format {version}, which this version no longer reads; "
-                + OLD_FORMAT_HELP.format(new=FORMAT_VERSION))
-    return (f"{str(path)!r} was written in store format {version} by a newer version of this program "
-            f"(this one reads format {FORMAT_VERSION}); upgrade jamming-campaign to read it")
-
-
-def check_format(attrs, path):
-    """Raise UserError (exit 2) for a file of another schema or store format."""
-    problem = format_problem(attrs, path)
-    if problem is not None:
-        raise UserError(problem)
-
-
-# --------------------------------------------------------------------------- journal
-
-_HEAD = struct.Struct("<4sII")  # magic, payload length, crc32(payload)
-_MAGIC = b"JCJ1"
-MAX_RECORD = 1 << 31
-
-
-def encode_record(rec: dict, arrays: dict | None = None) -> bytes:
-    """One journal record: JSON metadata plus raw array bytes, framed and checksummed."""
-    arrays = arrays or {}
-    meta = dict(rec)
-    blobs = []
-    desc = []
-    for key, a in arrays.items():
-        a = np.ascontiguousarray(a)
-        desc.append([key, a.dtype.str, list(a.shape)])
-        blobs.append(a.tobytes())
-    meta["arrays"] = desc
-    js = json.dumps(meta, separators=(",", ":")).encode()
-    payload = struct.pack("<I", len(js)) + js + b"".join(blobs)
-    return _HEAD.pack(_MAGIC, len(payload), zlib.crc32(payload)) + payload
-
-
-def decode_payload(payload: bytes):
-    (n,) = struct.unpack_from("<I", payload, 0)
-    meta = json.loads(payload[4:4 + n])
-    pos = 4 + n
-    arrays = {}
-    for key, dtype, shape in meta.pop("arrays"):
-        dt = np.dtype(dtype)
-        count = int(np.prod(shape)) if shape else 1
-        arrays[key] = np.frombuffer(payload, dt, count, pos).reshape(shape).copy()
-        pos += count * dt.itemsize
-    if pos != len(payload):
-        raise ValueError("record length does not match its arrays")
-    return meta, arrays
-
-
-def _record_at(data, pos):
-    """The decoded record starting at ``pos`` and its end, or None if none starts there."""
-    if pos + _HEAD.size > len(data):
-        return None
-    magic, n, crc = _HEAD.unpack_from(data, pos)
-    end = pos + _HEAD.size + n
-    if magic != _MAGIC or end > len(data):
-        return None
-    payload = data[pos + _HEAD.size:end]
-    if zlib.crc32(payload) != crc:
-        return None
-    try:
-        return decode_payload(bytes(payload)), end
-    except Exception:  # noqa: BLE001 - a record we cannot decode is not a record
-        return None
-
-
-def scan_journal(data: bytes):
-    """Every intact record of a journal's bytes, and its damage.
-
-    Returns ``(records, good_end, damaged)``: ``good_end`` is the end of the last intact
-    record (bytes after it are a torn tail); ``damaged`` lists ``(offset, length,
-    records_lost)`` for each damaged stretch *between* intact records (flipped bytes, a
-    record cut short): reading resumes at the next intact record. ``records_lost`` counts
-    the record headers inside the stretch (at least one).
-    """
-    out, damaged = [], []
-    pos = good_end = 0
-    view = memoryview(data)
-    while pos < len(data):
-        got = _record_at(view, pos)
-        if got is not None:
-            out.append(got[0])
-            pos = good_end = got[1]
-            continue
-        # damage at pos: find the next intact record
-        nxt = data.find(_MAGIC, pos + 1)
-        while nxt != -1 and _record_at(view, nxt) is None:
-            nxt = data.find(_MAGIC, nxt + 1)
-        if nxt == -1:
-            break  # nothing intact after it: a torn tail
-        stretch = data[pos:nxt]
-        lost = max(1, stretch.count(_MAGIC))
-        damaged.append((pos, nxt - pos, lost))
-        pos = nxt
-    return out, good_end, damaged
-
-
-def read_journal(data: bytes):
-    """All intact records of a journal's bytes, and the end of the last one."""
-    records, good_end, _ = scan_journal(data)
-    return records, good_end
-
-
-class Journal:
-    """The write-ahead journal, locked for the lifetime of a run (one writer per store)."""
-
-    def __init__(self, path: Path):
-        self.path = Path(path)
-        self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                os.close(self.fd)
-                raise UserError(f"another run is writing {str(self.path)[:-len('.journal')]!r} (its journal "
-                                f"{str(self.path)!r} is locked); wait for it to finish or stop it first") from None
-            # a file system without flock (some Lustre mounts): carry on, unprotected
-            print(f"campaign: warning: cannot lock {self.path} ({exc.strerror}); make sure no other run "
-                  "writes this file at the same time", file=sys.stderr)
-        size = os.fstat(self.fd).st_size
-        data = os.pread(self.fd, size, 0) if size else b""
-        self.records, good, self.damaged = scan_journal(data)
-        del data
-        self.torn = size - good
-        if self.torn:
-            os.ftruncate(self.fd, good)
-        self.size = good
-        os.lseek(self.fd, 0, os.SEEK_END)
-        self.dirty = False
-
-    def rewrite(self, records):
-        """Replace the journal's content by ``records`` ((meta, arrays) pairs), durably.
-
-        Called only when everything else the journal held is safely in the store: a kill
-        between the truncation and the write leaves an empty journal, which the next start
-        recreates from the store.
-        """
-        data = b"".join(encode_record(m, a) for m, a in records)
-        os.ftruncate(self.fd, 0)
-        os.lseek(self.fd, 0, os.SEEK_SET)
-        self.size = 0
-        self._write(data)
-        os.fsync(self.fd)
-        self.dirty = False
-        self.records = []
-
-    def _write(self, data):
-        n = os.write(self.fd, data)
-        while n < len(data):  # a short write (full disk, signal): finish it or fail loudly
-            n += os.write(self.fd, data[n:])
-        self.size += len(data)
-
-    def append(self, rec: dict, arrays: dict | None = None):
-        self._write(encode_record(rec, arrays))
-        self.dirty = True
-
-    def sync(self):
-        if self.dirty:
-            os.fsync(self.fd)
-            self.dirty = False
-
-    def close(self):
-        if self.fd is not None:
-            self.sync()
-            os.close(self.fd)  # releases the lock
-            self.fd = None
-
-
-# --------------------------------------------------------------------------- the store
-
-def _fixed(text: str, n: int) -> bytes:
-    return text.encode("utf-8", "replace")[:n]
-
-
-def _fsync_path(path):
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 class Store:
@@ -305,16 +88,23 @@ class Store:
         self.B = max(1, min(BLOCK_ROWS, self.T))
         self.edges = {k: np.asarray(v, np.float64) for k, v in sorted(edges.items())}
         self.log = log or (lambda msg: print(msg, file=sys.stderr))
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.f = None
+        self.f = self.io = None
+        self.poisoned = False  # a write step failed: this handle writes nothing to the file any more
+        self.record_bytes = []  # sizes of this run's journal records (the space estimate of a stop)
+        self.space = SpaceModel(self.B, self.T, self.edges)  # what a write step may add to the file
+        self.space_log = []  # (bytes reserved, bytes the file grew) of the last HDF5 write steps
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            fault = write_fault(exc, self.path.parent, "creating the output directory")
+            if fault is not None and fault.out_of_space:
+                raise fault from None
+            raise UserError(f"cannot create the directory of {str(self.path)!r}: {exc.strerror or exc}") from None
         self.journal = Journal(Path(str(self.path) + ".journal"))
         try:
             self._open(new, provenance or {})
         except BaseException:
-            if self.f is not None:
-                self.f.close()
-                self.f = None
-            self.journal.close()
+            self.abandon()
             raise
 
     # ---- opening, refusing, salvaging, replaying
@@ -347,9 +137,10 @@ class Store:
         salvage_from = rebuilt = None
         touched = {int(m["index"]) // self.B for m, _ in records[1:] if m.get("type") == "task"}
         if self.path.exists():
-            problem = self._check_file(spec_hash, touched)
+            problem = check_file(self.path, spec_hash, self.tasks, self.edges, self.B, touched)
             if problem is None:
-                self._load_state()
+                load_state(self.path, self.status, self.attempts, self.wall)
+                self.n_status = [int(np.count_nonzero(self.status == k)) for k in (PENDING, DONE, FAILED)]
             elif problem.startswith("refuse:"):
                 raise UserError(problem[len("refuse:"):])
             elif not records:
@@ -360,9 +151,19 @@ class Store:
                          "new file and replaying the journal")
                 salvage_from = problem
         if salvage_from is not None or not self.path.exists():
-            self._create_file(salvage=salvage_from is not None)
+            create_file(self.path, self.spec, self.tasks, self.edges, self.B, salvage=salvage_from is not None,
+                        state=(self.status, self.attempts, self.wall))
+            self.n_status = [int(np.count_nonzero(self.status == k)) for k in (PENDING, DONE, FAILED)]
             rebuilt = "the damaged part of the" if salvage_from else "the missing"
-        self.f = h5py.File(self.path, "r+", locking=False, rdcc_nbytes=CHUNK_CACHE)
+        self.written_blocks = set((np.flatnonzero(self.status != PENDING) // self.B).tolist())
+        try:
+            self.io = GuardedFile(self.path)
+        except OSError as exc:
+            fault = write_fault(exc, self.path, "opening the store for writing")
+            if fault is None:
+                raise
+            raise fault from None
+        self.f = h5py.File(self.io, "r+", rdcc_nbytes=CHUNK_CACHE)
         self._datasets = {}
         self.have_configs = set(self.f["configurations"].keys()) if "configurations" in self.f else set()
         self.have_failures = set(self.f["failures"].keys()) if "failures" in self.f else set()
@@ -400,61 +201,6 @@ class Store:
         self._write_root_attrs()
         self.checkpoint()
 
-    def _check_file(self, spec_hash, touched=()):
-        """None if the file is a valid store of this spec; 'refuse:...' if it belongs to another.
-
-        ``touched``: the blocks the journal's records go to, the only ones a killed run can
-        have been writing; each of their chunks must decompress.
-        """
-        import h5py
-
-        try:
-            with h5py.File(self.path, "r", locking=False) as f:
-                problem = format_problem(f.attrs, self.path)
-                if problem is not None:
-                    return "refuse:" + problem
-                if f.attrs.get("spec_hash") != spec_hash:
-                    return (f"refuse:{str(self.path)!r} was written by a different spec (name "
-                            f"{f.attrs.get('name')!r}, spec hash {f.attrs.get('spec_hash')}; this spec's hash is "
-                            f"{spec_hash}); rerun with --new to overwrite it, or choose another --out")
-                for name in TASK_FIELDS:
-                    if f[f"tasks/{name}"].shape != (self.T,):
-                        return f"tasks/{name} has the wrong shape"
-                ids = f["tasks/id"]
-                for lo in range(0, self.T, 65536):
-                    hi = min(lo + 65536, self.T)
-                    want = np.array([t.id.encode() for t in self.tasks[lo:hi]], "S32")
-                    if not np.array_equal(ids[lo:hi], want):
-                        return "its task ids differ from the spec's"
-                for h, e in self.edges.items():
-                    if f[f"histograms/{h}/counts"].shape != (self.T, len(e) - 1):
-                        return f"histograms/{h}/counts has the wrong shape"
-                    if not np.array_equal(f[f"histograms/{h}/edges"][:], e):
-                        return (f"refuse:the bin edges of histogram {h!r} in {str(self.path)!r} differ from "
-                                "the ones this installation would use (the default bins changed?); pin them "
-                                "in the spec's 'bins', or rerun with --new")
-                for name in f["scalars"]:
-                    if f[f"scalars/{name}"].shape != (self.T,):
-                        return f"scalars/{name} has the wrong shape"
-                # groups written under a SIGKILL can be torn (unreadable, or missing a dataset)
-                for tid, g in (f["configurations"].items() if "configurations" in f else ()):
-                    for k in ("positions", "radii", "box", "species"):
-                        if k not in g:
-                            return f"configurations/{tid} lacks {k}"
-                        g[k].shape
-                for g in (f["failures"].values() if "failures" in f else ()):
-                    dict(g.attrs)
-                names = [f"tasks/{n}" for n in ROW_FIELDS] + [f"scalars/{n}" for n in f["scalars"]]
-                names += [f"histograms/{h}/counts" for h in self.edges]
-                for name in names:
-                    ds = f[name]
-                    for b in sorted(touched):
-                        ds[b * self.B:(b + 1) * self.B]
-                f["tasks/status"][:]
-        except (OSError, KeyError, ValueError, RuntimeError, TypeError) as exc:
-            return f"{type(exc).__name__}: {exc}"
-        return None
-
     def _init_state(self):
         T = self.T
         self.status = np.zeros(T, np.int8)
@@ -472,127 +218,50 @@ class Store:
     def n_final(self) -> int:
         return self.n_status[DONE] + self.n_status[FAILED]
 
-    def _load_state(self):
-        import h5py
-
-        with h5py.File(self.path, "r", locking=False) as f:
-            self.status[:] = f["tasks/status"][:]
-            self.attempts[:] = f["tasks/attempts"][:]
-            self.wall[:] = f["tasks/wall"][:]
-        self.n_status = [int(np.count_nonzero(self.status == k)) for k in (PENDING, DONE, FAILED)]
-
     def _dataset_kwargs(self, shape, fill):
-        chunks = (self.B,) + tuple(shape[1:])
-        return dict(shape=shape, chunks=chunks, fillvalue=fill, **COMPRESSION)
+        return dataset_kwargs(self.B, shape, fill)
 
-    def _create_file(self, salvage=False):
-        """A fresh store, created under a temporary name and renamed into place.
+    # ---- writing HDF5 safely
+    def _slack(self, new_blocks=0) -> int:
+        return self.space.slack(self.path, len(self.scalar_names), len(self.written_blocks), new_blocks)
 
-        With ``salvage``, the committed rows that can still be read from the damaged
-        file at ``self.path`` are copied into it (block by block; a block that cannot be
-        read is lost and its tasks are pending again).
-        """
-        import h5py
+    def _blocks_bytes(self, blocks) -> int:
+        return self.space.blocks_bytes(self.staged, blocks, self.scalar_names,
+                                       len(self.have_configs) + len(self.have_failures), self._row_values)
 
-        tmp = self.path.with_name(self.path.name + ".tmp")
-        if tmp.exists():
-            tmp.unlink()
-        T = self.T
-        with h5py.File(tmp, "w", locking=False) as f:
-            g = f.create_group("tasks")
-            cols = {"id": "S32", "variant": f"S{VARIANT_LEN}", "N": np.int64, "E": np.float64, "seed": np.int64}
-            for name, dt in cols.items():
-                g.create_dataset(name, dtype=dt, **self._dataset_kwargs((T,), None))
-            for lo in range(0, T, 65536):
-                part = self.tasks[lo:lo + 65536]
-                hi = lo + len(part)
-                g["id"][lo:hi] = np.array([t.id.encode() for t in part], "S32")
-                g["variant"][lo:hi] = np.array([_fixed(t.variant, VARIANT_LEN) for t in part], f"S{VARIANT_LEN}")
-                g["N"][lo:hi] = np.array([t.N for t in part], np.int64)
-                g["E"][lo:hi] = np.array([t.E for t in part], np.float64)
-                g["seed"][lo:hi] = np.array([t.seed for t in part], np.int64)
-            g.create_dataset("status", shape=(T,), dtype=np.int8)  # contiguous: the commit marker
-            for name in ROW_FIELDS:
-                g.create_dataset(name, dtype=_dtype(name), **self._dataset_kwargs((T,), _fill(name)))
-            f.create_group("scalars")
-            hg = f.create_group("histograms")
-            for h, e in self.edges.items():
-                hg.create_dataset(f"{h}/edges", data=e)
-                hg.create_dataset(f"{h}/counts", dtype=np.int64, **self._dataset_kwargs((T, len(e) - 1), 0))
-            if self.spec.configurations:
-                f.create_group("configurations")
-            f.create_group("failures")
-            f.attrs["schema"] = SCHEMA
-            f.attrs["format_version"] = FORMAT_VERSION
-            f.attrs["spec_hash"] = self.spec.hash
-            f.attrs["name"] = self.spec.name
-            f.attrs["spec_yaml"] = self.spec.text
-            if salvage:
-                self._salvage_into(f)
-            f.flush()
-        _fsync_path(tmp)
-        os.replace(tmp, self.path)
-
-    def _salvage_into(self, f):
-        """Copy every readable committed row of the damaged store into ``f``."""
-        import h5py
-
+    @contextlib.contextmanager
+    def _hdf5_writes(self, nbytes, what, new_blocks=0):
+        """One step that writes the HDF5 file: the space it may need (``nbytes`` plus room for
+        HDF5's own metadata) is reserved first, or OutOfSpace is raised before anything is
+        written; if anything fails inside, the handle is poisoned and an operating-system
+        failure is raised as a WriteFault."""
+        if self.poisoned:
+            raise RuntimeError("the store's HDF5 handle failed a write before; it must not be written again")
+        fd = self.io.fd
+        need = int(nbytes) + self._slack(new_blocks)
+        size = os.fstat(fd).st_size
+        reserved = reserve(fd, need, self.path, what)
         try:
-            old = h5py.File(self.path, "r", locking=False)
-        except (OSError, ValueError, RuntimeError):
-            return
-        with old:
-            try:
-                attrs = dict(old.attrs)
-                if "runs" in attrs:
-                    f.attrs["runs"] = attrs["runs"]
-            except (OSError, KeyError, ValueError, RuntimeError):
-                pass
-            try:
-                scalar_names = list(old["scalars"].keys())
-            except (OSError, KeyError, ValueError, RuntimeError):
-                scalar_names = []
-            for B0 in range(0, self.T, self.B):
-                lo, hi = B0, min(B0 + self.B, self.T)
-                try:
-                    st = old["tasks/status"][lo:hi]
-                    rows = np.flatnonzero(st != PENDING)
-                    if not len(rows):
-                        continue
-                    data = {f"tasks/{n}": old[f"tasks/{n}"][lo:hi] for n in ROW_FIELDS}
-                    for n in scalar_names:
-                        data[f"scalars/{n}"] = old[f"scalars/{n}"][lo:hi]
-                    for h in self.edges:
-                        data[f"histograms/{h}/counts"] = old[f"histograms/{h}/counts"][lo:hi]
-                    extra = {}
-                    for r in rows:
-                        tid = self.tasks[lo + r].id
-                        if "configurations" in old and tid in old["configurations"]:
-                            g = old[f"configurations/{tid}"]
-                            extra[("c", tid)] = {k: g[k][()] for k in ("positions", "radii", "box", "species")}
-                        if st[r] == FAILED and "failures" in old and tid in old["failures"]:
-                            extra[("f", tid)] = dict(old[f"failures/{tid}"].attrs)
-                except (OSError, KeyError, ValueError, RuntimeError, TypeError):
-                    continue  # this block is lost: its tasks are pending again
-                for name, a in data.items():
-                    if name.startswith("scalars/") and name not in f:
-                        f["scalars"].create_dataset(name[8:], dtype=np.float64,
-                                                    **self._dataset_kwargs((self.T,), np.nan))
-                    f[name][lo:hi] = a
-                for (kind, tid), v in extra.items():
-                    if kind == "c":
-                        g = f.require_group("configurations").create_group(tid)
-                        for k, a in v.items():
-                            g.create_dataset(k, data=a)
-                    else:
-                        g = f["failures"].create_group(tid)
-                        for k, a in v.items():
-                            g.attrs[k] = a
-                f["tasks/status"][lo:hi] = st
-                self.status[lo:hi] = st
-                self.attempts[lo:hi] = data["tasks/attempts"]
-                self.wall[lo:hi] = data["tasks/wall"]
-        self.n_status = [int(np.count_nonzero(self.status == k)) for k in (PENDING, DONE, FAILED)]
+            yield
+        except BaseException as exc:
+            self.poisoned = True
+            fault = write_fault(exc, self.path, what, needed=need)
+            if fault is not None and fault is not exc:
+                raise fault from None
+            raise
+        finally:
+            if self.io.failed is not None:
+                self.poisoned = True
+            if not self.poisoned:
+                release(fd, reserved)
+        if self.io.failed is not None:  # HDF5 wrote past the reservation into a full disk: the overlay took it
+            fault = write_fault(self.io.failed, self.path, what, needed=need)
+            if fault is None:
+                raise RuntimeError(f"writing {self.path} failed: {self.io.failed}") from self.io.failed
+            fault.damaged = True
+            raise fault
+        self.space_log.append((need, os.fstat(fd).st_size - size))
+        del self.space_log[:-64]
 
     # ---- recording
     def finished(self, index: int) -> bool:
@@ -618,7 +287,21 @@ class Store:
             if cfg is not None:  # asked for by the spec, or a ladder parent's
                 for k in ("positions", "radii", "box", "species"):
                     arrays["c/" + k] = np.asarray(cfg[k])
-        self.journal.append(meta, arrays)
+        size = self.journal.size
+        try:
+            self.journal.append(meta, arrays)
+        except OutOfSpace:
+            # the journal repeats what is staged for the store: writing the store and cutting the
+            # journal back (a checkpoint) may free enough; if not (OutOfSpace again), the run stops
+            if not (self.staged or self.in_journal):
+                raise
+            self.checkpoint()
+            size = self.journal.size
+            self.journal.append(meta, arrays)
+            self.log(f"campaign: {self.path.parent} was full: wrote the store and cut its journal back early, "
+                     "which made room; going on")
+        if len(self.record_bytes) < 4096:
+            self.record_bytes.append(self.journal.size - size)
         self._stage(meta, arrays)
         self.maybe_flush()
 
@@ -716,8 +399,8 @@ class Store:
         """The values a task's record puts into its row, per dataset name."""
         status = int(meta["status"])
         out = {"tasks/attempts": int(meta["attempts"]), "tasks/wall": float(meta["wall"]),
-               "tasks/rank": int(meta["rank"]), "tasks/host": _fixed(meta["host"], HOST_LEN),
-               "tasks/error": _fixed(meta["message"], ERROR_LEN) if status == FAILED else b""}
+               "tasks/rank": int(meta["rank"]), "tasks/host": fixed(meta["host"], HOST_LEN),
+               "tasks/error": fixed(meta["message"], ERROR_LEN) if status == FAILED else b""}
         if "scalar_names" in meta:
             names = meta["scalar_names"].split(",") if meta["scalar_names"] else []
             sc = dict(zip(names, arrays["s"].tolist()))
@@ -749,19 +432,37 @@ class Store:
         return got
 
     def _write_blocks(self, blocks):
-        """Data of the staged rows of ``blocks`` first, flush, then their status, flush."""
-        f = self.f
+        """Data of the staged rows of ``blocks`` first, flush, then their status, flush.
+
+        Rewriting a chunk that holds committed rows: a write cut by SIGKILL could take them
+        with it, so each of them gets a record in the journal first (and the journal is made
+        durable) before the HDF5 file is touched; then the space the writes may need is
+        reserved, and only then does HDF5 write."""
         blocks = sorted(blocks)
+        rejournalled = False
+        for b in blocks:
+            rows = self.staged[b]
+            lo, hi = b * self.B, min((b + 1) * self.B, self.T)
+            final = np.flatnonzero(self.status[lo:hi] != PENDING) + lo
+            missing = [int(i) for i in final if i not in rows and i not in self.in_journal]
+            if missing:
+                self._rejournal(lo, hi, missing)
+                rejournalled = True
+        if rejournalled:
+            self.journal.sync()
+        fresh = [b for b in blocks if b not in self.written_blocks]
+        with self._hdf5_writes(self._blocks_bytes(blocks), "writing finished tasks into the store", len(fresh)):
+            self._write_blocks_now(blocks)
+        self.written_blocks.update(blocks)
+        self.space.learn(lambda name: self._dataset(name)[0], blocks, self.scalar_names)
+
+    def _write_blocks_now(self, blocks):
+        f = self.f
         for b in blocks:
             rows = self.staged[b]
             lo, hi = b * self.B, min((b + 1) * self.B, self.T)
             final = np.flatnonzero(self.status[lo:hi] != PENDING) + lo
             kept = [int(i) for i in final if i not in rows]
-            # rewriting a chunk that holds committed rows: a write cut by SIGKILL could take them
-            # with it, so each of them must have a record in the journal first
-            missing = [i for i in kept if i not in self.in_journal]
-            if missing:
-                self._rejournal(lo, hi, missing)
             idx = np.fromiter(rows, np.int64, len(rows)) - lo
             whole = not kept  # no committed row to keep: no need to read the chunks
             values = [self._row_values(m, a) for m, a in rows.values()]
@@ -846,14 +547,25 @@ class Store:
             self.in_journal.add(i)
         self.journal.sync()
 
+
     def checkpoint(self):
         """Everything staged into the store, the store made durable, then the journal cut back
-        to its header: from here on the store alone holds every finished task."""
+        to its header: from here on the store alone holds every finished task.
+
+        A fault before the journal is cut (a full disk while writing the staged rows, an
+        ``fsync`` that fails) leaves the journal whole: it still holds everything."""
         if self.staged:
             self.journal.sync()
             self._write_blocks(list(self.staged))
-        self.f.flush()
-        _fsync_path(self.path)
+        with self._hdf5_writes(0, "flushing the store at a checkpoint"):
+            self.f.flush()
+        try:
+            fsync_path(self.path)
+        except OSError as exc:
+            fault = write_fault(exc, self.path, "making the store durable (fsync) at a checkpoint")
+            if fault is None:
+                raise
+            raise fault from None
         header = {"type": "header", "schema": SCHEMA, "format_version": FORMAT_VERSION,
                   "spec_hash": self.spec.hash, "T": self.T}
         recs = [(header, None)] + [({"type": "run", "run": r}, None) for r in self.runs]
@@ -863,26 +575,30 @@ class Store:
         self.last_flush = time.monotonic()
 
     def _write_root_attrs(self):
-        f = self.f
-        f.attrs["schema"] = SCHEMA
-        f.attrs["format_version"] = FORMAT_VERSION
-        f.attrs["name"] = self.spec.name
-        f.attrs["spec_hash"] = self.spec.hash
-        f.attrs["spec_yaml"] = self.spec.text
         run = self.run
+        attrs = {"schema": SCHEMA, "format_version": FORMAT_VERSION, "name": self.spec.name,
+                 "spec_hash": self.spec.hash, "spec_yaml": self.spec.text}
         for key in ("package_version", "git_commit"):
-            f.attrs[key] = str(run.get(key, "unknown"))
-        f.attrs["versions"] = json.dumps(run.get("versions", {}), sort_keys=True)
-        f.attrs["runs"] = json.dumps(self.runs, sort_keys=True)
+            attrs[key] = str(run.get(key, "unknown"))
+        attrs["versions"] = json.dumps(run.get("versions", {}), sort_keys=True)
+        attrs["runs"] = json.dumps(self.runs, sort_keys=True)
         hosts = sorted({h for r in self.runs for h in r.get("hosts", [])})
-        f.attrs["hosts"] = json.dumps(hosts)
-        f.attrs["start_time"] = self.runs[0].get("start") or ""
-        f.attrs["end_time"] = self.runs[-1].get("end") or ""
+        attrs["hosts"] = json.dumps(hosts)
+        attrs["start_time"] = self.runs[0].get("start") or ""
+        attrs["end_time"] = self.runs[-1].get("end") or ""
+        size = sum(len(v) if isinstance(v, str) else 8 for v in attrs.values())
+        with self._hdf5_writes(2 * size + 16384, "writing the store's attributes"):
+            for key, value in attrs.items():
+                self.f.attrs[key] = value
 
     def close(self, **end_info):
-        """Write everything, stamp the run's end, checkpoint, release the lock."""
+        """Write everything, stamp the run's end, checkpoint, release the lock.
+
+        A WriteFault on the way (a full disk) leaves the store and its journal consistent
+        (the journal holds whatever the store could not take) and the file closed."""
         if self.f is None:
             return
+        ok = False
         try:
             self.run.update(end_info, end=_now())
             self.run["hosts"] = sorted(set(self.run.get("hosts", [])) | self.hosts)
@@ -891,22 +607,66 @@ class Store:
             self.flush(force=True)
             self._write_root_attrs()
             self.checkpoint()
+            ok = True
         finally:
-            self.f.close()
-            self.f = None
-            self.journal.close()
+            if ok:
+                self.f.close()  # writes nothing: the checkpoint flushed everything
+                self.f = None
+                self.io.close()
+                self.journal.close()
+            else:
+                self.abandon()
 
     def abandon(self):
-        """Close without stamping the run's end (after a fault); the journal stays the record."""
+        """Close without stamping the run's end (after a fault); the journal stays the record.
+
+        A poisoned handle (a write step failed) closes without writing anything more: its
+        writes go to an in-memory overlay, so that the file on disk keeps what it had."""
         try:
             if self.f is not None:
-                self.f.close()
+                if self.poisoned:
+                    self.io.discard()
+                try:
+                    self.f.close()
+                except Exception:  # noqa: BLE001 - after a fault: what the file holds is what the next start sees
+                    if not self.poisoned:
+                        raise
         finally:
             self.f = None
-            self.journal.close()
+            if getattr(self, "io", None) is not None:
+                self.io.close()
+            if getattr(self, "journal", None) is not None:
+                try:
+                    self.journal.close()  # closes its descriptor (the lock) even when the sync fails
+                except Exception:  # noqa: BLE001 - what the journal holds is what the next start sees
+                    pass
 
     def counts_by_status(self):
         return {"pending": self.n_status[PENDING], "done": self.n_status[DONE], "failed": self.n_status[FAILED]}
+
+    def space_needed(self) -> dict:
+        """What finishing the campaign would take on disk, from what this store holds:
+        ``{"per_task", "journal_per_task", "pending", "total"}`` (bytes; None when unknown).
+        A task's share of the store is measured on the rows the file holds, else estimated
+        (an upper bound) from the rows waiting to be written."""
+        pending = self.n_status[PENDING]
+        out = {"pending": pending, "per_task": None, "journal_per_task": None, "total": None}
+        staged = sum(len(rows) for rows in self.staged.values())
+        committed = self.n_final() - staged
+        try:
+            used = os.path.getsize(self.path)
+        except OSError:
+            used = 0
+        if committed > 0 and used:
+            out["per_task"] = used / committed
+        elif staged:
+            out["per_task"] = self._blocks_bytes(list(self.staged)) / staged
+        if self.record_bytes:
+            out["journal_per_task"] = sum(self.record_bytes) / len(self.record_bytes)
+        if out["per_task"] is not None:
+            journal = min(JOURNAL_BYTES, pending * (out["journal_per_task"] or out["per_task"]))
+            out["total"] = int(pending * out["per_task"] + journal + self._slack())
+        return out
 
 
 def _nbytes(arrays) -> int:

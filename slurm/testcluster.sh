@@ -1,11 +1,21 @@
 #!/usr/bin/env bash
-# A single-node SLURM on this machine, for the test suite (tests/test_slurm_cluster.py) and for trying
-# the generated batch scripts by hand. Needs root (the daemons and the jobs run as root).
+# A SLURM cluster on this machine, for the test suite (tests/test_slurm_cluster.py) and for trying
+# the generated batch scripts by hand: one node, or K nodes. Needs root (the daemons and the jobs run
+# as root).
 #
-#   dir=$(slurm/testcluster.sh start)          # prints the cluster's directory once the node is idle
+#   dir=$(slurm/testcluster.sh start)            # one node, localhost; prints the cluster's directory
+#   dir=$(slurm/testcluster.sh start --nodes 2)  # two nodes, n1 and n2, once every node is idle
 #   export SLURM_CONF=$dir/slurm.conf CAMPAIGN_TEST_SLURM=$dir/slurm.conf
 #   sinfo; sbatch ...; squeue ...
-#   slurm/testcluster.sh stop "$dir"           # stops exactly the daemons that start started
+#   slurm/testcluster.sh stop "$dir"             # stops exactly the daemons that start started
+#
+# Several nodes: one slurmd per node, each on its own port (NodeName=nK ... Port=P) and spool
+# directory, each in its own UTS and mount namespaces (unshare): its hostname is nK, and its
+# /etc/hosts (a bind mount visible only inside) is the machine's plus "127.0.0.1 n1 n2 ...", so
+# that every node resolves every other. Jobs, their steps and MPI ranks inherit their node's
+# namespaces: a job on two nodes runs on two hosts named n1 and n2, which talk over the loopback
+# interface (no network namespace, no traffic off this machine). The namespaces end with the
+# processes in them; nothing is mounted outside them.
 #
 # `start` installs Debian's packages when they are missing (apt-get update, then slurmctld, slurmd,
 # slurm-client and munge), writes its own slurm.conf and munge key into a new temporary directory
@@ -19,6 +29,7 @@
 set -euo pipefail
 
 CPUS=${CPUS:-4}
+NODES=1
 
 die() { echo "testcluster: $*" >&2; exit 1; }
 
@@ -50,26 +61,45 @@ alive() {
         tr '\0' ' ' < "/proc/$pid/cmdline" 2>/dev/null | grep -qF -- "$3/"
 }
 
+stop_daemon() {  # pid file, daemon name, cluster directory
+    local pid i
+    alive "$1" "$2" "$3" || return 0
+    pid=$(cat "$1")
+    kill -TERM "$pid" 2>/dev/null || true
+    for i in $(seq 100); do alive "$1" "$2" "$3" || break; sleep 0.1; done
+    if alive "$1" "$2" "$3"; then kill -KILL "$pid" 2>/dev/null || true; fi
+}
+
 stop() {
-    local dir=$1 name pidfile pid i
+    local dir=$1 pidfile
     [ -d "$dir" ] || return 0
     [ -f "$dir/testcluster" ] || die "$dir was not made by testcluster.sh start; not touching it"
-    for name in slurmd slurmctld munged; do
-        pidfile="$dir/run/$name.pid"
-        if alive "$pidfile" "$name" "$dir"; then
-            pid=$(cat "$pidfile")
-            kill -TERM "$pid" 2>/dev/null || true
-            for i in $(seq 100); do alive "$pidfile" "$name" "$dir" || break; sleep 0.1; done
-            if alive "$pidfile" "$name" "$dir"; then kill -KILL "$pid" 2>/dev/null || true; fi
-        fi
+    for pidfile in "$dir"/run/slurmd-*.pid; do
+        [ -e "$pidfile" ] && stop_daemon "$pidfile" slurmd "$dir"
     done
+    stop_daemon "$dir/run/slurmctld.pid" slurmctld "$dir"
+    stop_daemon "$dir/run/munged.pid" munged "$dir"
     rm -rf "$dir"
+}
+
+# Start the slurmd of node $2 (cluster directory $1): on one node as it is, on several in its own
+# UTS and mount namespaces, with hostname $2 and the cluster's hosts file.
+start_slurmd() {
+    local dir=$1 node=$2
+    mkdir -p "$dir/spool/$node"
+    if [ "$NODES" -eq 1 ]; then
+        slurmd -f "$dir/slurm.conf" -N "$node"
+    else
+        unshare --uts --mount --propagation slave \
+            sh -c 'mount --bind "$1/hosts" /etc/hosts && hostname "$2" && exec slurmd -f "$1/slurm.conf" -N "$2"' \
+            sh "$dir" "$node"
+    fi
 }
 
 start() {
     install_packages
     [ "$(id -u)" -eq 0 ] || die "the test cluster runs its daemons and jobs as root; run it as root"
-    local dir host ctld_port slurmd_port i
+    local dir ctld_port slurmd_port i k port nodes_line names state first_job
     dir=$(mktemp -d "${TMPDIR:-/tmp}/campaign-slurm.XXXXXX")
     touch "$dir/testcluster"
     trap 'echo "testcluster: start failed; logs follow" >&2; tail -n 30 "$dir"/log/* >&2 || true; stop "$dir"' ERR
@@ -85,9 +115,27 @@ start() {
     ctld_port=$(free_port)
     slurmd_port=$(free_port)
     while [ "$slurmd_port" = "$ctld_port" ]; do slurmd_port=$(free_port); done
+    if [ "$NODES" -eq 1 ]; then
+        names=localhost
+        nodes_line="NodeName=localhost NodeHostname=localhost NodeAddr=127.0.0.1 CPUs=$CPUS RealMemory=1000 State=UNKNOWN"
+    else
+        names=$(seq -s, -f 'n%g' 1 "$NODES")
+        nodes_line=""
+        for k in $(seq "$NODES"); do
+            port=$(free_port)
+            while [ "$port" = "$ctld_port" ] || echo "$nodes_line" | grep -q "Port=$port "; do port=$(free_port); done
+            nodes_line+="NodeName=n$k NodeHostname=n$k NodeAddr=127.0.0.1 Port=$port CPUs=$CPUS RealMemory=1000 State=UNKNOWN"$'\n'
+        done
+        { cat /etc/hosts; echo "127.0.0.1 $(echo "$names" | tr , ' ')  # testcluster nodes"; } > "$dir/hosts"
+    fi
+    # Job ids start at a random number: a rank killed by SIGKILL leaves MPICH's shared-memory segment
+    # in /dev/shm, named after the host and the job step, and a later cluster's job of the same id on
+    # the same host would attach to it and hang in MPI_Init.
+    first_job=$(( (RANDOM * 32768 + RANDOM) % 60000000 + 1 ))
     cat > "$dir/slurm.conf" <<EOF
 # written by slurm/testcluster.sh
 ClusterName=campaigntest
+FirstJobId=$first_job
 SlurmctldHost=localhost(127.0.0.1)
 SlurmctldPort=$ctld_port
 SlurmdPort=$slurmd_port
@@ -99,9 +147,9 @@ AuthInfo=socket=$dir/munge/munge.socket
 StateSaveLocation=$dir/state
 SlurmdSpoolDir=$dir/spool/%n
 SlurmctldPidFile=$dir/run/slurmctld.pid
-SlurmdPidFile=$dir/run/slurmd.pid
+SlurmdPidFile=$dir/run/slurmd-%n.pid
 SlurmctldLogFile=$dir/log/slurmctld.log
-SlurmdLogFile=$dir/log/slurmd.log
+SlurmdLogFile=$dir/log/slurmd-%n.log
 SlurmctldDebug=info
 SlurmdDebug=info
 MpiDefault=none
@@ -120,26 +168,34 @@ MinJobAge=600
 KillWait=10
 InactiveLimit=0
 MailProg=/bin/true
-NodeName=localhost NodeHostname=localhost NodeAddr=127.0.0.1 CPUs=$CPUS RealMemory=1000 State=UNKNOWN
-PartitionName=debug Nodes=localhost Default=YES MaxTime=INFINITE State=UP
+$nodes_line
+PartitionName=debug Nodes=$names Default=YES MaxTime=INFINITE State=UP
 EOF
     export SLURM_CONF=$dir/slurm.conf
     slurmctld -f "$dir/slurm.conf"
     for i in $(seq 100); do scontrol ping >/dev/null 2>&1 && break; sleep 0.1; done
-    slurmd -f "$dir/slurm.conf" -N localhost
+    for node in ${names//,/ }; do start_slurmd "$dir" "$node"; done
     for i in $(seq 300); do
-        [ "$(sinfo -h -n localhost -o %T 2>/dev/null)" = idle ] && break
+        state=$(sinfo -h -N -o %T 2>/dev/null | sort -u | tr '\n' ' ')
+        [ "$state" = "idle " ] && [ "$(sinfo -h -N -o %N | wc -l)" -eq "$NODES" ] && break
         sleep 0.1
     done
-    [ "$(sinfo -h -n localhost -o %T)" = idle ] || { echo "testcluster: the node did not become idle" >&2; false; }
-    alive "$dir/run/slurmctld.pid" slurmctld "$dir" && alive "$dir/run/slurmd.pid" slurmd "$dir" &&
-        alive "$dir/run/munged.pid" munged "$dir"
+    [ "$state" = "idle " ] || { echo "testcluster: the nodes did not become idle: $(sinfo -N)" >&2; false; }
+    alive "$dir/run/slurmctld.pid" slurmctld "$dir" && alive "$dir/run/munged.pid" munged "$dir"
+    for node in ${names//,/ }; do alive "$dir/run/slurmd-$node.pid" slurmd "$dir"; done
     trap - ERR
     echo "$dir"
 }
 
 case "${1:-}" in
-    start) start ;;
+    start)
+        if [ "${2:-}" = "--nodes" ]; then
+            NODES=${3:-}
+            [[ "$NODES" =~ ^[1-9][0-9]?$ ]] || die "--nodes needs a number of nodes (1-99), got '${3:-}'"
+        elif [ $# -gt 1 ]; then
+            die "usage: $0 start [--nodes K]"
+        fi
+        start ;;
     stop) [ $# -eq 2 ] || die "usage: $0 stop DIR"; stop "$2" ;;
-    *) die "usage: $0 start | $0 stop DIR" ;;
+    *) die "usage: $0 start [--nodes K] | $0 stop DIR" ;;
 esac

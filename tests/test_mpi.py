@@ -112,6 +112,9 @@ def test_sigkill_of_the_whole_mpi_job_then_resume(runs, tmp_path):
     path = tmp_path / "killed.h5"
     env = _env(CAMPAIGN_SYNTHETIC_FAIL="seed:3", CAMPAIGN_SYNTHETIC_FLAKY="seed:1", CAMPAIGN_SYNTHETIC_DELAY="0.02")
     cmd = [str(MPIEXEC), "-n", "3", sys.executable, "-m", "campaign", "run", str(spec), "--out", str(path)]
+    from test_faults import mpich_segments
+
+    segments = mpich_segments()  # the killed job's shared memory is removed below
     p = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline and not Path(str(path) + ".progress.json").exists():
@@ -119,6 +122,9 @@ def test_sigkill_of_the_whole_mpi_job_then_resume(runs, tmp_path):
     time.sleep(0.3)
     os.killpg(p.pid, signal.SIGKILL)
     p.wait(timeout=30)
+    from test_faults import remove_segments_of_killed_jobs
+
+    remove_segments_of_killed_jobs(segments)
     from campaign.store import read_journal
 
     recs, _ = read_journal(Path(str(path) + ".journal").read_bytes())

@@ -7,7 +7,8 @@ SLURM; elsewhere these tests skip. Once the variable is set, a cluster that does
 failure, not a skip.
 
 Every test ends with the store equal (tasks, scalars, histograms) to one uninterrupted local run
-of the same spec. Jobs are one minute long (SLURM's granularity), on 3 ranks (a master, two
+of the same spec. The tests on two nodes (one MPI world across both) need a cluster started with
+``slurm/testcluster.sh start --nodes 2`` (as ``.ci/run`` does) and skip on a single node. Jobs are one minute long (SLURM's granularity), on 3 ranks (a master, two
 workers); the default margin (the 10 s warning plus SLURM's 30 s check period) leaves each job
 about 20 s to dispatch in, so a campaign of about 25 s of work needs two jobs. Most tests use the
 synthetic task function (a pure function of the task, with a set delay) to make that timing
@@ -19,14 +20,18 @@ from __future__ import annotations
 import json
 import os
 import re
+import signal
+import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
-from test_kill_resume import SKIP_DATASETS, _contents
+from test_faults import mpich_segments, remove_segments_of_killed_jobs
+from test_kill_resume import SKIP_DATASETS, _contents, _durable
 
 pytestmark = pytest.mark.slurm
 
@@ -110,13 +115,14 @@ def _log(tmp_path, name, job_id) -> str:
     return (tmp_path / f"{name}-{job_id}.out").read_text()
 
 
-def _script(tmp_path, spec_text, env, *options, chain=None):
-    """`campaign slurm` as a user runs it: the spec, a script file, 3 ranks, 1 minute; with chain=M,
-    --chain M --submit. Returns the script path and the submitted job ids."""
+def _script(tmp_path, spec_text, env, *options, chain=None, nodes=1, per_node=3):
+    """`campaign slurm` as a user runs it: the spec, a script file, 3 ranks on one node (or
+    nodes x per_node), 1 minute; with chain=M, --chain M --submit. Returns the script path and the
+    submitted job ids."""
     spec = tmp_path / "spec.yaml"
     spec.write_text(spec_text)
     script = tmp_path / "job.sbatch"
-    cmd = [sys.executable, "-m", "campaign", "slurm", str(spec), "--nodes", "1", "--ntasks-per-node", "3",
+    cmd = [sys.executable, "-m", "campaign", "slurm", str(spec), "--nodes", str(nodes), "--ntasks-per-node", str(per_node),
            "--time", "00:01:00", "--results", str(tmp_path / "out.h5"), "--out", str(script), *options]
     if chain:
         cmd += ["--chain", str(chain), "--submit"]
@@ -306,4 +312,91 @@ def test_short_job_with_cached_kernels(tmp_path, jobs):
     log = _log(tmp_path, "kernels", jobs[0])
     assert (job["JobState"], job["ExitCode"]) == ("COMPLETED", "0:0"), log
     assert "this run: 8 done" in log, (log, f"local warm-up run {warm:.1f} s")
+    _assert_equals_local_run(tmp_path, env)
+
+
+def _nodes():
+    return sorted(set(_run(["sinfo", "-h", "-N", "-o", "%N"], _env()).stdout.split()))
+
+
+@pytest.mark.parametrize("launcher", ["srun", "mpiexec"])
+def test_one_mpi_world_across_two_nodes(tmp_path, jobs, launcher):
+    """8. The generated script on two nodes of two ranks each: one MPI world (rank 0 the master on the
+    first node, workers on both), `campaign status` from outside judging the writer on its other host by
+    the progress file's age, and the store of a local run."""
+    nodes = _nodes()
+    if len(nodes) < 2:
+        pytest.skip(f"the cluster has one node ({nodes}); start it with `slurm/testcluster.sh start --nodes 2` "
+                    "(as .ci/run does)")
+    env = _env(CAMPAIGN_SYNTHETIC_DELAY="1")  # about 7 s of work for three workers: seen part-way
+    options = () if launcher == "srun" else ("--launcher", "mpiexec")
+    script, _ = _script(tmp_path, ONE_JOB_SPEC, env, *options, nodes=2, per_node=2)
+    out = tmp_path / "out.h5"
+    jobs.append(_submit(script, env))
+    _wait_running(jobs[0])
+    writers = []
+    while _job(jobs[0])["JobState"] not in FINAL:
+        if out.exists():
+            got = subprocess.run([sys.executable, "-m", "campaign", "status", str(out), "--json"], env=env,
+                                 capture_output=True, text=True, timeout=60)
+            if got.returncode == 0 and json.loads(got.stdout)["live"]:
+                writers.append(json.loads(got.stdout)["writer"])
+        time.sleep(0.3)
+    job = _job(jobs[0])
+    log = _log(tmp_path, "onejob", jobs[0])
+    assert (job["JobState"], job["ExitCode"]) == ("COMPLETED", "0:0"), log
+    assert job["NumNodes"] == "2" and "this run: 20 done" in log, (job, log)
+    with h5py.File(out, "r") as f:
+        hosts = {h.decode() for h in f["tasks/host"][:]}
+        run = json.loads(f.attrs["runs"])[-1]
+    assert hosts == set(nodes[:2]) and run["workers"] == 3 and sorted(run["hosts"]) == nodes[:2], (hosts, run)
+    if socket.gethostname() not in nodes:  # the nodes have their own hostnames (testcluster --nodes 2)
+        assert writers and all(w["judged_by"] == "age" and w["host"] == nodes[0] for w in writers), writers
+    _assert_equals_local_run(tmp_path, env)
+
+
+def _rank_pid(job_id, rank):
+    """The pid of MPI rank ``rank`` of job ``job_id`` (the cluster runs on this machine)."""
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            env = dict(kv.split(b"=", 1) for kv in (d / "environ").read_bytes().split(b"\0") if b"=" in kv)
+            cmd = (d / "cmdline").read_bytes()
+        except OSError:
+            continue
+        if (env.get(b"SLURM_JOB_ID") == str(job_id).encode() and env.get(b"PMI_RANK") == str(rank).encode()
+                and b"campaign" in cmd):
+            return int(d.name)
+    raise AssertionError(f"no rank {rank} of job {job_id} on this machine")
+
+
+def test_worker_rank_killed_then_resubmitted(tmp_path, jobs):
+    """9. SIGKILL of a worker rank in a running job (as the out-of-memory killer does): srun ends the step
+    (--kill-on-bad-exit), the job fails, the store is consistent (nothing finished lost or recorded
+    twice); the same script again completes it to a local run's store."""
+    env = _env(CAMPAIGN_SYNTHETIC_DELAY="1")
+    script, _ = _script(tmp_path, ONE_JOB_SPEC, env)
+    out = tmp_path / "out.h5"
+    segments = mpich_segments()
+    jobs.append(_submit(script, env))
+    try:
+        _wait_done(out, env, 4, jobs[0])
+        os.kill(_rank_pid(jobs[0], 1), signal.SIGKILL)
+        job = _wait(jobs[:1])[jobs[0]]
+    finally:
+        subprocess.run(["scancel", jobs[0]], env=_env(), capture_output=True)
+        _wait(jobs[:1])
+        remove_segments_of_killed_jobs(segments)
+    log = _log(tmp_path, "onejob", jobs[0])
+    assert job["JobState"] == "FAILED" and job["ExitCode"] != "0:0", (job, log)
+    assert "task 1: Killed" in log and "Traceback" not in log, log
+    kept = _durable(out)
+    assert 4 <= len(kept) < 20
+    writer = _status(out, env)["writer"]
+    assert writer["judged_by"] in ("pid", "age") and (writer["judged_by"] == "age" or writer["state"] == "dead")
+    jobs.append(_submit(script, env))
+    job = _wait(jobs[1:])[jobs[1]]
+    assert (job["JobState"], job["ExitCode"]) == ("COMPLETED", "0:0"), _log(tmp_path, "onejob", jobs[1])
+    assert _durable(out).keys() == set(range(20))
     _assert_equals_local_run(tmp_path, env)

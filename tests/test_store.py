@@ -431,3 +431,37 @@ def test_synthetic_bins_are_the_kernels_default_bins():
     from campaign.worker import SYNTHETIC_BINS
 
     assert SYNTHETIC_BINS == {h: len(e) - 1 for h, e in DEFAULT_BINS.items()}
+
+
+RESERVE_SPEC = """\
+name: reserve
+seed: 8
+grid: {N_G: [64, 128], E_G: [1.0e-3, 1.0e-6], seeds: 80}
+observables: [scalars, connectivity, void_areas, contact_angles]
+store: {configurations: true}
+"""
+
+
+@pytest.mark.parametrize("every", [1, 10, 1000])
+def test_reservations_cover_every_write_step(tmp_path, monkeypatch, every):
+    """Every HDF5 write step reserves at least what the file then grows by (the estimate of
+    docs/STORE.md, "Out of space"), and not wildly more: a full disk is met before HDF5 writes,
+    and a nearly full one still takes a campaign that fits. Tasks in random order (blocks written
+    many times, chunks rewritten), configurations kept, every 17th task failed; flushed after every
+    task, every 10, or once at the end. Two blocks of rows (BLOCK_ROWS 256, 320 tasks). A step that
+    adds one row to a block reserves the block's whole compressed chunks (HDF5 may place a rewritten
+    chunk at the end of the file), so no step reserves more than twice the finished store."""
+    spec, tasks, fn, ctx, edges = _setup(RESERVE_SPEC)
+    out = tmp_path / "r.h5"
+    st = Store(out, spec, tasks, edges)
+    for k, i in enumerate(np.random.default_rng(every).permutation(len(tasks))):
+        st.record(int(i), _summary(fn, tasks[i], ctx, fail=(k % 17 == 0)), attempts=1)
+        if k % every == 0:
+            st.flush(force=True)
+    st.close()
+    steps = st.space_log
+    assert len(steps) >= 4 and all(grew <= need for need, grew in steps), steps
+    assert max(need for need, _ in steps) <= 2 * out.stat().st_size + (512 << 10), (steps, out.stat().st_size)
+    if every == 1000:  # one step writes every row: the estimate is close to what it takes
+        need, grew = max(steps)
+        assert grew <= need <= 2 * grew, steps

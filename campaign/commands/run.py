@@ -120,7 +120,7 @@ def _refuse_split_launch(message):
 
 
 def _mpi_master(args, comm, MPI) -> int:
-    from campaign.errors import UserError
+    from campaign.errors import UserError, WriteFault
 
     from campaign.engine import run_campaign
 
@@ -133,6 +133,10 @@ def _mpi_master(args, comm, MPI) -> int:
             raise
         traceback.print_exc()
         comm.Abort(2)
+    except WriteFault:  # a full disk: the engine stopped the workers (or aborted the job when busy)
+        if not state["sent"]:
+            comm.bcast(None, root=0)
+        raise
     except SystemExit:
         raise
     except BaseException:  # noqa: BLE001 - a master fault aborts the whole job instead of hanging it

@@ -1,6 +1,9 @@
 """campaign status FILE: progress of a campaign store, per (variant, N, E), and its failures.
 
-Works while a run is writing the file (it opens it read-only, without locking).
+Works while a run is writing the file (it opens it read-only, without locking). Whether a
+run is writing it comes from the run's progress file (``campaign.progress.writer_state``):
+on the same host its process must still exist; from another host the file must have been
+updated within the last ``STALE_SECONDS``.
 """
 
 from __future__ import annotations
@@ -18,13 +21,14 @@ def configure(parser):
 
 
 def main(args) -> int:
-    from campaign.progress import fmt_duration, progress_text, read_sidecar
+    from campaign.progress import progress_text, read_sidecar, writer_state
 
     s = _scan(args.file)
     groups = [[key, c[0], c[1], c[2]] for key, c in s["cells"].items()]
     totals = s["totals"]
     live = read_sidecar(args.file)
-    active = bool(live and live.get("active") and time.time() - live.get("updated", 0) < 60)
+    writer = writer_state(live)
+    active = writer["state"] == "running"
     running = int(live.get("running", 0)) if active else 0
     state = {"done": totals["done"], "failed": totals["failed"], "running": running,
              "remaining": totals["pending"] - running,
@@ -39,21 +43,29 @@ def main(args) -> int:
         except (ValueError, IndexError, TypeError):
             pass
     failures = s["failures"]
+    waiting = _journal_only(args.file, s["status"])
     remaining_hours, learnt_from = _remaining_core_hours(attrs, s)
     if args.json:
+        who = {k: live.get(k) for k in ("pid", "host", "updated")} if live else {}
         print(json.dumps({"file": str(args.file), "name": str(attrs.get("name", "")), "live": active,
-                          **state, "tasks": totals["tasks"], "remaining_core_hours": remaining_hours,
+                          "writer": dict(who, state=writer["state"], judged_by=writer["how"],
+                                         age_seconds=writer["age"]),
+                          **state, "tasks": totals["tasks"], "in_journal_only": waiting,
+                          "remaining_core_hours": remaining_hours,
                           "groups": [{"variant": k[0], "N": k[1], "E": k[2], "done": d, "failed": f, "pending": p}
                                      for k, d, f, p in groups],
                           "failures": failures}, indent=1))
         return 0
     print(f"{args.file}: campaign {attrs.get('name', '?')!s}, {totals['tasks']} tasks")
     print("  " + progress_text(state))
-    if active:
-        print(f"  a run is writing it (pid {live.get('pid')} on {live.get('host')}, "
-              f"updated {fmt_duration(time.time() - live['updated'])} ago)")
+    if writer["state"] in ("running", "dead"):
+        print("  " + writer["text"])
     else:
         print(f"  no run is writing it (last run ended {attrs.get('end_time') or 'without a clean stop'})")
+    if waiting:
+        print(f"  {waiting} more finished task(s) are in its journal only so far ({args.file}.journal); "
+              + ("the run writes them into the store at its next flush" if active else
+                 "the next run writes them into the store (counted here as pending)"))
     if remaining_hours is not None and totals["pending"] + totals["failed"]:
         print(f"  estimated remaining work {remaining_hours:.3g} core-hours "
               f"(cost model learnt from {learnt_from} finished packing(s))")
@@ -146,7 +158,18 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
               "pending": int(np.count_nonzero(status_all == PENDING)), "tasks": T}
     sample = {k: (np.concatenate(x) if x else np.zeros(0)) for k, x in sample.items()}
     return {"attrs": {k: f.attrs[k] for k in f.attrs}, "cells": cells, "totals": totals,
-            "failures": failures, "sample": sample}
+            "failures": failures, "sample": sample, "status": status_all}
+
+
+def _journal_only(path, status):
+    """How many tasks the journal has records of that the store does not hold yet (finished by a
+    run that is still to write them, or that stopped before it could: the next run replays them)."""
+    import numpy as np
+
+    from campaign.journal import task_indices
+
+    idx = np.fromiter((i for i in task_indices(str(path) + ".journal") if 0 <= i < len(status)), np.int64)
+    return int(np.count_nonzero(status[idx] == 0)) if len(idx) else 0
 
 
 def _remaining_core_hours(attrs, s):
