@@ -54,14 +54,14 @@ class Settings:
     # default, DEFAULT_FIT_OVERLAP, is one distance from jamming for every potential, chosen by
     # experiments/fit_rules.py; fit_overlap = inf with the default fit_energies: every energy.
     fit_energies: tuple = (0.0, float("inf"))
-    fit_overlap: float = 0.003
+    fit_overlap: float = 0.001
     # a range asked for explicitly (the command line's --fit-all, --fit-energies, --fit-overlap):
     # a (variant, N) whose range holds fewer energies of the grid than a fit needs
     # (fits.MIN_CELLS) is refused (UserError); with the default range it only gets no fits
     strict_range: bool = False
 
 
-#: The default fit range: typical relative overlaps up to 0.3% (docs/REDUCED.md, "The fit range").
+#: The default fit range: typical relative overlaps up to 0.1% (docs/REDUCED.md, "The fit range").
 DEFAULT_FIT_OVERLAP = Settings.fit_overlap
 
 
@@ -79,7 +79,7 @@ def is_default_range(s: Settings) -> bool:
 
 def fit_rule_name(s: Settings) -> str:
     """The fit range in a few words, for a CSV column, a figure title or a table's footnote:
-    ``typical overlap <= 0.003 (default)``, ``every energy``, ``E_G in [0, 1e-05]``,
+    ``typical overlap <= 0.001 (default)``, ``every energy``, ``E_G in [0, 1e-05]``,
     ``typical overlap <= 0.01``, or both of the last two."""
     window = ", ".join(_window(s)) or "every energy"
     return window + (" (default)" if is_default_range(s) else "")

@@ -52,7 +52,7 @@ def _fit(groups, keep, seed):
 
 @pytest.mark.parametrize("k", [0.0, K], ids=["no correction", "correction like paper-small"])
 def test_the_default_range_recovers_a_known_exponent_within_its_errors(k):
-    """Over 100 synthetic realisations at N_G = 256 the default range (typical overlap <= 0.003,
+    """Over 100 synthetic realisations at N_G = 256 the default range (typical overlap <= 0.001,
     E_G <= 1e-6 at alpha = 2) covers the true beta_E with its bootstrap error about as often as
     stated, with or without a correction to scaling; the fit over every energy does not once the
     correction is there (the test can fail)."""
@@ -103,9 +103,10 @@ def test_default_range_in_the_reducer_recovers_a_corrected_law(tmp_path):
 
 
 def test_one_distance_from_jamming_for_every_potential():
-    """The default keeps E_G <= (2 / alpha) 0.003^alpha: 9e-6, 3.9e-7, 1.8e-8 for alpha = 2, 2.5, 3."""
-    for alpha, e_max in ((2.0, 9e-6), (2.5, 3.94e-7), (3.0, 1.8e-8)):
-        assert R.typical_overlap(e_max, alpha) == pytest.approx(0.003, rel=2e-3)
+    """The default keeps E_G <= (2 / alpha) 0.001^alpha: 1e-6, 2.5e-8, 6.7e-10 for alpha = 2, 2.5, 3."""
+    assert R.DEFAULT_FIT_OVERLAP == 0.001
+    for alpha, e_max in ((2.0, 1e-6), (2.5, 0.8 * 10**-7.5), (3.0, 2.0 / 3.0 * 1e-9)):
+        assert R.typical_overlap(e_max, alpha) == pytest.approx(0.001, rel=1e-12)
         assert R.typical_overlap(e_max * 1.01, alpha) > R.DEFAULT_FIT_OVERLAP
 
 
@@ -152,16 +153,16 @@ def test_ranges_with_too_few_energies_are_refused(small, tmp_path, capsys, args,
 
 
 @pytest.mark.parametrize("args, name, first, hi", [
-    ([], "typical overlap <= 0.003 (default)", "Fits over the cells of typical overlap (alpha E_G / 2)^(1/alpha) "
-     "<= 0.003 (the default range", "1e-7"),
+    ([], "typical overlap <= 0.001 (default)", "Fits over the cells of typical overlap (alpha E_G / 2)^(1/alpha) "
+     "<= 0.001 (the default range", "1e-7"),
     (["--fit-all"], "every energy", "Fits over every energy.", "1e-3"),
     (["--fit-energies", "0", "1e-5"], "E_G in [0, 1e-05]", "Fits over the cells with E_G in [0, 1e-05].", "1e-5"),
     (["--fit-overlap", "0.01"], "typical overlap <= 0.01", "Fits over the cells with typical overlap <= 0.01.",
      "1e-5"),
 ])
 def test_every_table_names_its_range_or_rule(small, tmp_path, capsys, args, name, first, hi):
-    """The synthetic grid is 1e-3, 1e-5, ..., 1e-15; at alpha = 2 an overlap of 0.003 is
-    E_G <= 9e-6 and 0.01 is E_G <= 1e-4."""
+    """The synthetic grid is 1e-3, 1e-5, ..., 1e-15; at alpha = 2 an overlap of 0.001 is
+    E_G <= 1e-6 and 0.01 is E_G <= 1e-4."""
     out = tmp_path / "o"
     assert cli.main(["reduce", str(small), "--boot", "0", "--out", str(out), *args]) == 0
     terminal = capsys.readouterr().out
@@ -194,14 +195,14 @@ def test_every_system_and_variant_table_names_its_rule(tmp_path, capsys):
     write_store(tmp_path / "m.h5", camp)
     out = tmp_path / "o"
     assert cli.main(["reduce", str(tmp_path / "m.h5"), "--boot", "0", "--out", str(out)]) == 0
-    assert capsys.readouterr().out.count("Fits: typical overlap <= 0.003 (default).") == 1
-    assert (out / "systems.md").read_text().startswith("Fits: typical overlap <= 0.003 (default).")
+    assert capsys.readouterr().out.count("Fits: typical overlap <= 0.001 (default).") == 1
+    assert (out / "systems.md").read_text().startswith("Fits: typical overlap <= 0.001 (default).")
     # two protocol variants of one system: the variants table
     camp = SyntheticCampaign(N=(64, 128), seeds=6, variants=("default", "loose"), histograms=("z_g",))
     write_store(tmp_path / "v.h5", camp)
     assert cli.main(["reduce", str(tmp_path / "v.h5"), "--boot", "0", "--out", str(out), "--fit-all"]) == 0
     assert capsys.readouterr().out.count("dA_G*(E=0), dbeta_E: the scaling fits' (every energy).") == 1
-    for name, rule in (("systems.csv", "typical overlap <= 0.003 (default)"), ("variants.csv", "every energy")):
+    for name, rule in (("systems.csv", "typical overlap <= 0.001 (default)"), ("variants.csv", "every energy")):
         with open(out / name) as fh:
             recs = list(csv.DictReader(fh))
         assert recs and all(r["fit_rule"] == rule for r in recs), name

@@ -40,7 +40,7 @@ def add_fit_range(parser):
     """The fit-range options ``reduce`` and ``plot`` share (docs/REDUCED.md, "The fit range")."""
     g = parser.add_argument_group(
         "fit range", "by default the scaling laws are fitted to the cells of typical relative overlap "
-        "(alpha E_G / 2)^(1/alpha) <= 0.003, one distance from jamming for every potential (E_G <= 9e-6 "
+        "(alpha E_G / 2)^(1/alpha) <= 0.001, one distance from jamming for every potential (E_G <= 1e-6 "
         "at alpha = 2); these options replace that range")
     g.add_argument("--fit-all", action="store_true",
                    help="fit every energy (the reducer's default before the overlap window)")
@@ -48,7 +48,7 @@ def add_fit_range(parser):
                    help="fit the cells with E_G in [LO, HI]")
     g.add_argument("--fit-overlap", type=float, default=None, metavar="DMAX",
                    help="fit the cells whose typical relative overlap (alpha E_G / 2)^(1/alpha) is at "
-                        "most DMAX, alpha each variant's exponent (default 0.003; with --fit-energies "
+                        "most DMAX, alpha each variant's exponent (default 0.001; with --fit-energies "
                         "both apply; docs/UNIVERSALITY.md)")
 
 
