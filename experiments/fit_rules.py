@@ -1,7 +1,8 @@
 """Which default fit range? Candidate rules measured on synthetic data with a known exponent
 and a known correction to scaling, then applied to real stores.
 
-    python experiments/fit_rules.py [--reps 200] [--boot 200] [--json FILE]      # synthetic
+    python experiments/fit_rules.py [--reps 200] [--boot 200] [--json FILE] [--pivot 1024 inf]  # synthetic
+    python experiments/fit_rules.py --from-json FILE --pivot inf                # its tables again
     python experiments/fit_rules.py --store results/paper-small.h5 [--boot 1000]  # a real store
 
 **Synthetic data.** Per N_G, the grid of a campaign (one energy per decade, 20 packings per cell);
@@ -14,9 +15,9 @@ each packing's ``E_G`` lands in ``[E, 1.1 E]``, its typical overlap is
 
 (``p = 0.55``: the variance of the excess contacts 0.45 times their mean, as measured on
 paper-small at N_G = 1024, 1e-9 to 1e-5), so the law against ``Delta Z`` has the exponent
-``beta_Z`` and the correction ``k x^omega``, and the law against ``E_G`` the exponent ``beta_E = beta_Z / (2 alpha)`` and the correction exponent
-``omega / (2 alpha)``: a correction set by the distance from jamming, the same for every
-potential. ``sd_A`` is the packing-to-packing spread of ``A_G`` measured on paper-small
+``beta_Z`` and the correction ``k x^omega``, and the law against ``E_G`` the exponent
+``beta_E = beta_Z / (2 alpha)`` and the correction exponent ``omega / (2 alpha)``: a correction
+set by the distance from jamming, the same for every potential. ``sd_A`` is the packing-to-packing spread of ``A_G`` measured on paper-small
 (``SD_A0`` below, or per cell with ``--noise-from STORE``). Scenarios (``SCENARIOS``): no
 correction (``k = 0``); a correction like paper-small's (the synthetic data fitted over every
 energy give paper-small's ``beta_Z``, and over ``E_G <= 1e-5`` its value there); 1.5 times it;
@@ -28,9 +29,10 @@ fits' 0.99-1.07 of paper-small at N_G = 256..1024.
 weighted least squares with bootstrap errors over packings) or, for ``corr``, ``y = a + c x^beta
 + e x^(beta + omega)``:
 
-* ``all``: every energy (the reducer's old default);
+* ``all``: every energy (the reducer's default before, now ``--fit-all``);
 * ``overlap D``: the cells whose typical overlap is at most ``D`` (one distance from jamming for
-  every alpha);
+  every alpha; D = 0.01, 0.003, 0.001). The reducer's default is 0.001, chosen from this
+  measurement (docs/REDUCED.md, "The fit range");
 * ``corr``: every energy, with a correction-to-scaling term (``omega`` free in [0.1, 2], profiled
   like ``beta``);
 * ``chi2 P``: the widest range from the lowest energy whose power law passes a chi^2 test at
@@ -39,8 +41,9 @@ weighted least squares with bootstrap errors over packings) or, for ``corr``, ``
   ``chi2-E P``: the range chosen by the fit against E_G, used by both fits.
 
 For each rule and fit (``beta_E``: A_G against E_G; ``beta_Z``: against Delta Z) and size, over
-``--reps`` realisations: the bias (mean estimate minus truth), the spread of the estimates, the
-mean bootstrap error, the fraction of 1-sigma and 2-sigma intervals that cover the truth
+``--reps`` realisations: the bias (mean estimate minus truth; ``--pivot`` shows the median, which
+the few wild fits of short ranges do not move), the spread of the estimates, the median bootstrap
+error, the fraction of 1-sigma and 2-sigma intervals that cover the truth
 (nominal 68% and 95%), the mean number of cells kept, and the failures (no fit). ``inf`` is the
 reducer's linear extrapolation in 1/N_G of the per-size values (the truth does not depend on N).
 """
@@ -343,6 +346,35 @@ def print_table(rows, sizes_shown=(64, 1024, "inf"), file=sys.stdout):
               + " | ".join(vals) + " |", file=file)
 
 
+def print_pivot(rows, size="inf", file=sys.stdout):
+    """One line per (alpha, fit, rule), one column group per scenario: the median bias in units of
+    the median bootstrap error (robust to the few wild fits of short ranges) and the 1-sigma /
+    2-sigma coverage, at one size (``inf``: extrapolated); the median error beside."""
+    scen = list(dict.fromkeys(r["scenario"] for r in rows))
+    by = {(r["scenario"], r["alpha"], r["fit"], r["rule"]): r for r in rows if str(r["N"]) == str(size)}
+    print(f"N_G = {size}: median bias / median error, coverage of the 1-sigma / 2-sigma intervals "
+          "(nominal 0.68 / 0.95)\n",
+          file=file)
+    print("| alpha | fit | rule | median error | " + " | ".join(scen) + " | failures |", file=file)
+    print("|" + "---|" * (len(scen) + 5), file=file)
+    for alpha in dict.fromkeys(r["alpha"] for r in rows):
+        for fit in FITS:
+            for rule in dict.fromkeys(r["rule"] for r in rows):
+                got = [by.get((sc, alpha, fit, rule)) for sc in scen]
+                if not any(got):
+                    continue
+                errs = [g["err"] for g in got if g and "err" in g]
+                cells = []
+                for g in got:
+                    if not g or "bias" not in g:
+                        cells.append("-")
+                    else:
+                        cells.append(f"{g['median_bias'] / g['err']:+.1f}, {g['cov1']:.2f} / {g['cov2']:.2f}")
+                fails = sum(g["fails"] for g in got if g)
+                print(f"| {alpha:g} | {fit} | {rule} | {np.median(errs):.3f} | " + " | ".join(cells)
+                      + f" | {fails} |", file=file)
+
+
 # --------------------------------------------------------------------------- real stores
 def store_cells(paths):
     """{(variant, N): (Es, cells)} of a store's usable packings (3 or more per cell)."""
@@ -425,7 +457,19 @@ def main(argv=None):
     ap.add_argument("--alphas", nargs="+", type=float, default=[2.0])
     ap.add_argument("--sizes", nargs="+", type=int, default=list(SIZES))
     ap.add_argument("--json", metavar="FILE")
+    ap.add_argument("--from-json", metavar="FILE", help="print the tables of an earlier --json instead")
+    ap.add_argument("--pivot", nargs="+", default=None, metavar="N",
+                    help="print one compact table per size (e.g. 1024 inf) instead of the long one")
     args = ap.parse_args(argv)
+    if args.from_json:
+        with open(args.from_json) as fh:
+            rows = json.load(fh)
+        for size in args.pivot or []:
+            print_pivot(rows, size)
+            print()
+        if not args.pivot:
+            print_table(rows)
+        return 0
     if args.store:
         out = real_store(args.store, args.rules, args.boot)
         if args.json:
@@ -438,7 +482,11 @@ def main(argv=None):
     res = measure(args.scenarios, args.rules, args.alphas, args.reps, args.boot, tuple(args.sizes))
     truths = {(s, a): truth_of(SCENARIOS[s], a) for s in args.scenarios for a in args.alphas}
     rows = summarise(res, truths)
-    print_table(rows)
+    for size in args.pivot or []:
+        print_pivot(rows, size)
+        print()
+    if not args.pivot:
+        print_table(rows)
     print(f"\n{args.reps} realisations, bootstrap {args.boot}, {time.time() - t0:.0f} s", file=sys.stderr)
     if args.json:
         with open(args.json, "w") as fh:
