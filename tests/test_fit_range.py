@@ -110,6 +110,26 @@ def test_one_distance_from_jamming_for_every_potential():
         assert R.typical_overlap(e_max * 1.01, alpha) > R.DEFAULT_FIT_OVERLAP
 
 
+def test_the_default_on_several_systems_is_one_distance_from_jamming(tmp_path):
+    """A campaign of three potentials on one grid (1e-3 .. 1e-21): the default keeps, per system,
+    E_G <= 1e-6, 2.5e-8, 6.7e-10 (grid energies 1e-6, 1e-8, 1e-10), the same typical overlap."""
+    truths = {"default": Truth.jamming(2.0, 1.0), "hertz": Truth.jamming(2.5, 1.0),
+              "alpha3": Truth.jamming(3.0, 1.0)}
+    camp = SyntheticCampaign(N=(64, 128), E=tuple(10.0 ** -np.arange(3, 22)), seeds=4,
+                             variants=tuple(truths), truth=truths["default"], variant_truth=truths,
+                             histograms=("z_g",))
+    write_store(tmp_path / "m.h5", camp)
+    red = R.reduce_campaign(tmp_path / "m.h5", R.Settings(n_boot=0), distributions=False)
+    expect = {"default": (1e-6, 16), "hertz": (1e-8, 14), "alpha3": (1e-10, 12)}  # cells from 1e-21
+    for r in red.rows:
+        e_max, n = expect[r["variant"]]
+        assert r["fit_E_max"] == pytest.approx(e_max) and r["n_cells"] == n, r
+        alpha = truths[r["variant"]].alpha
+        assert R.typical_overlap(r["fit_E_max"], alpha) <= 0.001 * (1 + 1e-9)
+        assert R.typical_overlap(10 * r["fit_E_max"], alpha) > 0.001
+    assert len(red.systems) == 3 and all(x["fit_rule"] == "typical overlap <= 0.001 (default)" for x in red.systems)
+
+
 def test_a_grid_too_short_for_the_default_range_gives_no_fit_and_says_why(tmp_path):
     camp = SyntheticCampaign(N=(64,), E=(1e-3, 1e-5, 1e-7, 1e-9), seeds=4, histograms=("z_g",))
     write_store(tmp_path / "c.h5", camp)
