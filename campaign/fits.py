@@ -7,6 +7,7 @@
   sets at once (``fit_power_law_batch``), which is what makes the bootstrap cheap.
 * ``bootstrap_cell_means``: resampling of packings within each cell, with a fixed
   seed, returning the resampled cell means of several quantities at once.
+* ``chi2_p_value``: the goodness of a fit as a p-value.
 * ``fit_inverse_n``: ``y = y_inf + b / N`` (finite-size extrapolation).
 * ``gaussian_mle`` and ``fit_width_scaling``: the best Gaussian of P(A_G) and the
   law ``sigma ~ N**-gamma``.
@@ -144,6 +145,18 @@ def fit_power_law(x, y, yerr, *, boot_x=None, boot_y=None, bounds=BETA_BOUNDS) -
         out.exponent_err = float(np.std(bb, ddof=1))
         out.n_boot = len(boot_x)
     return out
+
+
+# --------------------------------------------------------------------------- goodness of fit
+#: A power law with an intercept needs its three parameters and one degree of freedom.
+MIN_CELLS = 4
+
+
+def chi2_p_value(chi2, dof):
+    """P(chi^2_dof >= chi2): the probability of a worse fit if the model and the errors hold."""
+    from scipy.stats import chi2 as _chi2
+
+    return float(_chi2.sf(chi2, dof)) if dof > 0 and np.isfinite(chi2) else np.nan
 
 
 # --------------------------------------------------------------------------- bootstrap

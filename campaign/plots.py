@@ -7,8 +7,6 @@ figures. Every function takes a ``Reduction`` (campaign.reduce) and never reads 
 
 from __future__ import annotations
 
-import math
-
 from pathlib import Path
 
 import numpy as np
@@ -155,7 +153,15 @@ _XLAB = {"E_G": r"$E_G$", "delta_Z": r"$\Delta Z$"}
 _YLAB = {"A_G": r"$\Delta A_G = A_G - A_G^*$", "psi_O": r"$\Delta\Psi_O = \Psi_O - \Psi_O^*$"}
 
 
+def _range_label(f):
+    """``, E_G <= 1e-5``: the highest grid energy of a fit (its range starts at the lowest)."""
+    hi = f.get("E_max", np.nan)
+    return rf", $E_G\leq${_sci(hi)}" if hi is not None and np.isfinite(hi) else ""
+
+
 def fig_scaling(red, cs, plt, quantity):
+    """Delta A_G (or Delta Psi_O) against E_G and Delta Z per N_G with the fitted power laws;
+    cells outside a fit's range are open markers."""
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
     c = red.cells
     for ax, absc in zip(axes, ("E_G", "delta_Z")):
@@ -169,8 +175,13 @@ def fig_scaling(red, cs, plt, quantity):
             y = c[f"mean_{quantity}"][i] - f["intercept"]
             ye = c[f"sem_{quantity}"][i]
             ok = (x > 0) & (y > 0)
-            lab = rf"$N_G={N}$: $\beta={f['exponent']:.3f}$"
-            ax.errorbar(x[ok], y[ok], ye[ok], fmt="o", ms=3, color=col, label=lab)
+            E = c["E"][i]
+            fitted = ok & (E >= f.get("E_min", 0.0) * (1 - 1e-9)) & (E <= f.get("E_max", np.inf) * (1 + 1e-9))
+            lab = rf"$N_G={N}$: $\beta={f['exponent']:.3f}$" + _range_label(f)
+            ax.errorbar(x[fitted], y[fitted], ye[fitted], fmt="o", ms=3, color=col, label=lab)
+            if (ok & ~fitted).any():  # cells outside the fit range: open markers
+                ax.errorbar(x[ok & ~fitted], y[ok & ~fitted], ye[ok & ~fitted], fmt="o", ms=3, color=col,
+                            mfc="none", lw=0.6)
             shown = True
             if f["x_min"] > 0 and f["x_max"] > f["x_min"]:
                 xx = np.geomspace(f["x_min"], f["x_max"], 50)
@@ -611,6 +622,8 @@ def fig_exponents_vs_alpha(red, plt):
 
 
 SYSTEM_FIGURES = {"universality": fig_universality, "exponents_vs_alpha": fig_exponents_vs_alpha}
+#: per-variant figures drawn from the scaling fits: their title names the fit range or rule
+FIT_FIGURES = ("scaling_A_G", "scaling_psi_O", "fit_residuals", "extrapolation")
 
 
 def make_figures(red, out_dir, *, dpi=90):
@@ -619,14 +632,18 @@ def make_figures(red, out_dir, *, dpi=90):
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     variants = sorted({str(v) for v in red.cells["variant"]})
+    rule = "fits: " + str(red.meta.get("fit_rule_name", "every energy"))
     written = []
     for v in variants:
         cs = _Cells(red, v)
         suffix = "" if len(variants) == 1 else f"_{v}"
         for name, fn in FIGURES.items():
             fig = fn(red, cs, plt)
-            if len(variants) > 1:
-                fig.suptitle(f"variant {v}", fontsize=9)
+            title = [f"variant {v}"] if len(variants) > 1 else []
+            if name in FIT_FIGURES:  # the range or rule the fits drawn come from
+                title.append(rule)
+            if title:
+                fig.suptitle("; ".join(title), fontsize=9)
             p = out / f"{name}{suffix}.png"
             fig.savefig(p, dpi=dpi)
             plt.close(fig)
@@ -638,15 +655,9 @@ def make_figures(red, out_dir, *, dpi=90):
         plt.close(fig)
         written.append(p)
     if red.systems:  # two physical systems or more (campaign.systems)
-        lo, hi = red.meta.get("fit_energies", (0.0, math.inf))
-        window = [f"E_G in [{lo:g}, {hi:g}]"] if (lo > 0 or math.isfinite(hi)) else []
-        if math.isfinite(red.meta.get("fit_overlap", math.inf)):
-            window.append(f"typical overlap <= {red.meta['fit_overlap']:g}")
         for name, fn in SYSTEM_FIGURES.items():
             fig = fn(red, plt)
-            if window:  # the fit range the exponents come from
-                fig.suptitle("fits over " + ", ".join(window), fontsize=9)
-                fig.tight_layout()
+            fig.suptitle(rule, fontsize=9)  # the range or rule the exponents come from
             p = out / f"{name}.png"
             fig.savefig(p, dpi=dpi)
             plt.close(fig)

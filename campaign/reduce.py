@@ -48,12 +48,51 @@ class Settings:
     area_bins: int = 30         # bins of the per-cell P(A_G) histogram
     sin_bins: int = 100         # bins of P(sin theta) on [0, 1]
     reference: str = "default"  # the variant the others are compared with (campaign.tradeoff)
-    # the scaling fits use the cells whose grid energy lies in [lo, hi] (all by default;
-    # the paper's exponents come out with (0, 1e-5): docs/PAPER.md)
+    # The fit range of the scaling laws (docs/REDUCED.md, "The fit range"): the cells whose grid
+    # energy lies in fit_energies = [lo, hi] and whose typical relative overlap
+    # (alpha E_G / 2)^(1/alpha) is at most fit_overlap (alpha: the variant's exponent). The
+    # default, DEFAULT_FIT_OVERLAP, is one distance from jamming for every potential, chosen by
+    # experiments/fit_rules.py; fit_overlap = inf with the default fit_energies: every energy.
     fit_energies: tuple = (0.0, float("inf"))
-    # and whose typical relative overlap (alpha E_G / 2)^(1/alpha) is at most this (alpha: the
-    # variant's exponent): one distance from jamming for systems of different exponents
-    fit_overlap: float = float("inf")
+    fit_overlap: float = 0.001
+    # a range asked for explicitly (the command line's --fit-all, --fit-energies, --fit-overlap):
+    # a (variant, N) whose range holds fewer energies of the grid than a fit needs
+    # (fits.MIN_CELLS) is refused (UserError); with the default range it only gets no fits
+    strict_range: bool = False
+
+
+#: The default fit range: typical relative overlaps up to 0.1% (docs/REDUCED.md, "The fit range").
+DEFAULT_FIT_OVERLAP = Settings.fit_overlap
+
+
+def _window(s: Settings) -> list:
+    lo, hi = s.fit_energies
+    out = [f"E_G in [{lo:g}, {hi:g}]"] if (lo > 0 or math.isfinite(hi)) else []
+    if math.isfinite(s.fit_overlap):
+        out.append(f"typical overlap <= {s.fit_overlap:g}")
+    return out
+
+
+def is_default_range(s: Settings) -> bool:
+    return (s.fit_overlap == DEFAULT_FIT_OVERLAP and tuple(s.fit_energies) == (0.0, math.inf))
+
+
+def fit_rule_name(s: Settings) -> str:
+    """The fit range in a few words, for a CSV column, a figure title or a table's footnote:
+    ``typical overlap <= 0.001 (default)``, ``every energy``, ``E_G in [0, 1e-05]``,
+    ``typical overlap <= 0.01``, or both of the last two."""
+    window = ", ".join(_window(s)) or "every energy"
+    return window + (" (default)" if is_default_range(s) else "")
+
+
+def fit_rule_text(s: Settings) -> str:
+    """One sentence saying which cells the scaling fits use."""
+    window = " and ".join(_window(s))
+    if is_default_range(s):
+        return (f"Fits over the cells of typical overlap (alpha E_G / 2)^(1/alpha) <= {s.fit_overlap:g} (the "
+                f"default range: one distance from jamming for every potential, E_G <= {s.fit_overlap ** 2:.2g} "
+                "at alpha = 2; --fit-all fits every energy)")
+    return "Fits over every energy" if not window else f"Fits over the cells with {window}"
 
 
 # =========================================================================== reading
@@ -343,6 +382,15 @@ class Reduction:
     variants: list = field(default_factory=list)  # campaign.tradeoff records, one per variant
     systems: list = field(default_factory=list)   # campaign.systems records, with two systems or more
 
+    def fit_rule(self) -> dict:
+        """Which cells the scaling fits use: the range's name and sentence, whether it is the
+        default, its window (docs/REDUCED.md, "The fit range")."""
+        m = self.meta
+        return {"name": m.get("fit_rule_name", ""), "text": m.get("fit_rule_text", ""),
+                "default": bool(m.get("fit_default", False)),
+                "fit_energies": list(m.get("fit_energies", (0.0, math.inf))),
+                "fit_overlap": m.get("fit_overlap", math.inf)}
+
     def to_json(self):
         def clean(v):
             if isinstance(v, (float, np.floating)):
@@ -355,8 +403,8 @@ class Reduction:
                 return [clean(x) for x in v]
             return v
 
-        return clean({"rows": self.rows, "extrapolated": self.extrapolated, "variants": self.variants,
-                      "systems": self.systems,
+        return clean({"fit_rule": self.fit_rule(), "rows": self.rows, "extrapolated": self.extrapolated,
+                      "variants": self.variants, "systems": self.systems,
                       "status": {k: self.meta[k] for k in ("done", "pending", "failed", "total")},
                       "notes": self.notes})
 
@@ -555,6 +603,14 @@ def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
                 notes.append(f"{v}: scaling fits use the cells with typical overlap <= {s.fit_overlap:g} "
                              f"(E_G <= {e_max:.3g} at alpha = {alpha:g})")
         in_group = in_group[in_range]
+        short = len(in_group) < fits.MIN_CELLS
+        why = (f"the fit range ({fit_rule_name(s)}) holds {len(in_group)} energies of the grid, fewer than "
+               f"the {fits.MIN_CELLS} a power law with an intercept needs (three parameters and one "
+               "degree of freedom)")
+        if short and s.strict_range:
+            raise UserError(f"{v} N={n}: {why}; widen the range")
+        if short and have:
+            notes.append(f"{v} N={n}: no fits: {why}; --fit-all or --fit-energies fit a wider range")
         small = in_group[n_done[in_group] < s.min_packings]
         usable = in_group[n_done[in_group] >= s.min_packings]
         if len(small) and have:
@@ -562,6 +618,8 @@ def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
                          "finished packings left out of the fits (E = "
                          + ", ".join(f"{cE[i]:.3g} ({n_done[i]})" for i in small) + ")")
         row["n_cells"] = int(len(usable))
+        row["fit_E_min"] = float(cE[usable].min()) if len(usable) else np.nan
+        row["fit_E_max"] = float(cE[usable].max()) if len(usable) else np.nan
         boot = None
         if have and len(usable) >= 4 and s.n_boot > 1:
             data = [np.column_stack([fin.scalars[c][g.packings(i)] for c in cols]) for i in usable]
@@ -573,6 +631,9 @@ def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
             rec = {"variant": v, "N_G": n, "quantity": quantity, "abscissa": absc}
             if not have:
                 f = fits.PowerLawFit(message="scalars missing")
+                ok_cells = np.zeros(0, int)
+            elif short:
+                f = fits.PowerLawFit(n_points=len(usable), message=why)
                 ok_cells = np.zeros(0, int)
             else:
                 x = cells[f"mean_{absc}"][usable]
@@ -597,7 +658,7 @@ def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
                         f"a spread of {quantity} left out")
                 if f.residuals.size == len(ok_cells):
                     res[ok_cells] = f.residuals
-            if not f.ok:
+            if not f.ok and not short:
                 notes.append(f"{v} N={n}: no fit of {quantity} against {absc}: {f.message}")
             elif f.at_bound:
                 notes.append(f"{v} N={n}: fit of {quantity} against {absc}: {f.message}")
@@ -605,6 +666,9 @@ def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
                        coeff_err=f.coeff_err, exponent=f.exponent, exponent_err=f.exponent_err,
                        chi2=f.chi2, dof=f.dof, chi2_dof=f.chi2_dof, n_points=f.n_points,
                        n_boot=f.n_boot, ok=f.ok, message=f.message,
+                       p_value=fits.chi2_p_value(f.chi2, f.dof),
+                       E_min=float(cE[ok_cells].min()) if len(ok_cells) else np.nan,
+                       E_max=float(cE[ok_cells].max()) if len(ok_cells) else np.nan,
                        x_min=_min_positive(xs := cells.get(f"mean_{absc}", np.zeros(C))[ok_cells]),
                        x_max=float(xs.max()) if len(xs) else np.nan)
             fit_records.append(rec)
@@ -612,6 +676,8 @@ def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
             row[key], row[f"{key}_err"] = f.intercept, f.intercept_err
             row[bkey], row[f"{bkey}_err"] = f.exponent, f.exponent_err
             row[f"chi2_dof_{quantity}_{absc}"] = f.chi2_dof
+        row["fit_p"] = next(r["p_value"] for r in fit_records[-len(FITS):]
+                            if r["quantity"] == "A_G" and r["abscissa"] == "E_G")
         rows.append(row)
     return fit_records, np.array(residuals).reshape(len(fit_records), C), rows
 
@@ -723,11 +789,15 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                                         seed=s.boot_seed, usable=good[pick])
     notes += vnotes
     systems = sysmod.compare(rows, extrapolated, vsys, reference=s.reference)
+    for rec in variants + systems:  # their exponents and A_G* come from the scaling fits
+        rec["fit_rule"] = fit_rule_name(s)
     meta = {"sources": fin.paths, "done": int(len(fin)), "excluded": int(g.n_excluded.sum()),
             "pending": int(g.n_pending.sum()), "failed": int(g.n_failed.sum()),
             "total": int(g.n_tasks.sum()), "n_boot": s.n_boot,
             "boot_seed": s.boot_seed, "min_packings": s.min_packings,
             "fit_energies": [float(x) for x in s.fit_energies], "fit_overlap": float(s.fit_overlap),
+            "fit_default": is_default_range(s), "fit_rule_name": fit_rule_name(s),
+            "fit_rule_text": fit_rule_text(s),
             "spec_hash": fin.attrs.get("spec_hash", ""), "name": fin.attrs.get("name", ""),
             "seconds": {"load": t_load, "histograms": t_hist,
                         "total": time.perf_counter() - t0}}
@@ -739,10 +809,25 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
 
 
 # =========================================================================== tables
-TABLE_HEADER = ("N_G", "A_G*(E_G=0)", "beta_E", "A_G*(Delta Z=0)", "beta_Z", "Psi_O*")
+TABLE_HEADER = ("N_G", "A_G*(E_G=0)", "beta_E", "A_G*(Delta Z=0)", "beta_Z", "Psi_O*", "E_G fitted")
 TEX_HEADER = (r"$N_G$", r"$A_G^*(E_G=0)$", r"$\beta_E$", r"$A_G^*(\Delta Z=0)$", r"$\beta_Z$",
-              r"$\Psi_O^*$")
+              r"$\Psi_O^*$", r"$E_G$ fitted")
 _SHOWN = ("A_G_star_E", "beta_E", "A_G_star_Z", "beta_Z", "psi_O_star")
+
+
+def fmt_energy(x) -> str:
+    """``1e-15``, ``2.5e-06`` -> ``2.5e-6``: an energy of the grid, short."""
+    if x is None or not np.isfinite(x):
+        return "--"
+    return np.format_float_scientific(float(x), trim="-", exp_digits=1, precision=3)
+
+
+def fit_range_label(row) -> str:
+    """The grid energies a table row's fits used: ``1e-15..1e-5``; ``--`` without a fit."""
+    lo, hi = row.get("fit_E_min", np.nan), row.get("fit_E_max", np.nan)
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        return "--"
+    return f"{fmt_energy(lo)}..{fmt_energy(hi)}"
 
 
 def _table_lines(red: Reduction):
@@ -750,14 +835,16 @@ def _table_lines(red: Reduction):
     out = []
     for v in sorted(red.extrapolated):
         for r in (r for r in red.rows if r["variant"] == v):
-            out.append((v, str(r["N_G"]), [fmt_err(r[k], r[f"{k}_err"]) for k in _SHOWN]))
+            out.append((v, str(r["N_G"]), [fmt_err(r[k], r[f"{k}_err"]) for k in _SHOWN]
+                        + [fit_range_label(r)]))
         x = red.extrapolated[v]
-        out.append((v, "inf", [fmt_err(x[k], x[f"{k}_err"]) for k in _SHOWN]))
+        out.append((v, "inf", [fmt_err(x[k], x[f"{k}_err"]) for k in _SHOWN] + ["per N_G"]))
     return out
 
 
 def table_markdown(red: Reduction) -> str:
-    lines = []
+    """The finite-size table, after one line naming the fit range or rule."""
+    lines = [red.meta.get("fit_rule_text", "") + ".", ""]
     variants = sorted(red.extrapolated)
     for v in variants:
         if len(variants) > 1:
@@ -772,31 +859,45 @@ def table_markdown(red: Reduction) -> str:
     return "\n".join(lines)
 
 
+def _tex_escape(text):
+    return text.replace("\\", "").replace("_", r"\_").replace("^", r"\^{}").replace(">=", r"$\geq$") \
+        .replace("<=", r"$\leq$")
+
+
 def table_latex(red: Reduction) -> str:
-    lines = []
+    lines = [f"% {red.meta.get('fit_rule_text', '')}"]
+    n = len(TEX_HEADER)
     for v in sorted(red.extrapolated):
-        lines += [f"% variant {v}", r"\begin{tabular}{| l || l | l || l | l || l |}", r"\hline",
+        lines += [f"% variant {v}", r"\begin{tabular}{| l || l | l || l | l || l || l |}", r"\hline",
                   " & ".join(TEX_HEADER) + r" \\ \hline \hline"]
         for vv, label, cells in _table_lines(red):
             if vv == v:
                 lab = r"$\infty$" if label == "inf" else f"${label}$"
-                lines.append(" & ".join([lab] + [f"${c}$" for c in cells]) + r" \\ \hline")
-        lines += [r"\end{tabular}", ""]
+                lines.append(" & ".join([lab] + [f"${c}$" for c in cells[:-1]] + [cells[-1].replace("_", r"\_")])
+                             + r" \\ \hline")
+        lines += [rf"\multicolumn{{{n}}}{{|l|}}{{fits: {_tex_escape(red.meta.get('fit_rule_name', ''))}}} \\ \hline",
+                  r"\end{tabular}", ""]
     return "\n".join(lines)
+
+
+#: per-row columns saying which cells the fits used (table.csv, the JSON rows, /reduced/table)
+RANGE_KEYS = ("fit_E_min", "fit_E_max", "fit_p")
 
 
 def table_csv(red: Reduction) -> str:
     keys = ["variant", "N_G", "n_packings", "n_cells"]
     for k in TABLE_KEYS:
         keys += [k, f"{k}_err"]
+    keys += ["fit_rule", *RANGE_KEYS]
+    rule = red.meta.get("fit_rule_name", "")
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(keys)
     for r in red.rows:
-        w.writerow([_csv_val(r.get(k)) for k in keys])
+        w.writerow([_csv_val(rule if k == "fit_rule" else r.get(k)) for k in keys])
     for v, x in sorted(red.extrapolated.items()):
-        w.writerow([_csv_val(v if k == "variant" else "inf" if k == "N_G" else x.get(k, ""))
-                    for k in keys])
+        w.writerow([_csv_val(v if k == "variant" else "inf" if k == "N_G" else rule if k == "fit_rule"
+                             else x.get(k, "")) for k in keys])
     return buf.getvalue()
 
 
@@ -851,7 +952,12 @@ def write_reduced(red: Reduction, h5path, *, mode="w"):
             spec_hash=str(red.meta["spec_hash"]), n_done=red.meta["done"],
             n_excluded=red.meta["excluded"], n_pending=red.meta["pending"], n_failed=red.meta["failed"],
             n_boot=red.meta["n_boot"], boot_seed=red.meta["boot_seed"],
-            min_packings=red.meta["min_packings"], notes=json.dumps(red.notes))
+            min_packings=red.meta["min_packings"], notes=json.dumps(red.notes),
+            fit_rule_name=str(red.meta.get("fit_rule_name", "")),
+            fit_rule_text=str(red.meta.get("fit_rule_text", "")),
+            fit_default=int(bool(red.meta.get("fit_default", False))),
+            fit_energies=np.asarray(red.meta.get("fit_energies", (0.0, math.inf)), float),
+            fit_overlap=float(red.meta.get("fit_overlap", math.inf)))
         _write_columns(g.create_group("cells"), red.cells)
         sa = g.create_group("self_averaging")
         for name, d in red.self_averaging.items():

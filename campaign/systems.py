@@ -135,7 +135,8 @@ def table_markdown(records) -> str:
     ``A_G*`` is ``A_G*(E_G = 0)``; the tensions are in standard deviations."""
     if not records:
         return ""
-    lines = ["| " + " | ".join(HEADER) + " |", "|" + "---|" * len(HEADER)]
+    lines = [f"Fits: {records[0]['fit_rule']}.", ""] if records[0].get("fit_rule") else []
+    lines += ["| " + " | ".join(HEADER) + " |", "|" + "---|" * len(HEADER)]
     for r in records:
         for suffix, n in (("", "inf"), ("_largest", str(r["N_G_largest"]))):
             def val(k):

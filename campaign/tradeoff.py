@@ -192,4 +192,6 @@ def table_markdown(records) -> str:
             _fmt(r.get("dev_A_G_star_E"), r.get("dev_A_G_star_E_err")),
             _fmt(r.get("dev_beta_E"), r.get("dev_beta_E_err")),
             "yes" if r.get("on_front") else ""]) + " |")
+    if records[0].get("fit_rule"):
+        lines += ["", f"dA_G*(E=0), dbeta_E: the scaling fits' ({records[0]['fit_rule']})."]
     return "\n".join(lines)

@@ -9,7 +9,8 @@ fits ``A_G = A* + c x^beta`` per N_G with the reducer's fitting code
 (``campaign.fits.fit_power_law``: weighted least squares on the cell means, errors from a
 bootstrap over packings), for these choices of the abscissa ``x`` and of the fit:
 
-* ``E`` -- this project's E_G (sum over unordered pairs / all disks): the reducer's fit;
+* ``E`` -- this project's E_G (sum over unordered pairs / all disks): the reducer's fit over
+  every energy (``campaign reduce --fit-all``);
 * ``E ordered/N_G`` -- Eq. (2) of the paper read literally: sum over ordered pairs
   divided by the non-rattlers, ``2 E_G N / N_G`` per packing (hypothesis a);
 * ``E/N_G`` -- per non-rattler (hypothesis a);
@@ -17,7 +18,7 @@ bootstrap over packings), for these choices of the abscissa ``x`` and of the fit
 * ``unweighted`` -- every cell the same weight (hypothesis d);
 * ``log-log, A* fixed`` -- a straight line through ``log(A_G - A*)`` against ``log x``
   with ``A*`` fixed at the mean of the lowest-energy cell (hypothesis d);
-* ``dZ`` -- Delta Z = <z_g> - (4 - 2/N_G) over non-rattlers: the reducer's fit;
+* ``dZ`` -- Delta Z = <z_g> - (4 - 2/N_G) over non-rattlers: the reducer's fit over every energy;
 * ``dZ, z_iso=4`` -- ``<z_g> - 4`` (hypothesis b; cells with a negative mean are dropped);
 * ``dZ, rattlers counted`` -- all contacts over all disks, ``2 C / N - (4 - 2/N)`` (hypothesis b;
   cells with a negative mean are dropped).

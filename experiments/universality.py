@@ -5,8 +5,9 @@ matched windows of the distance to jamming, and the premise Delta Z ~ E_G^(1/(2 
         [--boot 1000] [--json FILE]
 
 For each window of the typical relative overlap ``delta = (alpha E_G / 2)^(1/alpha)`` (``inf``:
-every energy, the reducer's default; then 0.01 and 0.003) this runs the reducer with
-``campaign reduce --fit-overlap DMAX`` (``Settings.fit_overlap``) and prints, per system:
+every energy, ``campaign reduce --fit-all``; then 0.01, 0.003 and 0.001, the reducer's default)
+this runs the reducer with ``campaign reduce --fit-overlap DMAX`` (``Settings.fit_overlap``) and
+prints, per system:
 
 * ``beta_E``, ``beta_Z`` per N_G and extrapolated in 1/N_G (the reducer's rows and extrapolation);
 * ``x``, the exponent of ``Delta Z = c E_G^x``: a straight line in log-log through the cells of
@@ -36,7 +37,7 @@ from scipy import stats
 from campaign.fits import bootstrap_cell_means, fit_inverse_n
 from campaign.reduce import Settings, fmt_err, reduce_campaign, typical_overlap
 
-WINDOWS = (math.inf, 1e-2, 3e-3)
+WINDOWS = (math.inf, 1e-2, 3e-3, 1e-3)
 
 
 def loglog_exponent(groups, N, boot):
@@ -101,7 +102,8 @@ def main(argv=None):
         order = sorted(systems, key=lambda v: (systems[v]["alpha"], v))
         sizes = sorted({r["N_G"] for r in red.rows})
         label = "every energy" if not math.isfinite(dmax) else f"typical overlap <= {dmax:g}"
-        print(f"\n## Fits over {label}: `campaign reduce --fit-overlap {dmax:g}`\n")
+        option = "--fit-all" if not math.isfinite(dmax) else f"--fit-overlap {dmax:g}"
+        print(f"\n## Fits over {label}: `campaign reduce {option}`\n")
         print("| system | alpha | sizes | " + " | ".join(f"beta_Z {n}" for n in sizes) + " | beta_Z inf | "
               "beta_E inf | x inf | beta_Z x | beta_Z/(2 alpha) |")
         print("|" + "---|" * (len(sizes) + 8))

@@ -3,11 +3,12 @@
 The per-packing scalars follow known laws, so the reducer's fits can be checked
 against the truth:
 
-    A_G   = A_inf + a_N / N + c_A E_G**beta_A + noise(sigma_A / sqrt(N))
+    A_G   = A_inf + a_N / N + c_A E_G**beta_A (1 + k_A E_G**omega_A) + noise(sigma_A / sqrt(N))
     psi_O = P_inf + p_N / N + c_P E_G**beta_P + noise(sigma_P / sqrt(N))
     delta_Z = c_Z E_G**(1/(2 alpha)) (1 + noise)     (alpha = 2 by default: E_G**(1/4))
 
-so ``A_G - A* = B delta_Z**beta_Z`` with ``beta_Z = 2 alpha beta_A`` (``Truth.jamming``).
+so ``A_G - A* = B delta_Z**beta_Z`` with ``beta_Z = 2 alpha beta_A`` (``Truth.jamming``);
+``k_A`` (0 by default) adds a correction to scaling of exponent ``omega_A``.
 ``SyntheticCampaign.variant_truth`` gives variants their own truths; the spec text then lists
 the variants, with a ``system.potential.exponent`` override where the truth's alpha differs
 from the base's (and ``variant_system``, any other ``system`` override).
@@ -47,6 +48,8 @@ class Truth:
     c_A: float = 0.5
     beta_A: float = 0.28
     sigma_A: float = 0.03
+    k_A: float = 0.0       # correction to scaling: c_A E**beta_A (1 + k_A E**omega_A)
+    omega_A: float = 0.25
     P_inf: float = 0.369
     p_N: float = -0.4
     c_P: float = 0.6
@@ -184,7 +187,8 @@ def scalars_for(c: SyntheticCampaign, variant, N, E, rng):
         m = variant == v
         t = c.truth_of(v)
         n, e = N[m], E_G[m]
-        A_G[m] = t.A_star(n) + vshift[m] + t.c_A * e**t.beta_A + noise_A[m] * t.sigma_A / np.sqrt(n)
+        A_G[m] = (t.A_star(n) + vshift[m] + t.c_A * e**t.beta_A * (1 + t.k_A * e**t.omega_A)
+                  + noise_A[m] * t.sigma_A / np.sqrt(n))
         psi[m] = t.P_star(n) + t.c_P * e**t.beta_P + noise_P[m] * t.sigma_P / np.sqrt(n)
         dZ[m] = np.where(e < t.iso_E, 0.0, t.c_Z * e**t.z_power * (1 + t.sigma_Z * noise_Z[m]))
     N_R = rng.binomial(N.astype(np.int64), 0.04)

@@ -11,6 +11,7 @@ from campaign import reduce as R
 from synthetic_store import SyntheticCampaign, Truth, split_store, write_store
 
 FAST = R.Settings(n_boot=150)
+EVERY = R.Settings(n_boot=150, fit_overlap=np.inf)  # fits over every energy (--fit-all)
 
 
 @pytest.fixture(scope="module")
@@ -111,7 +112,7 @@ def test_partly_finished_file_reduces_what_is_done_and_says_what_is_missing(tmp_
     status[10] = 2            # one failure
     status[T // 2:T // 2 + 9] = 0
     data = write_store(tmp_path / "p.h5", camp, status=status)
-    red = R.reduce_campaign(tmp_path / "p.h5", FAST)
+    red = R.reduce_campaign(tmp_path / "p.h5", EVERY)  # the short cell, E = 1e-3, in the fits' range
     assert red.meta["done"] == int((status == 1).sum())
     assert red.meta["pending"] == int((status == 0).sum())
     assert red.meta["failed"] == 1
@@ -209,7 +210,8 @@ def test_cli_reduce_json_and_output_files(full, tmp_path, capsys):
     for name in ("table.md", "table.csv", "table.tex", "cells.csv", "fits.csv", "reduced.h5"):
         assert (out / name).stat().st_size > 0
     md = (out / "table.md").read_text()
-    assert md.count("\n| ") == len(camp.N) + 1  # header + one per N... and the extrapolation
+    assert md.count("\n| ") == len(camp.N) + 2  # header + one per N + the extrapolation
+    assert md.startswith("Fits over the cells of typical overlap")  # the range, first
     assert "N_G -> inf" in md
     assert r"\begin{tabular}" in (out / "table.tex").read_text()
     with h5py.File(out / "reduced.h5", "r") as f:
@@ -395,7 +397,7 @@ def test_in_place_refuses_while_the_journal_is_locked(tmp_path, capsys):
 def test_isostatic_cells_enter_the_delta_Z_fit_at_the_intercept(tmp_path):
     camp = SyntheticCampaign(N=(256,), seeds=12, truth=Truth(iso_E=1e-10))
     write_store(tmp_path / "i.h5", camp)
-    red = R.reduce_campaign(tmp_path / "i.h5", FAST)
+    red = R.reduce_campaign(tmp_path / "i.h5", EVERY)
     zero = red.cells["mean_delta_Z"] == 0
     assert zero.sum() == 3  # E = 1e-11, 1e-13, 1e-15
     k = next(j for j, f in enumerate(red.fits) if f["abscissa"] == "delta_Z" and f["quantity"] == "A_G")
@@ -441,7 +443,7 @@ def test_fit_energy_range_selects_the_cells_of_the_fits(tmp_path, capsys):
     path = tmp_path / "c.h5"
     write_store(path, camp)
     lo, hi = 1e-14, 1e-6
-    red = R.reduce_campaign(path, R.Settings(n_boot=0, fit_energies=(lo, hi)))
+    red = R.reduce_campaign(path, R.Settings(n_boot=0, fit_energies=(lo, hi), fit_overlap=np.inf))
     inside = [e for e in camp.E if lo <= e <= hi]
     assert 4 <= len(inside) < len(camp.E)
     assert any("E_G in [1e-14, 1e-06]" in n for n in red.notes)
@@ -452,7 +454,7 @@ def test_fit_energy_range_selects_the_cells_of_the_fits(tmp_path, capsys):
         f = fit_power_law(c["mean_E_G"][m], c["mean_A_G"][m], c["sem_A_G"][m])
         assert row["beta_E"] == pytest.approx(f.exponent, rel=1e-9)
         assert row["A_G_star_E"] == pytest.approx(f.intercept, rel=1e-9)
-    full = R.reduce_campaign(path, R.Settings(n_boot=0))
+    full = R.reduce_campaign(path, R.Settings(n_boot=0, fit_overlap=np.inf))
     assert all(r["n_cells"] == len(camp.E) for r in full.rows)
     assert cli.main(["reduce", str(path), "--out", str(tmp_path / "o"), "--fit-energies", "1e-3", "1e-5"]) == 2
     assert "--fit-energies expects 0 <= LO < HI" in capsys.readouterr().err

@@ -33,7 +33,8 @@ def multi(tmp_path_factory):
                              variant_truth=TRUTHS, variant_system={"broken": BROKEN_SIZES},
                              histograms=("z_g",))
     write_store(path, camp)
-    return path, R.reduce_campaign(path, R.Settings(n_boot=200), distributions=False)
+    # the synthetic laws have no corrections to scaling: every energy (--fit-all) is their range
+    return path, R.reduce_campaign(path, R.Settings(n_boot=200, fit_overlap=np.inf), distributions=False)
 
 
 def test_synthetic_truths_obey_or_break_the_scaling_relation():
@@ -93,7 +94,8 @@ def test_beta_Z_against_the_default_system(multi):
 def test_markdown_table(multi):
     path, red = multi
     text = systems.table_markdown(red.systems)
-    lines = text.strip().splitlines()
+    head, lines = text.strip().split("\n\n")[0], text.strip().split("\n\n")[1].splitlines()
+    assert head == "Fits: every energy."  # the fit rule the exponents come from
     assert lines[0].startswith("| system | N_G | alpha | sizes | A_G* | beta_E | beta_Z | beta_Z/(2 alpha)")
     assert len(lines) == 2 + 2 * len(TRUTHS)
     hertz = [ln for ln in lines if ln.startswith("| hertz | inf |")]
@@ -259,11 +261,12 @@ def test_speed_accuracy_compares_only_packings_of_the_reference_system(multi):
     assert any("other systems than 'default'" in n for n in red.notes)
 
 
-@pytest.mark.parametrize("dmax", [1e-2, 1e-3])
+@pytest.mark.parametrize("dmax", [1e-2, 3e-3])
 def test_fit_overlap_picks_the_same_distance_from_jamming_per_system(multi, dmax):
     """--fit-overlap keeps, per variant, the cells whose (alpha E / 2)^(1/alpha) <= dmax."""
     path, _ = multi
-    red = R.reduce_campaign(path, R.Settings(n_boot=0, fit_overlap=dmax), distributions=False)
+    red = R.reduce_campaign(path, R.Settings(n_boot=0, fit_overlap=dmax),
+                            distributions=False)
     grid = np.asarray(SyntheticCampaign().E)
     for row in red.rows:
         alpha = TRUTHS[row["variant"]].alpha
@@ -272,6 +275,22 @@ def test_fit_overlap_picks_the_same_distance_from_jamming_per_system(multi, dmax
     kept = {r["variant"]: r["n_cells"] for r in red.rows if r["N_G"] == 64}
     assert kept["alpha3"] <= kept["hertz"] <= kept["default"] and kept["alpha3"] < kept["default"]
     assert any("typical overlap <= " in n for n in red.notes)
+
+
+def test_fit_overlap_with_too_few_energies_is_refused(multi, capsys):
+    """At overlaps <= 1e-3 the alpha = 3 systems keep 3 energies of the grid (E_G <= 6.7e-10:
+    1e-11, 1e-13, 1e-15), too few for a power law with an intercept: refused, naming the system."""
+    from campaign import cli
+    from campaign.errors import UserError
+
+    path, _ = multi
+    grid = np.asarray(SyntheticCampaign().E)
+    assert int(np.sum(grid <= 2.0 / 3.0 * 1e-9)) == 3
+    with pytest.raises(UserError, match=r"alpha3 N=64: .* holds 3 energies"):
+        R.reduce_campaign(path, R.Settings(n_boot=0, fit_overlap=1e-3, strict_range=True), distributions=False)
+    assert cli.main(["reduce", str(path), "--fit-overlap", "1e-3", "--boot", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "holds 3 energies of the grid, fewer than the 4" in err and "Traceback" not in err
 
 
 def test_fit_overlap_is_checked(multi, capsys):

@@ -37,19 +37,30 @@ def configure(parser):
 
 
 def add_fit_range(parser):
-    """The fit-range options ``reduce`` and ``plot`` share."""
-    parser.add_argument("--fit-energies", type=float, nargs=2, default=None, metavar=("LO", "HI"),
-                        help="fit the scaling laws to the cells with E_G in [LO, HI] only "
-                             "(default: every energy; '0 1e-5' gives the paper's exponents, "
-                             "see docs/PAPER.md)")
-    parser.add_argument("--fit-overlap", type=float, default=None, metavar="DMAX",
-                        help="fit the scaling laws to the cells whose typical relative overlap "
-                             "(alpha E_G / 2)^(1/alpha) is at most DMAX, alpha each variant's exponent: "
-                             "the same distance from jamming for every system (docs/UNIVERSALITY.md)")
+    """The fit-range options ``reduce`` and ``plot`` share (docs/REDUCED.md, "The fit range")."""
+    g = parser.add_argument_group(
+        "fit range", "by default the scaling laws are fitted to the cells of typical relative overlap "
+        "(alpha E_G / 2)^(1/alpha) <= 0.001, one distance from jamming for every potential (E_G <= 1e-6 "
+        "at alpha = 2); these options replace that range")
+    g.add_argument("--fit-all", action="store_true",
+                   help="fit every energy (the reducer's default before the overlap window)")
+    g.add_argument("--fit-energies", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                   help="fit the cells with E_G in [LO, HI]")
+    g.add_argument("--fit-overlap", type=float, default=None, metavar="DMAX",
+                   help="fit the cells whose typical relative overlap (alpha E_G / 2)^(1/alpha) is at "
+                        "most DMAX, alpha each variant's exponent (default 0.001; with --fit-energies "
+                        "both apply; docs/UNIVERSALITY.md)")
 
 
 def fit_range(args, settings):
-    """Check the fit-range options and set them on ``settings``."""
+    """Check the fit-range options and set them on ``settings``. A range given on the command line
+    replaces the default one, and is refused where it holds fewer energies than a fit needs."""
+    if args.fit_all and (args.fit_energies is not None or args.fit_overlap is not None):
+        raise UserError("--fit-all fits every energy; it does not go with --fit-energies or --fit-overlap")
+    explicit = args.fit_all or args.fit_energies is not None or args.fit_overlap is not None
+    if explicit:
+        settings.fit_overlap = float("inf")
+        settings.strict_range = True
     if args.fit_energies is not None:
         lo, hi = args.fit_energies
         if not (lo >= 0 and hi > lo and lo < float("inf")):
