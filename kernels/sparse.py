@@ -39,7 +39,7 @@ import numpy as np
 from numba import njit
 
 LEAF = 8  # halves of at most this many nodes are not split further
-CUTS = 9  # candidate cut positions per split
+CUTS = 9  # candidate cut positions per split (default of ``analyse``; the Newton endgame's)
 CUTS_ABOVE = 256  # ... in halves of more than this many nodes (else the middle)
 CUT_SPREAD = 0.3  # ... spread over this fraction of the region's side around its middle
 PIVOT_REL = 1e-13
@@ -184,9 +184,11 @@ def _split(buf, lo, hi, positions, dim, cut, tmp):
 
 
 @njit(cache=True)
-def _nd_order(positions, box, start, nbr):
+def _nd_order(positions, box, start, nbr, cuts_max):
     """Nested-dissection order (new -> old) of the nodes of the graph ``(start, nbr)`` from
-    the positions (wrapped into the box). See the module docstring."""
+    the positions (wrapped into the box). See the module docstring. ``cuts_max``: candidate
+    cuts per split of more than ``CUTS_ABOVE`` nodes (1: the middle only, a faster ordering
+    with more fill)."""
     n = positions.shape[0]
     order = np.empty(n, dtype=np.int64)
     buf = np.arange(n)
@@ -240,7 +242,7 @@ def _nd_order(positions, box, start, nbr):
         best = -1
         best_score = 0.0
         best_cut = 0.5 * (c0 + c1)
-        cuts = CUTS if size > CUTS_ABOVE else 1
+        cuts = cuts_max if size > CUTS_ABOVE else 1
         for q in range(cuts):
             cut = c0 + (c1 - c0) * (0.5 + CUT_SPREAD * (q - (cuts - 1) / 2) / max(cuts - 1, 1))
             na, nb = _split(buf, lo, hi, positions, dim, cut, tmp)
@@ -788,9 +790,12 @@ def _pairs(n, pairs_i, pairs_j):
     return pi, pj
 
 
-def analyse(positions, box, pairs_i, pairs_j):
+def analyse(positions, box, pairs_i, pairs_j, cuts=CUTS):
     """Ordering and symbolic analysis of the block pattern of the pairs ``(pairs_i[k],
-    pairs_j[k])`` of the disks at ``positions`` in ``box``. Returns a ``Symbolic``."""
+    pairs_j[k])`` of the disks at ``positions`` in ``box``. Returns a ``Symbolic``. ``cuts``:
+    candidate cut positions per large split (``CUTS``; 1 orders faster, with more fill)."""
+    if not (isinstance(cuts, (int, np.integer)) and cuts >= 1):
+        raise ValueError(f"cuts: expected an integer >= 1, got {cuts!r}")
     from kernels.space import _as_box, _as_positions, _wrap_core
 
     b = _as_box(box)
@@ -798,7 +803,7 @@ def analyse(positions, box, pairs_i, pairs_j):
     n = pos.shape[0]
     pi, pj = _pairs(n, pairs_i, pairs_j)
     start, nbr = _adjacency(n, pi, pj)
-    order = _nd_order(pos, b, start, nbr)
+    order = _nd_order(pos, b, start, nbr, int(cuts))
     return Symbolic(n, *_symbolic_core(n, pi, pj, order))
 
 
