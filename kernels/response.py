@@ -241,6 +241,90 @@ def _block_matvec(diag, pi, pj, off, x):
 
 
 @njit(cache=True)
+def _solve3_core(perm, sup_first, upd_ptr, upd_rows, l_ptr, lval, b):
+    """``kernels.sparse._solve_core`` for three right-hand sides at once, ``b`` (2 n, 3) in
+    the old numbering: the factor is read once, and each column sees the same operations in
+    the same order as in a solve of its own (the same bits)."""
+    n = perm.shape[0]
+    nsup = sup_first.shape[0] - 1
+    y = np.empty((2 * n, 3))
+    for a in range(n):
+        for c in range(3):
+            y[2 * a, c] = b[2 * perm[a], c]
+            y[2 * a + 1, c] = b[2 * perm[a] + 1, c]
+    # forward: L y = b
+    for s in range(nsup):
+        f2 = 2 * sup_first[s]
+        w = 2 * sup_first[s + 1] - f2
+        lo = upd_ptr[s]
+        nu = upd_ptr[s + 1] - lo
+        m = w + 2 * nu
+        base = l_ptr[s]
+        for q in range(w):
+            col = base + q * m
+            d = lval[col + q]
+            y0 = y[f2 + q, 0] / d
+            y1 = y[f2 + q, 1] / d
+            y2 = y[f2 + q, 2] / d
+            y[f2 + q, 0] = y0
+            y[f2 + q, 1] = y1
+            y[f2 + q, 2] = y2
+            for i in range(q + 1, w):
+                li = lval[col + i]
+                y[f2 + i, 0] -= li * y0
+                y[f2 + i, 1] -= li * y1
+                y[f2 + i, 2] -= li * y2
+            for t in range(nu):
+                r = 2 * upd_rows[lo + t]
+                la = lval[col + w + 2 * t]
+                lb = lval[col + w + 2 * t + 1]
+                y[r, 0] -= la * y0
+                y[r, 1] -= la * y1
+                y[r, 2] -= la * y2
+                y[r + 1, 0] -= lb * y0
+                y[r + 1, 1] -= lb * y1
+                y[r + 1, 2] -= lb * y2
+    # backward: L^T x = y
+    for s in range(nsup - 1, -1, -1):
+        f2 = 2 * sup_first[s]
+        w = 2 * sup_first[s + 1] - f2
+        lo = upd_ptr[s]
+        nu = upd_ptr[s + 1] - lo
+        m = w + 2 * nu
+        base = l_ptr[s]
+        for q in range(w - 1, -1, -1):
+            col = base + q * m
+            t0 = y[f2 + q, 0]
+            t1 = y[f2 + q, 1]
+            t2 = y[f2 + q, 2]
+            for i in range(q + 1, w):
+                li = lval[col + i]
+                t0 -= li * y[f2 + i, 0]
+                t1 -= li * y[f2 + i, 1]
+                t2 -= li * y[f2 + i, 2]
+            for t in range(nu):
+                r = 2 * upd_rows[lo + t]
+                la = lval[col + w + 2 * t]
+                lb = lval[col + w + 2 * t + 1]
+                t0 -= la * y[r, 0]
+                t1 -= la * y[r, 1]
+                t2 -= la * y[r, 2]
+                t0 -= lb * y[r + 1, 0]
+                t1 -= lb * y[r + 1, 1]
+                t2 -= lb * y[r + 1, 2]
+            d = lval[col + q]
+            y[f2 + q, 0] = t0 / d
+            y[f2 + q, 1] = t1 / d
+            y[f2 + q, 2] = t2 / d
+    x = np.empty((2 * n, 3))
+    for a in range(n):
+        for c in range(3):
+            x[2 * perm[a], c] = y[2 * a, c]
+            x[2 * perm[a] + 1, c] = y[2 * a + 1, c]
+    return x
+
+
+@njit(cache=True)
 def _pinned_core(pos, pi, pj, off, diag, pin):
     """The system without node ``pin``: its positions, pairs (renumbered), blocks."""
     m = diag.shape[0]
@@ -314,21 +398,23 @@ def _moduli_core(pos, box, pi, pj, off, diag, xi, pin, cuts):
     for k in range(pi.shape[0]):
         hnorm += 2.0 * (off[k, 0] ** 2 + 2.0 * off[k, 1] ** 2 + off[k, 2] ** 2)
     hnorm = np.sqrt(hnorm)
+    rhs = np.empty((2 * n, 3))
+    for v in range(m):
+        if v == pin:
+            continue
+        w = v - (v > pin)
+        for c in range(3):
+            rhs[2 * w, c] = xi[2 * v, c]
+            rhs[2 * w + 1, c] = xi[2 * v + 1, c]
+    x = _solve3_core(perm, sup_first, upd_ptr, upd_rows, l_ptr, lval, rhs)
+    for v in range(m):
+        if v == pin:
+            continue
+        w = v - (v > pin)
+        for c in range(3):
+            u[2 * v, c] = x[2 * w, c]
+            u[2 * v + 1, c] = x[2 * w + 1, c]
     for c in range(3):
-        rhs = np.empty(2 * n)
-        for v in range(m):
-            if v == pin:
-                continue
-            w = v - (v > pin)
-            rhs[2 * w] = xi[2 * v, c]
-            rhs[2 * w + 1] = xi[2 * v + 1, c]
-        x = _solve_core(perm, sup_first, upd_ptr, upd_rows, l_ptr, lval, rhs)
-        for v in range(m):
-            if v == pin:
-                continue
-            w = v - (v > pin)
-            u[2 * v, c] = x[2 * w]
-            u[2 * v + 1, c] = x[2 * w + 1]
         # normwise backward error of the whole system (the pinned rows included):
         # |H u - Xi| / (|H|_F |u| + |Xi|)
         hu = _block_matvec(diag, pi, pj, off, u[:, c].copy())

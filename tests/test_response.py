@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import kernels
+import kernels.hessian
 from kernels import response
 from kernels.analysis import analyze
 from kernels.fire import minimize
@@ -383,3 +384,21 @@ def test_analyze_computes_the_response_only_when_asked():
     assert full.scalars["G"] == response.moduli(p.positions, p.radii, p.box)["G"]
     for k, v in base.scalars.items():  # the network's scalars do not change
         assert full.scalars[k] == v or (isinstance(v, float) and math.isnan(v)), k
+
+
+def test_the_three_solves_at_once_are_three_solves():
+    """``_solve3_core`` reads the factor once for three right-hand sides: the same bits as
+    ``kernels.sparse.solve`` column by column."""
+    from kernels import sparse
+
+    p = jammed(96, 1e-6, 2)
+    hb = kernels.hessian.hessian(p.positions, p.radii, p.box, rattlers=False)
+    diag = hb.diag.copy()
+    diag[:, 0] += 1e-3 * diag[:, 0].mean()
+    diag[:, 2] += 1e-3 * diag[:, 0].mean()
+    sym = sparse.analyse(np.asarray(p.positions)[hb.nodes] % p.box, p.box, hb.pairs_i, hb.pairs_j)
+    lval = sparse.factor(sym, diag, hb.offdiag)
+    b = np.random.default_rng(1).standard_normal((2 * len(hb.nodes), 3))
+    x = response._solve3_core(sym.perm, sym.sup_first, sym.upd_ptr, sym.upd_rows, sym.l_ptr, lval, b)
+    for c in range(3):
+        assert np.array_equal(x[:, c], sparse.solve(sym, lval, b[:, c].copy()))
