@@ -621,6 +621,148 @@ def fig_exponents_vs_alpha(red, plt):
     return fig
 
 
+# --------------------------------------------------------------------------- linear response
+def _resp_cells(red, v):
+    """The response records of variant ``v`` (campaign.response), as column arrays."""
+    recs = [r for r in red.response.get("cells", []) if r["variant"] == v]
+    keys = recs[0].keys() if recs else ()
+    return {k: np.array([r.get(k, np.nan) for r in recs]) for k in keys if k not in ("variant",)
+            and not k.endswith("_message")}
+
+
+def _resp_fit(red, v, N, name):
+    return next((f for f in red.response.get("fits", []) if f["variant"] == v and f["N_G"] == N
+                 and f["fit"] == name), None)
+
+
+def _alpha_of(red, v):
+    """The variant's potential exponent (kept by campaign.response for the guide lines)."""
+    return float(red.response.get("alpha", {}).get(v, 2.0))
+
+
+def fig_response_moduli(red, cs, plt):
+    """G and B against p, G against Delta Z, omega_min against Delta Z (dimensionless: lengths
+    in the mean contact distance s, frequencies in sqrt(<k>)), with the fitted power laws
+    (solid over the fitted cells); the fraction of packings with G < 0 (and c_min < 0) against
+    the finite-size scaling variable p s^2 N^2."""
+    fig, axes = plt.subplots(2, 2, figsize=(9, 7))
+    c = _resp_cells(red, cs.v)
+    alpha = cs.alpha
+    if not c:
+        for ax in axes.ravel():
+            _placeholder(ax, "no response data")
+        return fig
+    cols = _colors(len(cs.Ns))
+    panels = ((axes[0, 0], "p_s2", "G_s2", "G_vs_p", r"$p\,s^2$", r"$G\,s^2$ (filled), $B\,s^2$ (open)"),
+              (axes[0, 1], "delta_Z", "G_s2", "G_vs_dZ", r"$\Delta Z$", r"$G\,s^2$"),
+              (axes[1, 0], "delta_Z", "omega_min_scaled", "omega_min_vs_dZ", r"$\Delta Z$",
+               r"$\omega_{\min}/\sqrt{\langle k\rangle}$"))
+    for ax, xk, yk, fname, xl, yl in panels:
+        shown = False
+        for col, N in zip(cols, cs.Ns):
+            m = c["N"] == N
+            x, y, ye = c[f"mean_{xk}"][m], c[f"mean_{yk}"][m], c[f"sem_{yk}"][m]
+            ok = (x > 0) & (y > 0)
+            f = _resp_fit(red, cs.v, N, fname)
+            lab = rf"$N_G={N}$"
+            if f and np.isfinite(f["exponent"]):
+                lab += rf": $\beta={f['exponent']:.2f}\pm{f['exponent_err']:.2f}$"
+            ax.errorbar(x[ok], y[ok], ye[ok], fmt="o", ms=3, color=col, label=lab)
+            if yk == "G_s2":
+                xb, yb = c["mean_p_s2"][m] if xk == "p_s2" else x, c["mean_B_s2"][m]
+                okb = (xb > 0) & (yb > 0)
+                if xk == "p_s2":
+                    ax.plot(xb[okb], yb[okb], "o", ms=3, mfc="none", color=col)
+            if f and np.isfinite(f["exponent"]):
+                sel = ok & (c["E"][m] >= f["E_min"] * (1 - 1e-9)) & (c["E"][m] <= f["E_max"] * (1 + 1e-9))
+                if sel.any():
+                    xx = np.geomspace(x[sel].min(), x[sel].max(), 20)
+                    ax.plot(xx, f["prefactor"] * xx ** f["exponent"], color=col, lw=0.8)
+            shown = shown or ok.any()
+        if not shown:
+            _placeholder(ax, "no positive means")
+            continue
+        ax.set(xscale="log", yscale="log", xlabel=xl, ylabel=yl)
+        ax.legend(fontsize=6)
+    # literature guides: G ~ p^((alpha - 3/2)/(alpha - 1)) ~ Delta Z (O'Hern et al. 2003)
+    ax = axes[0, 0]
+    if ax.lines:
+        beta = (alpha - 1.5) / (alpha - 1.0)
+        ax.set_title(rf"expected $G\sim p^{{{beta:.2f}}}$, $B\sim p^{{{(alpha - 2) / (alpha - 1):.2f}}}$")
+    axes[0, 1].set_title(r"expected $G\sim\Delta Z$")
+    axes[1, 0].set_title(r"lowest non-zero frequency")
+    ax = axes[1, 1]
+    shown = False
+    for col, N in zip(cols, cs.Ns):
+        m = c["N"] == N
+        x = c["mean_p_s2"][m] * N**2
+        ok = np.isfinite(c["frac_G_negative"][m]) & (x > 0)
+        if ok.any():
+            ax.errorbar(x[ok], c["frac_G_negative"][m][ok], c["frac_G_negative_err"][m][ok], fmt="o-", ms=3,
+                        lw=0.6, color=col, label=rf"$N_G={N}$, $G<0$")
+            ax.plot(x[ok], c["frac_c_min_negative"][m][ok], "s:", ms=3, mfc="none", lw=0.6, color=col)
+            shown = True
+    if shown:
+        ax.set(xscale="log", xlabel=r"$p\,s^2 N^2$", ylabel="fraction of packings",
+               title=r"$G<0$ (filled), $c_{\min}<0$ (open)")
+        ax.legend(fontsize=6)
+    else:
+        _placeholder(ax, "no moduli")
+    return fig
+
+
+def fig_response_distributions(red, cs, plt):
+    """The density of states at the largest size with a full spectrum, per energy; the gap
+    distribution P(h) and the small-force distributions at the lowest energy, per size, with
+    the marginal-stability exponents of the literature as guides."""
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
+    ax = axes[0]
+    dense = [N for N in cs.Ns if any(red.distributions.get("omega", {}).get("counts", np.zeros((0, 1)))[i].sum()
+                                     for i in cs.at(N=N))] if "omega" in red.distributions else []
+    if dense and _per_E(red, cs, plt, ax, "omega", dense[-1], positive=False):
+        ax.set(xlabel=r"$\omega/\sqrt{\langle k\rangle}$", ylabel=r"$D(\omega)$", title=rf"$N_G={dense[-1]}$")
+        ax.legend(fontsize=5, ncol=2)
+    else:
+        _placeholder(ax, "no density of states (N_G above the dense limit, or no modes)")
+    E0 = cs.lowest_E()
+    for ax, names, guide, xl in ((axes[1], ("gap",), (-0.41, r"$h^{-0.41}$"), r"$h = r/s - 1$"),
+                                 (axes[2], ("force", "force_extended"), None, r"$f/\langle f\rangle$")):
+        shown = False
+        for col, N in zip(_colors(len(cs.Ns)), cs.Ns):
+            for name, style in zip(names, ("-", "--")):
+                for i in cs.at(N=N, E=E0):
+                    x, y = _dist(red, name, i)
+                    if x is None:
+                        continue
+                    e = red.distributions[name]["edges"]
+                    xc = np.sqrt(e[1:] * np.maximum(e[:-1], e[1] / 10))  # geometric centres
+                    ok = y > 0
+                    if ok.any():
+                        ax.plot(xc[ok], y[ok], style, color=col, lw=0.9,
+                                label=rf"$N_G={N}$" + (" extended" if name.endswith("extended") else ""))
+                        shown = True
+        if not shown:
+            _placeholder(ax, f"no {names[0]} histogram")
+            continue
+        ax.set(xscale="log", yscale="log", xlabel=xl, ylabel="probability density",
+               title=rf"$E_G=${_sci(E0)}")
+        lo, hi = ax.get_xlim()
+        if guide:
+            xx = np.geomspace(max(lo, 1e-9), 1e-2, 10)
+            ax.plot(xx, 0.3 * xx ** guide[0], "k:", lw=1, label=guide[1])
+        else:
+            xx = np.geomspace(max(lo, 1e-6), 0.3, 10)
+            ax.plot(xx, 0.5 * xx ** 0.17, "k:", lw=1, label=r"$f^{0.17}$")
+            ax.plot(xx, 0.5 * xx ** 0.42, "k-.", lw=1, label=r"$f^{0.42}$")
+        ax.legend(fontsize=5, ncol=2)
+    return fig
+
+
+#: per-variant figures of the linear response, drawn when the store holds it
+RESPONSE_FIGURES = {"response_moduli": fig_response_moduli,
+                    "response_distributions": fig_response_distributions}
+
+
 SYSTEM_FIGURES = {"universality": fig_universality, "exponents_vs_alpha": fig_exponents_vs_alpha}
 #: per-variant figures drawn from the scaling fits: their title names the fit range or rule
 FIT_FIGURES = ("scaling_A_G", "scaling_psi_O", "fit_residuals", "extrapolation")
@@ -637,7 +779,9 @@ def make_figures(red, out_dir, *, dpi=90):
     for v in variants:
         cs = _Cells(red, v)
         suffix = "" if len(variants) == 1 else f"_{v}"
-        for name, fn in FIGURES.items():
+        cs.alpha = _alpha_of(red, v)
+        figures = dict(FIGURES, **(RESPONSE_FIGURES if red.response else {}))
+        for name, fn in figures.items():
             fig = fn(red, cs, plt)
             title = [f"variant {v}"] if len(variants) > 1 else []
             if name in FIT_FIGURES:  # the range or rule the fits drawn come from
