@@ -245,6 +245,75 @@ def test_finite_strain_with_reminimisation(n, energy, alpha, box):
     assert m["B_affine"] > 1.2 * m["B"]
 
 
+def _lattice_energy(pos, rad, M, alpha):
+    """Energy, gradient and dense Hessian of disks in the periodic cell spanned by the columns
+    of ``M`` (any shape: a sheared box too), minimum image in lattice coordinates."""
+    n = len(rad)
+    d = pos[None, :, :] - pos[:, None, :]
+    f = d @ np.linalg.inv(M).T
+    d = (f - np.round(f)) @ M.T
+    i, j = np.triu_indices(n, 1)
+    d = d[i, j]
+    r = np.hypot(d[:, 0], d[:, 1])
+    s = rad[i] + rad[j]
+    c = r < s
+    i, j, d, r, s = i[c], j[c], d[c], r[c], s[c]
+    x = 1 - r / s
+    v1 = -x ** (alpha - 1) / s
+    v2 = (alpha - 1) * x ** (alpha - 2) / s**2
+    u = d / r[:, None]
+    g = np.zeros_like(pos)
+    np.add.at(g, j, v1[:, None] * u)
+    np.add.at(g, i, -v1[:, None] * u)
+    H = np.zeros((2 * n, 2 * n))
+    for k in range(len(i)):
+        nn = np.outer(u[k], u[k])
+        K = v2[k] * nn + v1[k] / r[k] * (np.eye(2) - nn)
+        for a, b, sign in ((i[k], i[k], 1), (j[k], j[k], 1), (i[k], j[k], -1), (j[k], i[k], -1)):
+            H[2 * a:2 * a + 2, 2 * b:2 * b + 2] += sign * K
+    return float(np.sum(x**alpha / alpha)), g, H
+
+
+def _relaxed(pos, rad, M, alpha):
+    """The energy after Newton steps to the nearest minimum (translations projected out):
+    converges quadratically, so the energy is exact to rounding."""
+    p = pos.copy()
+    for _ in range(30):
+        U, g, H = _lattice_energy(p, rad, M, alpha)
+        w, v = np.linalg.eigh(H)
+        keep = np.argsort(np.abs(w))[2:]
+        step = -(v[:, keep] / w[keep]) @ (v[:, keep].T @ g.ravel())
+        p = p + step.reshape(-1, 2)
+        if np.abs(step).max() < 1e-14 * np.abs(p).max():
+            break
+    assert w[keep].min() > 0
+    return _lattice_energy(p, rad, M, alpha)[0]
+
+
+@pytest.mark.parametrize("n,energy,alpha,seed", [(32, 1e-3, 2.0, 4), (40, 1e-4, 2.5, 1)])
+def test_shear_and_mixed_strains_with_exact_relaxation(n, energy, alpha, seed):
+    """Every constant, shear included, from the relaxed energy of sheared periodic cells
+    (``F`` applied to the cell and the positions, then Newton on the positions): second
+    differences along e1, e2, e3 and along e1 + e2 (c12) and e1 + e3 (c16) against C."""
+    p = jammed(n, energy, seed, alpha)
+    pos, rad, box = np.asarray(p.positions), np.asarray(p.radii), np.asarray(p.box)
+    keep = ~kernels.analyze(pos, rad, box, ["scalars"]).rattler
+    pos, rad = pos[keep], rad[keep]
+    m = response.moduli(pos, rad, box, alpha)
+    C = _voigt(m)
+    M0 = np.diag(box)
+    U0 = _relaxed(pos, rad, M0, alpha)
+    h = 1e-6
+    for e in ((1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 0, 1), (0, 1, 1)):
+        e = np.asarray(e, float)
+        us = []
+        for sign in (1, -1):
+            F = np.eye(2) + sign * h * np.array([[e[0], e[2] / 2], [e[2] / 2, e[1]]])
+            us.append(_relaxed(pos @ F.T, rad, F @ M0, alpha))
+        second = (us[0] + us[1] - 2 * U0) / (box.prod() * h**2)
+        assert second == pytest.approx(e @ C @ e, rel=1e-4, abs=1e-4 * np.abs(C).max()), e
+
+
 # ----------------------------------------------------------------------------- failures
 
 def _square_lattice(n, overlap):
