@@ -993,7 +993,7 @@ def write_reduced(red: Reduction, h5path, *, mode="w"):
             _write_columns(g.create_group("systems"), red.systems)
         if red.response:
             rg = g.create_group("response")
-            for key in ("cells", "fits"):
+            for key in ("cells", "fits", "exponents"):
                 if red.response.get(key):
                     _write_columns(rg.create_group(key), red.response[key])
 
@@ -1012,6 +1012,7 @@ def write_outputs(red: Reduction, out_dir, *, write_h5=True):
     if red.response:
         files["response_cells.csv"] = records_csv(red.response.get("cells", []))
         files["response_fits.csv"] = records_csv(red.response.get("fits", []))
+        files["response_exponents.csv"] = records_csv(red.response.get("exponents", []))
     if red.systems:
         from campaign import systems
 

@@ -13,6 +13,10 @@ exponents: ``P(h) ~ h^-gamma`` and ``P(f) ~ f^theta`` from straight lines throug
 cumulative counts on log axes (``F(h) ~ h^(1 - gamma)``, ``F(f) ~ f^(1 + theta)``), inside the
 windows ``GAP_WINDOW`` and ``FORCE_WINDOW``, with bootstrap errors over packings.
 
+Per (variant, N) (``exponents``): the same three exponents from the cells closest to jamming
+pooled (typical overlap at most ``POOL_OVERLAP``; the gap window starts at 10 times their
+largest typical overlap), bootstrap over their packings.
+
 Per (variant, N) (``fits``): ``G s^2 = c (p s^2)^beta``, ``G s^2 = c Delta_Z^beta`` and
 ``omega_min / sqrt(<k>) = c Delta_Z^beta``: straight lines in logs through the cell means
 (weights from their standard errors, relative), over the cells whose packings carry at least
@@ -38,6 +42,9 @@ MIN_COUNT = 20
 MIN_DECADES = 1.0
 #: Cells whose packings have fewer excess contacts on average are left out of the fits.
 MIN_EXCESS = 4.0
+#: The exponents pooled per (variant, N) use the cells of typical overlap at most this (the
+#: closest to jamming: E_G <= 1e-12 harmonic, <= 1e-16 Hertz on a decade grid).
+POOL_OVERLAP = 1e-6
 
 #: What each fit is: (name, y, x) over the dimensionless per-packing columns below.
 FITS = (("G_vs_p", "G_s2", "p_s2"), ("G_vs_dZ", "G_s2", "delta_Z"),
@@ -104,7 +111,7 @@ def cumulative_exponent(edges, counts, lo, hi, per_packing=None, n_boot=200, see
     e = np.asarray(edges, float)[1:]
     F = np.cumsum(counts).astype(float)
     enough = np.flatnonzero(F >= MIN_COUNT)
-    if len(enough) == 0:
+    if len(enough) == 0 or e[enough[0]] > hi:
         return np.nan, np.nan, lo, hi, 0, f"fewer than {MIN_COUNT} values below {hi:g}"
     lo = max(lo, float(e[enough[0]]))
     sel = (e >= lo * (1 - 1e-12)) & (e <= hi * (1 + 1e-12)) & (F > 0)
@@ -197,9 +204,9 @@ def reduce_response(fin, g, s, dists, exponents, notes):
             rec[f"{key}_message"] = msg
         records.append(rec)
     fit_records = []
-    alpha = {str(v): float(a) for v, a in exponents.items()}
+    alphas = {str(v): float(a) for v, a in exponents.items()}
     if not records:
-        return {"cells": records, "fits": fit_records, "alpha": alpha}
+        return {"cells": records, "fits": fit_records, "exponents": [], "alpha": alphas}
     for v in sorted(set(str(x) for x in g.cv)):
         for N in sorted({int(n) for n, vv in zip(g.cN, g.cv) if str(vv) == v}):
             idx = [i for i in range(C) if str(g.cv[i]) == v and int(g.cN[i]) == N and g.n_done[i] >= s.min_packings]
@@ -225,11 +232,40 @@ def reduce_response(fin, g, s, dists, exponents, notes):
                                f"needs 3 cells with positive means and at least {MIN_EXCESS:g} excess "
                                f"contacts per packing, has {n}"))
                 fit_records.append(rec)
+    pooled = []
+    for v in sorted(set(str(x) for x in g.cv)):
+        alpha = exponents.get(v, 2.0)
+        for N in sorted({int(n) for n, vv in zip(g.cN, g.cv) if str(vv) == v}):
+            near = [i for i in range(C) if str(g.cv[i]) == v and int(g.cN[i]) == N
+                    and (alpha * g.cE[i] / 2.0) ** (1.0 / alpha) <= POOL_OVERLAP * (1 + 1e-9)]
+            rec = {"variant": v, "N_G": N, "n_cells": len(near),
+                   "E_max": float(max(g.cE[near])) if near else np.nan,
+                   "n_packings": int(sum(len(g.packings(i)) for i in near))}
+            dmax = max(((alpha * g.cE[i] / 2.0) ** (1.0 / alpha) for i in near), default=np.nan)
+            for name, key, lo, hi, conv, per in (
+                    ("gap", "gamma", GAP_WINDOW[0] * dmax, GAP_WINDOW[1], lambda b: 1 - b, gaps),
+                    ("force", "theta", 0.0, FORCE_WINDOW, lambda b: b - 1, forces.get("force", {})),
+                    ("force_extended", "theta_ext", 0.0, FORCE_WINDOW, lambda b: b - 1,
+                     forces.get("force_extended", {}))):
+                d = dists.get(name)
+                if d is None or not near:
+                    rec.update({key: np.nan, f"{key}_err": np.nan, f"{key}_lo": np.nan, f"{key}_hi": np.nan,
+                                f"{key}_points": 0, f"{key}_message": "no data"})
+                    continue
+                counts = d["counts"][near].sum(axis=0)
+                blocks = [per[i] for i in near if i in per]
+                allp = np.concatenate(blocks) if blocks else None
+                lo = max(lo, float(d["edges"][1]))
+                b, be, flo, fhi, npts, msg = cumulative_exponent(d["edges"], counts, lo, hi, allp, n_boot=n_boot,
+                                                                 seed=[s.boot_seed, 7, N])
+                rec.update({key: conv(b), f"{key}_err": be, f"{key}_lo": flo, f"{key}_hi": fhi,
+                            f"{key}_points": npts, f"{key}_message": msg})
+            pooled.append(rec)
     skipped = [r for r in fit_records if r["n_cells"] < 3 and r["message"] != "no data"]
     if skipped:
         notes.append(f"response: {len(skipped)} power-law fit(s) without enough cells (at least 3 with "
                      f"{MIN_EXCESS:g} excess contacts per packing)")
-    return {"cells": records, "fits": fit_records, "alpha": alpha}
+    return {"cells": records, "fits": fit_records, "exponents": pooled, "alpha": alphas}
 
 
 __all__ = ["reduce_response", "present", "cumulative_exponent", "power_fit", "GAP_WINDOW",
