@@ -713,47 +713,61 @@ def fig_response_moduli(red, cs, plt):
 
 def fig_response_distributions(red, cs, plt):
     """The density of states at the largest size with a full spectrum, per energy; the gap
-    distribution P(h) and the small-force distributions at the lowest energy, per size, with
-    the marginal-stability exponents of the literature as guides."""
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
+    distribution P(h) and the small-force distributions (all contacts, extended ones) per size,
+    summed over the cells closest to jamming (campaign.response.POOL_OVERLAP), with the pooled
+    exponents (response_exponents.csv) over their fit windows and the literature's as guides."""
+    from campaign.response import POOL_OVERLAP
+
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
     ax = axes[0]
-    dense = [N for N in cs.Ns if any(red.distributions.get("omega", {}).get("counts", np.zeros((0, 1)))[i].sum()
-                                     for i in cs.at(N=N))] if "omega" in red.distributions else []
-    if dense and _per_E(red, cs, plt, ax, "omega", dense[-1], positive=False):
-        ax.set(xlabel=r"$\omega/\sqrt{\langle k\rangle}$", ylabel=r"$D(\omega)$", title=rf"$N_G={dense[-1]}$")
+    om = red.distributions.get("omega")
+    dense = [N for N in cs.Ns if om is not None and any(om["counts"][i].sum() for i in cs.at(N=N))]
+    if dense and _per_E(red, cs, plt, ax, "omega", dense[-1]):
+        top = max(om["edges"][1:][om["counts"][i] > 0].max() for i in cs.at(N=dense[-1]) if om["counts"][i].any())
+        ax.set(xlabel=r"$\omega/\sqrt{\langle k\rangle}$", ylabel=r"$D(\omega)$", xlim=(0, 1.05 * top),
+               title=rf"density of states, $N_G={dense[-1]}$")
         ax.legend(fontsize=5, ncol=2)
     else:
         _placeholder(ax, "no density of states (N_G above the dense limit, or no modes)")
-    E0 = cs.lowest_E()
-    for ax, names, guide, xl in ((axes[1], ("gap",), (-0.41, r"$h^{-0.41}$"), r"$h = r/s - 1$"),
-                                 (axes[2], ("force", "force_extended"), None, r"$f/\langle f\rangle$")):
+    c = red.cells
+    near = {N: [i for i in cs.at(N=N) if (cs.alpha * c["E"][i] / 2) ** (1 / cs.alpha) <= POOL_OVERLAP * (1 + 1e-9)]
+            for N in cs.Ns}
+    pooled = {r["N_G"]: r for r in red.response.get("exponents", []) if r["variant"] == cs.v}
+    panels = ((axes[1], (("gap", "gamma", -1.0),), r"$h = r/s - 1$", r"$P(h)$", [(-0.41, r"$h^{-0.41}$", ":")],
+               1e-2),
+              (axes[2], (("force", "theta", 1.0), ("force_extended", "theta_ext", 1.0)), r"$f/\langle f\rangle$",
+               r"$P(f/\langle f\rangle)$", [(0.17, r"$f^{0.17}$", ":"), (0.42, r"$f^{0.42}$", "-.")], 1e-1))
+    for ax, names, xl, yl, guides, anchor in panels:
         shown = False
+        y_anchor = []
         for col, N in zip(_colors(len(cs.Ns)), cs.Ns):
-            for name, style in zip(names, ("-", "--")):
-                for i in cs.at(N=N, E=E0):
-                    x, y = _dist(red, name, i)
-                    if x is None:
-                        continue
-                    e = red.distributions[name]["edges"]
-                    xc = np.sqrt(e[1:] * np.maximum(e[:-1], e[1] / 10))  # geometric centres
-                    ok = y > 0
-                    if ok.any():
-                        ax.plot(xc[ok], y[ok], style, color=col, lw=0.9,
-                                label=rf"$N_G={N}$" + (" extended" if name.endswith("extended") else ""))
-                        shown = True
+            for (name, key, sign), style in zip(names, ("-", "--")):
+                d = red.distributions.get(name)
+                if d is None or not near[N]:
+                    continue
+                counts = d["counts"][near[N]].sum(axis=0)
+                e = d["edges"]
+                if counts.sum() == 0:
+                    continue
+                dens = counts / counts.sum() / np.diff(e)
+                xc = np.sqrt(e[1:] * np.maximum(e[:-1], e[1] / 10))  # geometric centres
+                ok = (dens > 0) & (e[:-1] > 0)
+                r = pooled.get(N, {})
+                lab = rf"$N_G={N}$" + (" extended" if name.endswith("extended") else "")
+                if np.isfinite(r.get(key, np.nan)):
+                    lab += rf": {sign * r[key]:+.2f}$\pm${r[f'{key}_err']:.2f}"
+                ax.plot(xc[ok], dens[ok], style, color=col, lw=0.9, label=lab)
+                y_anchor.append(np.interp(np.log(anchor), np.log(xc[ok]), dens[ok]))
+                shown = True
         if not shown:
-            _placeholder(ax, f"no {names[0]} histogram")
+            _placeholder(ax, f"no {names[0][0]} histogram near jamming")
             continue
-        ax.set(xscale="log", yscale="log", xlabel=xl, ylabel="probability density",
-               title=rf"$E_G=${_sci(E0)}")
-        lo, hi = ax.get_xlim()
-        if guide:
-            xx = np.geomspace(max(lo, 1e-9), 1e-2, 10)
-            ax.plot(xx, 0.3 * xx ** guide[0], "k:", lw=1, label=guide[1])
-        else:
-            xx = np.geomspace(max(lo, 1e-6), 0.3, 10)
-            ax.plot(xx, 0.5 * xx ** 0.17, "k:", lw=1, label=r"$f^{0.17}$")
-            ax.plot(xx, 0.5 * xx ** 0.42, "k-.", lw=1, label=r"$f^{0.42}$")
+        lo = ax.get_xlim()[0]
+        for (expo, glab, gst), ya in zip(guides, (min(y_anchor), max(y_anchor))):
+            xx = np.geomspace(max(lo, anchor * 1e-6), anchor, 10)  # through the data at the anchor
+            ax.plot(xx, ya * (xx / anchor) ** expo, "k", ls=gst, lw=1, label=glab + " (literature)")
+        ax.set(xscale="log", yscale="log", xlabel=xl, ylabel=yl,
+               title=rf"typical overlap $\leq${_sci(POOL_OVERLAP)}, exponents of the pooled fits")
         ax.legend(fontsize=5, ncol=2)
     return fig
 
