@@ -689,7 +689,8 @@ def fig_response_moduli(red, cs, plt):
     if ax.lines:
         beta = (alpha - 1.5) / (alpha - 1.0)
         ax.set_title(rf"expected $G\sim p^{{{beta:.2f}}}$, $B\sim p^{{{(alpha - 2) / (alpha - 1):.2f}}}$")
-    axes[0, 1].set_title(r"expected $G\sim\Delta Z$")
+    # G ~ k_eff Delta Z with k_eff ~ overlap^(alpha - 2) ~ Delta Z^(2 alpha - 4)
+    axes[0, 1].set_title(rf"expected $G\sim\Delta Z^{{{2 * alpha - 3:.2g}}}$")
     axes[1, 0].set_title(r"lowest non-zero frequency")
     ax = axes[1, 1]
     shown = False

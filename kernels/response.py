@@ -715,5 +715,16 @@ def modes(positions, radii, box, exponent=2.0, *, edges=None, dense_max=DENSE_MO
                             dense_max=dense_max, low_modes=low_modes)
 
 
-__all__ = ["moduli", "modes", "MODULI_KEYS", "MODES_KEYS", "GAPS_KEYS", "RESPONSE_BINS",
+def gaps(positions, radii, box, exponent=2.0, *, edges=None):
+    """``(scalars, histograms)`` of the ``gaps`` observable of a configuration (``edges``:
+    histogram name -> bin edges, default ``RESPONSE_BINS``)."""
+    from kernels.network import _rotation_core
+
+    pos, rad, b, bi, bj, dx, dy, rattler = _network(positions, radii, box)
+    offsets = _rotation_core(pos.shape[0], bi, bj, dx, dy, rattler, rad)[0]
+    e = dict(RESPONSE_BINS, **(edges or {}))
+    return gaps_from_bonds(pos, rad, b, bi, bj, dx, dy, rattler, np.diff(offsets), float(exponent), e)
+
+
+__all__ = ["moduli", "modes", "gaps", "MODULI_KEYS", "MODES_KEYS", "GAPS_KEYS", "RESPONSE_BINS",
            "DENSE_MODES_MAX", "LOW_MODES", "GAP_MAX", "MODULI_RESIDUAL", "ZERO_MODE_REL"]

@@ -437,6 +437,8 @@ def test_gaps_and_forces_against_brute_force():
     assert a.scalars["gap_min"] == pytest.approx(min(gaps), rel=1e-9)
     assert a.scalars["force_min"] == pytest.approx(f.min() / f.mean(), rel=1e-6)
     assert a.scalars["buckler_fraction"] == pytest.approx(np.mean(z[alive] == 3))
+    sg, hg = response.gaps(pos, rad, box)  # the checked wrapper: the same
+    assert sg == {k: a.scalars[k] for k in sg} and all(np.array_equal(hg[k], a.histograms[k]) for k in hg)
     assert e["gap"][0] == 0 and e["gap"][1] == 1e-16 and e["gap"][-1] == 1.0
 
 
