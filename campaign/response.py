@@ -261,6 +261,11 @@ def reduce_response(fin, g, s, dists, exponents, notes):
                 rec.update({key: conv(b), f"{key}_err": be, f"{key}_lo": flo, f"{key}_hi": fhi,
                             f"{key}_points": npts, f"{key}_message": msg})
             pooled.append(rec)
+    dense = fin.scalars.get("modes_dense")
+    if dense is not None and np.any(dense == 0):
+        sizes = sorted({int(n) for n in g.cN[g.cell[dense == 0]]})
+        notes.append(f"response: {int(np.sum(dense == 0))} packing(s) above the dense limit of the modes "
+                     f"(N_G = {', '.join(map(str, sizes))}): lowest modes only, no density of states")
     skipped = [r for r in fit_records if r["n_cells"] < 3 and r["message"] != "no data"]
     if skipped:
         notes.append(f"response: {len(skipped)} power-law fit(s) without enough cells (at least 3 with "
