@@ -713,7 +713,7 @@ def fig_response_moduli(red, cs, plt):
 
 
 def fig_response_distributions(red, cs, plt):
-    """The density of states at the largest size with a full spectrum, per energy; the gap
+    """The density of states per energy at the size with full spectra at the most energies; the gap
     distribution P(h) and the small-force distributions (all contacts, extended ones) per size,
     summed over the cells closest to jamming (campaign.response.POOL_OVERLAP), with the pooled
     exponents (response_exponents.csv) over their fit windows and the literature's as guides."""
@@ -722,7 +722,10 @@ def fig_response_distributions(red, cs, plt):
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
     ax = axes[0]
     om = red.distributions.get("omega")
-    dense = [N for N in cs.Ns if om is not None and any(om["counts"][i].sum() for i in cs.at(N=N))]
+    # the size with full spectra at the most energies (the larger one on a tie)
+    ncells = {N: sum(bool(om["counts"][i].sum()) for i in cs.at(N=N)) for N in cs.Ns} if om is not None else {}
+    dense = sorted((n, N) for N, n in ncells.items() if n)
+    dense = [N for _, N in dense]
     if dense and _per_E(red, cs, plt, ax, "omega", dense[-1]):
         top = max(om["edges"][1:][om["counts"][i] > 0].max() for i in cs.at(N=dense[-1]) if om["counts"][i].any())
         ax.set(xlabel=r"$\omega/\sqrt{\langle k\rangle}$", ylabel=r"$D(\omega)$", xlim=(0, 1.05 * top),

@@ -473,3 +473,20 @@ def test_the_three_solves_at_once_are_three_solves():
     x = response._solve3_core(sym.perm, sym.sup_first, sym.upd_ptr, sym.upd_rows, sym.l_ptr, lval, b)
     for c in range(3):
         assert np.array_equal(x[:, c], sparse.solve(sym, lval, b[:, c].copy()))
+
+
+def test_campaign_analyze_reports_the_response(tmp_path, capsys):
+    import json
+
+    from campaign.cli import main as cli_main
+
+    p = jammed(64, 1e-6, 1)
+    np.savez(tmp_path / "p.npz", positions=p.positions, radii=p.radii, box=p.box)
+    assert cli_main(["analyze", str(tmp_path / "p.npz"), "--observables", "moduli,modes,gaps", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    ref = response.moduli(p.positions, p.radii, p.box)
+    assert out["G"] == ref["G"] and out["moduli_ok"] is True and out["n_zero_modes"] == 2
+    assert set(out["histograms"]) == {"omega", "gap", "force", "force_extended"}
+    assert sum(out["histograms"]["omega"]["counts"]) == 2 * out["N_G"] - 2
+    assert cli_main(["analyze", str(tmp_path / "p.npz"), "--observables", "all", "--json"]) == 0
+    assert "c66" in json.loads(capsys.readouterr().out)
