@@ -621,6 +621,166 @@ def fig_exponents_vs_alpha(red, plt):
     return fig
 
 
+# --------------------------------------------------------------------------- linear response
+def _resp_cells(red, v):
+    """The response records of variant ``v`` (campaign.response), as column arrays."""
+    recs = [r for r in red.response.get("cells", []) if r["variant"] == v]
+    keys = recs[0].keys() if recs else ()
+    return {k: np.array([r.get(k, np.nan) for r in recs]) for k in keys if k not in ("variant",)
+            and not k.endswith("_message")}
+
+
+def _resp_fit(red, v, N, name):
+    return next((f for f in red.response.get("fits", []) if f["variant"] == v and f["N_G"] == N
+                 and f["fit"] == name), None)
+
+
+def _alpha_of(red, v):
+    """The variant's potential exponent (kept by campaign.response for the guide lines)."""
+    return float(red.response.get("alpha", {}).get(v, 2.0))
+
+
+def fig_response_moduli(red, cs, plt):
+    """G and B against p, G against Delta Z, omega_min against Delta Z (dimensionless: lengths
+    in the mean contact distance s, frequencies in sqrt(<k>)), with the fitted power laws
+    (solid over the fitted cells); the fraction of packings with G < 0 (and c_min < 0) against
+    the finite-size scaling variable p s^2 N^2."""
+    fig, axes = plt.subplots(2, 2, figsize=(9, 7))
+    c = _resp_cells(red, cs.v)
+    alpha = cs.alpha
+    if not c:
+        for ax in axes.ravel():
+            _placeholder(ax, "no response data")
+        return fig
+    cols = _colors(len(cs.Ns))
+    panels = ((axes[0, 0], "p_s2", "G_s2", "G_vs_p", r"$p\,s^2$", r"$G\,s^2$ (filled), $B\,s^2$ (open)"),
+              (axes[0, 1], "delta_Z", "G_s2", "G_vs_dZ", r"$\Delta Z$", r"$G\,s^2$"),
+              (axes[1, 0], "delta_Z", "omega_min_scaled", "omega_min_vs_dZ", r"$\Delta Z$",
+               r"$\omega_{\min}/\sqrt{\langle k\rangle}$"))
+    for ax, xk, yk, fname, xl, yl in panels:
+        shown = False
+        for col, N in zip(cols, cs.Ns):
+            m = c["N"] == N
+            x, y, ye = c[f"mean_{xk}"][m], c[f"mean_{yk}"][m], c[f"sem_{yk}"][m]
+            ok = (x > 0) & (y > 0)
+            f = _resp_fit(red, cs.v, N, fname)
+            lab = rf"$N_G={N}$"
+            if f and np.isfinite(f["exponent"]):
+                lab += rf": $\beta={f['exponent']:.2f}\pm{f['exponent_err']:.2f}$"
+            ax.errorbar(x[ok], y[ok], ye[ok], fmt="o", ms=3, color=col, label=lab)
+            if yk == "G_s2":
+                xb, yb = c["mean_p_s2"][m] if xk == "p_s2" else x, c["mean_B_s2"][m]
+                okb = (xb > 0) & (yb > 0)
+                if xk == "p_s2":
+                    ax.plot(xb[okb], yb[okb], "o", ms=3, mfc="none", color=col)
+            if f and np.isfinite(f["exponent"]):
+                sel = ok & (c["E"][m] >= f["E_min"] * (1 - 1e-9)) & (c["E"][m] <= f["E_max"] * (1 + 1e-9))
+                if sel.any():
+                    xx = np.geomspace(x[sel].min(), x[sel].max(), 20)
+                    ax.plot(xx, f["prefactor"] * xx ** f["exponent"], color=col, lw=0.8)
+            shown = shown or ok.any()
+        if not shown:
+            _placeholder(ax, "no positive means")
+            continue
+        ax.set(xscale="log", yscale="log", xlabel=xl, ylabel=yl)
+        ax.legend(fontsize=6)
+    # literature guides: G ~ p^((alpha - 3/2)/(alpha - 1)) ~ Delta Z (O'Hern et al. 2003)
+    ax = axes[0, 0]
+    if ax.lines:
+        beta = (alpha - 1.5) / (alpha - 1.0)
+        ax.set_title(rf"expected $G\sim p^{{{beta:.2f}}}$, $B\sim p^{{{(alpha - 2) / (alpha - 1):.2f}}}$")
+    # G ~ k_eff Delta Z with k_eff ~ overlap^(alpha - 2) ~ Delta Z^(2 alpha - 4)
+    axes[0, 1].set_title(rf"expected $G\sim\Delta Z^{{{2 * alpha - 3:.2g}}}$")
+    axes[1, 0].set_title(r"lowest non-zero frequency")
+    ax = axes[1, 1]
+    shown = False
+    for col, N in zip(cols, cs.Ns):
+        m = c["N"] == N
+        x = c["mean_p_s2"][m] * N**2
+        ok = np.isfinite(c["frac_G_negative"][m]) & (x > 0)
+        if ok.any():
+            ax.errorbar(x[ok], c["frac_G_negative"][m][ok], c["frac_G_negative_err"][m][ok], fmt="o-", ms=3,
+                        lw=0.6, color=col, label=rf"$N_G={N}$, $G<0$")
+            ax.plot(x[ok], c["frac_c_min_negative"][m][ok], "s:", ms=3, mfc="none", lw=0.6, color=col)
+            shown = True
+    if shown:
+        ax.set(xscale="log", xlabel=r"$p\,s^2 N^2$", ylabel="fraction of packings",
+               title=r"$G<0$ (filled), $c_{\min}<0$ (open)")
+        ax.legend(fontsize=6)
+    else:
+        _placeholder(ax, "no moduli")
+    return fig
+
+
+def fig_response_distributions(red, cs, plt):
+    """The density of states per energy at the size with full spectra at the most energies; the gap
+    distribution P(h) and the small-force distributions (all contacts, extended ones) per size,
+    summed over the cells closest to jamming (campaign.response.POOL_OVERLAP), with the pooled
+    exponents (response_exponents.csv) over their fit windows and the literature's as guides."""
+    from campaign.response import POOL_OVERLAP
+
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
+    ax = axes[0]
+    om = red.distributions.get("omega")
+    # the size with full spectra at the most energies (the larger one on a tie)
+    ncells = {N: sum(bool(om["counts"][i].sum()) for i in cs.at(N=N)) for N in cs.Ns} if om is not None else {}
+    dense = sorted((n, N) for N, n in ncells.items() if n)
+    dense = [N for _, N in dense]
+    if dense and _per_E(red, cs, plt, ax, "omega", dense[-1]):
+        top = max(om["edges"][1:][om["counts"][i] > 0].max() for i in cs.at(N=dense[-1]) if om["counts"][i].any())
+        ax.set(xlabel=r"$\omega/\sqrt{\langle k\rangle}$", ylabel=r"$D(\omega)$", xlim=(0, 1.05 * top),
+               title=rf"density of states, $N_G={dense[-1]}$")
+        ax.legend(fontsize=5, ncol=2)
+    else:
+        _placeholder(ax, "no density of states (N_G above the dense limit, or no modes)")
+    c = red.cells
+    near = {N: [i for i in cs.at(N=N) if (cs.alpha * c["E"][i] / 2) ** (1 / cs.alpha) <= POOL_OVERLAP * (1 + 1e-9)]
+            for N in cs.Ns}
+    pooled = {r["N_G"]: r for r in red.response.get("exponents", []) if r["variant"] == cs.v}
+    panels = ((axes[1], (("gap", "gamma", -1.0),), r"$h = r/s - 1$", r"$P(h)$", [(-0.41, r"$h^{-0.41}$", ":")],
+               1e-2),
+              (axes[2], (("force", "theta", 1.0), ("force_extended", "theta_ext", 1.0)), r"$f/\langle f\rangle$",
+               r"$P(f/\langle f\rangle)$", [(0.17, r"$f^{0.17}$", ":"), (0.42, r"$f^{0.42}$", "-.")], 1e-1))
+    for ax, names, xl, yl, guides, anchor in panels:
+        shown = False
+        y_anchor = []
+        for col, N in zip(_colors(len(cs.Ns)), cs.Ns):
+            for (name, key, sign), style in zip(names, ("-", "--")):
+                d = red.distributions.get(name)
+                if d is None or not near[N]:
+                    continue
+                counts = d["counts"][near[N]].sum(axis=0)
+                e = d["edges"]
+                if counts.sum() == 0:
+                    continue
+                dens = counts / counts.sum() / np.diff(e)
+                xc = np.sqrt(e[1:] * np.maximum(e[:-1], e[1] / 10))  # geometric centres
+                ok = (dens > 0) & (e[:-1] > 0)
+                r = pooled.get(N, {})
+                lab = rf"$N_G={N}$" + (" extended" if name.endswith("extended") else "")
+                if np.isfinite(r.get(key, np.nan)):
+                    lab += rf": {sign * r[key]:+.2f}$\pm${r[f'{key}_err']:.2f}"
+                ax.plot(xc[ok], dens[ok], style, color=col, lw=0.9, label=lab)
+                y_anchor.append(np.interp(np.log(anchor), np.log(xc[ok]), dens[ok]))
+                shown = True
+        if not shown:
+            _placeholder(ax, f"no {names[0][0]} histogram near jamming")
+            continue
+        lo = ax.get_xlim()[0]
+        for (expo, glab, gst), ya in zip(guides, (min(y_anchor), max(y_anchor))):
+            xx = np.geomspace(max(lo, anchor * 1e-6), anchor, 10)  # through the data at the anchor
+            ax.plot(xx, ya * (xx / anchor) ** expo, "k", ls=gst, lw=1, label=glab + " (literature)")
+        ax.set(xscale="log", yscale="log", xlabel=xl, ylabel=yl,
+               title=rf"typical overlap $\leq${_sci(POOL_OVERLAP)}, exponents of the pooled fits")
+        ax.legend(fontsize=5, ncol=2)
+    return fig
+
+
+#: per-variant figures of the linear response, drawn when the store holds it
+RESPONSE_FIGURES = {"response_moduli": fig_response_moduli,
+                    "response_distributions": fig_response_distributions}
+
+
 SYSTEM_FIGURES = {"universality": fig_universality, "exponents_vs_alpha": fig_exponents_vs_alpha}
 #: per-variant figures drawn from the scaling fits: their title names the fit range or rule
 FIT_FIGURES = ("scaling_A_G", "scaling_psi_O", "fit_residuals", "extrapolation")
@@ -637,7 +797,9 @@ def make_figures(red, out_dir, *, dpi=90):
     for v in variants:
         cs = _Cells(red, v)
         suffix = "" if len(variants) == 1 else f"_{v}"
-        for name, fn in FIGURES.items():
+        cs.alpha = _alpha_of(red, v)
+        figures = dict(FIGURES, **(RESPONSE_FIGURES if red.response else {}))
+        for name, fn in figures.items():
             fig = fn(red, cs, plt)
             title = [f"variant {v}"] if len(variants) > 1 else []
             if name in FIT_FIGURES:  # the range or rule the fits drawn come from

@@ -36,8 +36,9 @@ FITS = (
 #: Keys of a table row (each also with ``<key>_err``); the first five are the paper's.
 TABLE_KEYS = ("A_G_star_E", "beta_E", "A_G_star_Z", "beta_Z", "psi_O_star",
               "psi_O_star_Z", "psi_beta_E", "psi_beta_Z")
-#: Histograms whose self-averaging is tested (radial pair counts are not per-object variables).
-SELF_AVERAGING_SKIP = ("radial_grains", "radial_contacts")
+#: Histograms whose self-averaging is not tested: radial pair counts are not per-object
+#: variables; gaps and forces are counted on log-spaced bins for their small-value tails.
+SELF_AVERAGING_SKIP = ("radial_grains", "radial_contacts", "gap", "force", "force_extended")
 
 
 @dataclass
@@ -381,6 +382,7 @@ class Reduction:
     meta: dict
     variants: list = field(default_factory=list)  # campaign.tradeoff records, one per variant
     systems: list = field(default_factory=list)   # campaign.systems records, with two systems or more
+    response: dict = field(default_factory=dict)  # campaign.response: {"cells", "fits"} records
 
     def fit_rule(self) -> dict:
         """Which cells the scaling fits use: the range's name and sentence, whether it is the
@@ -405,6 +407,7 @@ class Reduction:
 
         return clean({"fit_rule": self.fit_rule(), "rows": self.rows, "extrapolated": self.extrapolated,
                       "variants": self.variants, "systems": self.systems,
+                      **({"response": self.response} if self.response else {}),
                       "status": {k: self.meta[k] for k in ("done", "pending", "failed", "total")},
                       "notes": self.notes})
 
@@ -789,6 +792,10 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                                         seed=s.boot_seed, usable=good[pick])
     notes += vnotes
     systems = sysmod.compare(rows, extrapolated, vsys, reference=s.reference)
+    from campaign import response as respmod
+
+    resp = (respmod.reduce_response(fin, g, s, dists, {v: d["exponent"] for v, d in vsys.items()}, notes)
+            if respmod.present(fin) else {})
     for rec in variants + systems:  # their exponents and A_G* come from the scaling fits
         rec["fit_rule"] = fit_rule_name(s)
     meta = {"sources": fin.paths, "done": int(len(fin)), "excluded": int(g.n_excluded.sum()),
@@ -805,7 +812,7 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                      area_hist=area_hist, fits=fit_records, residuals=residuals,
                      width_scaling=width, rows=rows, extrapolated=extrapolated,
                      peaks={v: three_disk_peaks(vsys[v]) for v in sorted(set(g.cv))},
-                     notes=notes, meta=meta, variants=variants, systems=systems)
+                     notes=notes, meta=meta, variants=variants, systems=systems, response=resp)
 
 
 # =========================================================================== tables
@@ -984,6 +991,11 @@ def write_reduced(red: Reduction, h5path, *, mode="w"):
             _write_columns(g.create_group("variants"), red.variants)
         if red.systems:
             _write_columns(g.create_group("systems"), red.systems)
+        if red.response:
+            rg = g.create_group("response")
+            for key in ("cells", "fits", "exponents"):
+                if red.response.get(key):
+                    _write_columns(rg.create_group(key), red.response[key])
 
 
 def write_outputs(red: Reduction, out_dir, *, write_h5=True):
@@ -997,6 +1009,10 @@ def write_outputs(red: Reduction, out_dir, *, write_h5=True):
         "variants.csv": records_csv(red.variants),
         "summary.json": json.dumps(red.to_json(), indent=1) + "\n",
     }
+    if red.response:
+        files["response_cells.csv"] = records_csv(red.response.get("cells", []))
+        files["response_fits.csv"] = records_csv(red.response.get("fits", []))
+        files["response_exponents.csv"] = records_csv(red.response.get("exponents", []))
     if red.systems:
         from campaign import systems
 

@@ -30,6 +30,7 @@ from kernels.network import (
     _rattlers_core,
     _rotation_core,
 )
+from kernels.names import DEFAULT_OBSERVABLES
 from kernels.observables import (
     HISTOGRAMS,
     OBSERVABLES,
@@ -39,6 +40,7 @@ from kernels.observables import (
     check_edges,
     is_uniform,
 )
+from kernels.response import RESPONSE_BINS, gaps_from_bonds, moduli_from_bonds, modes_from_bonds
 from kernels.triangulate import _triangulate_faces_core
 
 
@@ -57,6 +59,11 @@ DEFAULT_BINS = {
     "fictitious_length": np.linspace(0.0, 3.0, 301),
     "radial_grains": np.linspace(0.0, 8.0, 401),
     "radial_contacts": np.linspace(0.0, 6.0, 301),
+    # linear response (kernels.response): omega / sqrt(<k>), log-spaced gaps and forces
+    "omega": RESPONSE_BINS["omega"].copy(),
+    "gap": RESPONSE_BINS["gap"].copy(),
+    "force": RESPONSE_BINS["force"].copy(),
+    "force_extended": RESPONSE_BINS["force_extended"].copy(),
 }
 for _e in DEFAULT_BINS.values():
     _e.setflags(write=False)
@@ -129,7 +136,7 @@ class Analysis:
 
 def _check_observables(observables):
     if observables is None:
-        return tuple(OBSERVABLES)
+        return tuple(DEFAULT_OBSERVABLES)
     if isinstance(observables, str):
         observables = (observables,)
     names = []
@@ -195,7 +202,9 @@ def analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0,
     positions : (n, 2) centres (need not be wrapped into the box)
     radii : (n,) positive radii
     box : (Lx, Ly) periodic box sides
-    observables : names from ``OBSERVABLES`` (None: all); scalars are always computed
+    observables : names from ``OBSERVABLES`` (None: every contact-network observable,
+        ``DEFAULT_OBSERVABLES``; the linear-response ones, ``moduli``, ``modes`` and ``gaps``,
+        only when named); scalars are always computed
     bins : mapping histogram name -> increasing edges (missing: ``DEFAULT_BINS``)
     exponent : alpha of the pair potential (1/alpha)(1 - r/s)^alpha, for E_G and pressure
     species : optional (n,) integer labels (checked; not needed by the analysis)
@@ -351,6 +360,18 @@ def analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0,
         pts, ga, gb = _contact_points_core(src, dst, twin, hdx, hdy, frac, pos)
         _radial_core(pts, cls[ga], cls[gb], scales, b, e, is_uniform(e), c)
         histograms["radial_contacts"] = c
+
+    # --- linear response (kernels.response): the non-rattler network's Hessian and forces
+    if "moduli" in names:
+        scalars.update(moduli_from_bonds(pos, rad, b, bi, bj, dx, dy, rattler, alpha))
+    if "modes" in names:
+        sm, histograms["omega"] = modes_from_bonds(pos, rad, b, bi, bj, dx, dy, rattler, alpha,
+                                                   edges["omega"])
+        scalars.update(sm)
+    if "gaps" in names:
+        sg, hg = gaps_from_bonds(pos, rad, b, bi, bj, dx, dy, rattler, z_g, alpha, edges)
+        scalars.update(sg)
+        histograms.update(hg)
 
     contacts = np.stack([bi, bj], axis=1) if bi.size else np.empty((0, 2), dtype=np.int64)
     return Analysis(

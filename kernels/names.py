@@ -16,8 +16,17 @@ OBSERVABLES = {
     "fictitious": ("fictitious_length",),
     "radial_grains": ("radial_grains",),
     "radial_contacts": ("radial_contacts",),
+    # linear response (kernels.response, docs/RESPONSE.md): computed only when named
+    "moduli": (),
+    "modes": ("omega",),
+    "gaps": ("gap", "force", "force_extended"),
 }
 HISTOGRAMS = tuple(h for names in OBSERVABLES.values() for h in names)
+#: The linear-response observables: they cost more than the contact network's (a sparse
+#: factorisation, a spectrum) and are computed only when asked for by name.
+RESPONSE_OBSERVABLES = ("moduli", "modes", "gaps")
+#: What ``kernels.analyze(observables=None)`` computes: every contact-network observable.
+DEFAULT_OBSERVABLES = tuple(o for o in OBSERVABLES if o not in RESPONSE_OBSERVABLES)
 
 #: Continuous size distributions (``kernels.jam(..., sizes=(name, polydispersity))``): relative
 #: radii of mean 1 and standard deviation ``polydispersity``, drawn per disk from the task's stream.

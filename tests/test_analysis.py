@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 import kernels
 import kernels.analysis as analysis_module
 from kernels.analysis import DEFAULT_BINS, IDENTITY_KEYS, SCALAR_KEYS, analyze
+from kernels.names import DEFAULT_OBSERVABLES
 from kernels.observables import OBSERVABLES, histogram
 from test_network import (
     _three_disks,
@@ -500,7 +501,9 @@ def test_result_keys_and_types():
         assert counts.dtype == np.int64 and counts.size == res.bin_edges[name].size - 1
         assert np.array_equal(res.bin_edges[name], DEFAULT_BINS[name])
         assert np.all(np.diff(DEFAULT_BINS[name]) > 0) and not DEFAULT_BINS[name].flags.writeable
-    assert set(res.histograms) == {h for hs in OBSERVABLES.values() for h in hs}
+    # the default: every contact-network observable (the linear response only when named)
+    assert set(res.histograms) == {h for o in DEFAULT_OBSERVABLES for h in OBSERVABLES[o]}
+    assert set(DEFAULT_OBSERVABLES) == set(OBSERVABLES) - {"moduli", "modes", "gaps"}
     assert res.contacts.shape[1] == 2 and np.all(res.contacts[:, 0] < res.contacts[:, 1])
     keys = res.contacts[:, 0] * len(rad) + res.contacts[:, 1]
     assert np.all(np.diff(keys) > 0)

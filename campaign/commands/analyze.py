@@ -44,7 +44,8 @@ def configure(parser):
                              "pressure (default: the frame's, in files written by 'campaign export', "
                              "else 2, harmonic)")
     parser.add_argument("--observables", default="scalars",
-                        help="comma-separated observable names, or 'all' (default: scalars); "
+                        help="comma-separated observable names (the contact network's, and moduli, "
+                             "modes, gaps: the linear response), or 'all' (default: scalars); "
                              "histograms are included in the JSON output")
 
 
@@ -68,7 +69,7 @@ def main(args) -> int:
     from kernels.observables import OBSERVABLES
 
     if args.observables.strip() == "all":
-        names = None
+        names = list(OBSERVABLES)  # the linear-response ones too
     else:
         names = [s.strip() for s in args.observables.split(",") if s.strip()]
         unknown = [s for s in names if s not in OBSERVABLES]
