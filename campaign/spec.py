@@ -32,7 +32,8 @@ from typing import Any
 import yaml
 
 from campaign.errors import UserError
-from kernels.names import HISTOGRAMS, MAX_POLYDISPERSITY, OBSERVABLES, SIZE_DISTRIBUTIONS  # noqa: F401 - re-exported
+from kernels.names import (DEFAULT_OBSERVABLES, HISTOGRAMS, MAX_POLYDISPERSITY, OBSERVABLES,  # noqa: F401 - re-exported
+                           SIZE_DISTRIBUTIONS)
 
 #: protocol keys a spec may set (forwarded to ``kernels.jam`` as keyword arguments)
 PROTOCOL_DEFAULTS = {"window": 0.1, "force_tolerance": 1e-6}
@@ -369,7 +370,7 @@ def parse_spec(text: str, source: str = "<spec>") -> Spec:
     N, E, seeds = _grid(c, top.get("grid"), ("grid",)) if "grid" in top else ((), (), ())
     base = _protocol(c, top.get("protocol", {}), ("protocol",), allow=PROTOCOL_KEYS)
     variants = _variants(c, top.get("variants", []), ("variants",), base, system, E)
-    observables = _observables(c, top.get("observables", list(OBSERVABLES)), ("observables",))
+    observables = _observables(c, top.get("observables", list(DEFAULT_OBSERVABLES)), ("observables",))
     bins = _bins(c, top.get("bins", {}), ("bins",), observables)
     configurations = False
     if "store" in top:

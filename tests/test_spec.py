@@ -60,7 +60,7 @@ def test_minimal_spec_defaults():
     assert s.N == (16, 32) and s.E == (1e-6, 1e-3) and s.seeds == (0, 1, 2)
     assert [v.name for v in s.variants] == ["default"]
     assert s.variants[0].protocol_dict == {"window": 0.1, "force_tolerance": 1e-6}
-    assert s.observables == tuple(OBSERVABLES)
+    assert s.observables == DEFAULT_OBSERVABLES
     assert s.system.box == (1.0, 1.0) and s.system.exponent == 2.0
     assert [(x.name, x.fraction, x.radius) for x in s.system.species] == [("A", 0.5, 1.4), ("B", 0.5, 1.0)]
     assert s.output == "results/t.h5" and s.retries == 2 and s.configurations is False
