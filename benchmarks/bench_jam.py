@@ -18,7 +18,10 @@ For each N (default 256, 1024, 4096):
   (same N, E, seed, one after the other, so that both see the same machine load) and
   a second table gives the ratios of the medians, CG / FIRE. ``paper`` is the paper's
   literal protocol: CG stopped by the energy-change rule, Delta halved after every
-  minimisation (``MINIMIZERS``).
+  minimisation (``MINIMIZERS``). ``newton`` is FIRE with the sparse Newton endgame
+  (``endgame="newton"``, ``kernels.newton``): its rows add the factorisations and where
+  the time goes (the force evaluations at the per-evaluation cost FIRE paid on the same
+  seed, the rest being Hessian assembly, ordering, factorisation and solves).
 
 With ``--routes ohern pressure`` the time to jam is measured for each route of
 ``kernels.jam`` (``route=...``, see ``kernels.barostat``) side by side, seed by seed, and
@@ -35,6 +38,8 @@ one thread, numba kernels are serial anyway).
     python benchmarks/bench_jam.py --sizes 256 1024 --energies 1e-6 --seeds 2   # quick
     python benchmarks/bench_jam.py --no-steps --sizes 256 1024 --energies 1e-6 1e-12 1e-16 \
         --seeds 5 --minimizers fire cg paper                                    # docs/MINIMIZERS.md
+    python benchmarks/bench_jam.py --no-steps --sizes 256 1024 4096 --energies 1e-6 1e-12 1e-16 \
+        --seeds 5 --minimizers fire newton --json newton.json                   # docs/NEWTON.md
     python benchmarks/bench_jam.py --no-jax --sizes 1024 --energies 1e-16 --steps 10 \
         --routes ohern pressure --seeds 20 --json routes.json                   # docs/PRESSURE_ROUTE.md
 """
@@ -166,6 +171,7 @@ MINIMIZERS = {
     "fire": {},
     "cg": {"minimizer": "cg"},
     "paper": {"minimizer": "cg", "stop": "energy", "search": "paper"},
+    "newton": {"endgame": "newton"},
 }
 
 
@@ -177,7 +183,8 @@ def _jam_time(n, e, seed, **settings):
     wall = time.perf_counter() - t
     return dict(seconds=wall, status=p.status, energy=p.energy, phi=p.phi,
                 force_residual=p.force_residual, iterations=p.iterations,
-                force_evaluations=p.force_evaluations, n_nonrattlers=p.n_nonrattlers)
+                force_evaluations=p.force_evaluations, n_nonrattlers=p.n_nonrattlers,
+                factorizations=p.factorizations)
 
 
 def _profile(n, e, seed, **settings):
@@ -220,7 +227,7 @@ def main(argv=None):
     ap.add_argument("--no-jam", action="store_true", help="skip the time-to-jam part")
     ap.add_argument("--no-steps", action="store_true", help="skip the per-step cost part")
     ap.add_argument("--minimizers", nargs="+", default=["fire"], choices=sorted(MINIMIZERS),
-                    help="jam with each of these (fire, cg, paper); ratios to the first")
+                    help="jam with each of these (fire, cg, paper, newton); ratios to the first")
     ap.add_argument("--routes", nargs="+", default=["ohern"], choices=["ohern", "pressure"],
                     help="routes of kernels.jam to time side by side (ratios to the first)")
     ap.add_argument("--profile", action="store_true",
@@ -303,6 +310,18 @@ def main(argv=None):
                     row["force_evaluation_ratio"] = (row["median_force_evaluations"]
                                                      / base["median_force_evaluations"])
                     row["time_ratio"] = row["median_seconds"] / base["median_seconds"]
+                    row["median_factorizations"] = statistics.median(r["factorizations"] for r in rr)
+                    if kw.get("endgame") == "newton" and base is not row:
+                        # where the time goes: the force evaluations at the cost per evaluation
+                        # the first variant paid on the same seed, and everything else (Hessian
+                        # assembly, ordering, factorisation, solves)
+                        forces = [r["force_evaluations"] * b["seconds"] / b["force_evaluations"]
+                                  for r, b in zip(rr, base["runs"])]
+                        row["median_force_seconds"] = statistics.median(forces)
+                        row["median_linear_algebra_seconds"] = statistics.median(
+                            r["seconds"] - f for r, f in zip(rr, forces))
+                        row["median_seed_time_ratio"] = statistics.median(
+                            r["seconds"] / b["seconds"] for r, b in zip(rr, base["runs"]))
                     if args.profile:
                         prof = [_profile(n, e, seed, force_tolerance=tol, **kw) for seed in seeds]
                         row["profile"] = prof
@@ -315,7 +334,9 @@ def main(argv=None):
                     results["time_to_jam"].append(row)
                     print(f"jam N={n} E={e:g} tol={tol:g} {label}: median {row['median_seconds']:.2f} s, "
                           f"{row['median_force_evaluations']:.0f} force evaluations, "
-                          f"{row['converged']}/{len(rr)} converged", flush=True)
+                          f"{row['converged']}/{len(rr)} converged"
+                          + (f", {row['median_factorizations']:.0f} factorisations"
+                             if row["median_factorizations"] else ""), flush=True)
 
     if results["step_cost"]:
         print()
@@ -337,6 +358,16 @@ def main(argv=None):
                   f"{r['force_evaluation_ratio']:.2f} / {r['time_ratio']:.2f} | "
                   f"{r['median_iterations']:.0f} | {r['median_residual']:.2g} | "
                   f"{r['converged']}/{len(r['runs'])} |")
+    split = [r for r in results["time_to_jam"] if "median_force_seconds" in r]
+    if split:
+        print()
+        print("| N | E | variant | median time (s) | median of the per-seed time ratios | "
+              "median factorisations | force evaluations (s, est.) | linear algebra (s, est.) |")
+        print("|---:|---:|---|---:|---:|---:|---:|---:|")
+        for r in split:
+            print(f"| {r['n']} | {r['energy']:g} | {r['variant']} | {r['median_seconds']:.2f} | "
+                  f"{r['median_seed_time_ratio']:.2f} | {r['median_factorizations']:.0f} | "
+                  f"{r['median_force_seconds']:.2f} | {r['median_linear_algebra_seconds']:.2f} |")
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(results, fh, indent=2)

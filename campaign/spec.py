@@ -38,8 +38,12 @@ from kernels.names import (DEFAULT_OBSERVABLES, HISTOGRAMS, MAX_POLYDISPERSITY, 
 #: protocol keys a spec may set (forwarded to ``kernels.jam`` as keyword arguments)
 PROTOCOL_DEFAULTS = {"window": 0.1, "force_tolerance": 1e-6}
 PROTOCOL_KEYS = ("window", "force_tolerance", "search_tolerance", "phi_start", "max_search", "max_steps",
-                 "minimizer", "search", "delta", "skin", "start", "stop", "energy_tolerance", "route")
+                 "minimizer", "search", "delta", "skin", "start", "stop", "energy_tolerance", "route",
+                 "endgame")
 MINIMIZERS = ("fire", "cg")
+#: how each minimisation of the O'Hern search ends (``kernels.protocol.ENDGAME_NAMES``): FIRE
+#: alone ("none", the default) or FIRE handing over to sparse Newton steps (``kernels.newton``)
+ENDGAMES = ("none", "newton")
 SEARCH_RULES = ("secant", "halving", "paper")
 #: what ends a minimisation: the force residual, or (cg only) the paper's energy-change rule
 STOPS = ("force", "energy")
@@ -578,7 +582,7 @@ def _protocol(c, value, path, allow, base=None):
     }
     choices = {"search": ("search rule", SEARCH_RULES), "start": ("start", STARTS),
                "minimizer": ("minimizer", MINIMIZERS), "stop": ("stop rule", STOPS),
-               "route": ("route", ROUTES)}
+               "route": ("route", ROUTES), "endgame": ("endgame", ENDGAMES)}
     for k, v in m.items():
         if k in checks:
             x = c.number(v, path + (k,), **checks[k])
@@ -605,6 +609,14 @@ def _protocol(c, value, path, allow, base=None):
         del out["energy_tolerance"]  # inherited by a variant that stops on forces: unused
     if out.get("route") == "ohern":
         del out["route"]  # the default route: its packings keep their ids
+    if out.get("endgame") == "none":
+        del out["endgame"]  # the default: packings keep their ids
+    if out.get("endgame") == "newton" and (out.get("minimizer", "fire") != "fire" or "stop" in out
+                                           or "route" in out):
+        c.err(path + ("endgame",), "endgame 'newton' finishes the FIRE minimisations of the O'Hern "
+                                   "search: it needs minimizer 'fire', stop 'force' and route 'ohern', "
+                                   f"got minimizer {out.get('minimizer', 'fire')!r}, stop "
+                                   f"{out.get('stop', 'force')!r}, route {out.get('route', 'ohern')!r}")
     if out.get("route") == "pressure" and (out.get("minimizer", "fire") != "fire" or "stop" in out):
         c.err(path + ("route",), "route 'pressure' relaxes with FIRE and stops on the force residual: it "
                                  f"needs minimizer 'fire' and stop 'force', got minimizer "

@@ -89,6 +89,8 @@ class KernelTask:
                        force_evaluations=float(p.force_evaluations),
                        jam_status=float(getattr(p, "status_code", JAM_STATUS.get(str(p.status), 9))),
                        sigma_max=float(np.max(p.radii)), jam_seconds=t1 - t0, analyze_seconds=t2 - t1)
+        if protocol.get("endgame", "none") != "none":
+            scalars["factorizations"] = float(p.factorizations)  # the Newton endgame's sparse Cholesky
         for name in ("energy_nonrattler", "pressure", "phi"):
             if name not in scalars and hasattr(p, name):
                 scalars[name] = float(getattr(p, name))

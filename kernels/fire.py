@@ -112,11 +112,18 @@ def _residual_core(positions, radii, box, pi, pj, alpha, forces):
     the residual is taken over all disks and all contacts; with no contact at all it
     is 0.
     """
+    res, ng, mean, alive = _residual_alive(positions, radii, box, pi, pj, alpha, forces)
+    return res, ng, mean
+
+
+@njit(cache=True)
+def _residual_alive(positions, radii, box, pi, pj, alpha, forces):
+    """``_residual_core`` and the non-rattler mask it used (all False without contacts)."""
     n = positions.shape[0]
     _energy_forces_core(positions, box, pi, pj, _pair_inv_sigma(radii, pi, pj), alpha, forces)
     ci, cj, cdx, cdy = _contacts_core(positions, radii, box, pi, pj)
     if ci.shape[0] == 0:
-        return 0.0, 0, 0.0
+        return 0.0, 0, 0.0, np.zeros(n, dtype=np.bool_)
     alive = _nonrattler_mask_core(n, ci, cj, cdx, cdy)
     ng = 0
     for i in range(n):
@@ -142,8 +149,8 @@ def _residual_core(positions, radii, box, pi, pj, alpha, forces):
                 fmax2 = f2
     mean = fsum / nc
     if mean == 0.0:
-        return 0.0, ng, 0.0
-    return np.sqrt(fmax2) / mean, ng, mean
+        return 0.0, ng, 0.0, alive
+    return np.sqrt(fmax2) / mean, ng, mean, alive
 
 
 @njit(cache=True)
@@ -259,12 +266,40 @@ def _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort)
     Returns ``(status, steps, force_evaluations, energy, virial, residual,
     n_contacts)``: total energy and virial ``sum r f`` at the final positions.
     """
+    vel = np.zeros((positions.shape[0], 2))
+    return _fire_run(positions, radii, box, alpha, tol, max_steps, skin, e_abort, vel,
+                     _fire_state(dt0))
+
+
+@njit(cache=True)
+def _fire_state(dt0):
+    """FIRE's state between calls of ``_fire_run``: ``[dt0, dt, a, n_pos, n_neg, steps]``,
+    fresh (the velocities are the caller's array, zero for a fresh start)."""
+    s = np.empty(6)
+    s[0] = dt0
+    s[1] = dt0
+    s[2] = A_START
+    s[3] = 0.0
+    s[4] = 0.0
+    s[5] = 0.0
+    return s
+
+
+@njit(cache=True)
+def _fire_run(positions, radii, box, alpha, tol, max_steps, skin, e_abort, vel, state):
+    """``_fire_core`` resumed from the velocities ``vel`` and the ``state`` of
+    ``_fire_state`` (both updated in place), for at most ``max_steps`` more steps: a
+    minimisation interrupted (by the Newton endgame's tries) and resumed keeps FIRE's
+    momentum and time step. Returns ``_fire_core``'s tuple (``steps``: of this call)."""
     n = positions.shape[0]
+    dt0 = state[0]
     dt_max = DT_MAX_FACTOR * dt0
     dt_min = DT_MIN_FACTOR * dt0
-    dt = dt0
-    a = A_START
-    vel = np.zeros((n, 2))
+    dt = state[1]
+    a = state[2]
+    n_pos = int(state[3])
+    n_neg = int(state[4])
+    total = int(state[5])
     frc = np.empty((n, 2))
     scratch = np.empty((n, 2))
     _wrap_inplace(positions, box)
@@ -273,8 +308,6 @@ def _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort)
     half2 = 0.25 * skin * skin
     energy, virial, nc, fsum = _energy_forces_rows(positions, box, start, nbr, inv_s, alpha, frc)
     nforce = 1
-    n_pos = 0
-    n_neg = 0
     status = MAX_STEPS
     residual = np.inf
     step = 0
@@ -301,8 +334,9 @@ def _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort)
             status = MAX_STEPS
             break
         step += 1
+        total += 1
         # FIRE 2.0 step
-        n_pos, n_neg, dt, a = _fire_adapt(p, step, n_pos, n_neg, dt, a, dt_min, dt_max)
+        n_pos, n_neg, dt, a = _fire_adapt(p, total, n_pos, n_neg, dt, a, dt_min, dt_max)
         if p <= 0.0:
             if n_neg > N_NEG_MAX:
                 status = STALLED
@@ -318,6 +352,11 @@ def _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort)
         energy, virial, nc, fsum = _energy_forces_rows(positions, box, start, nbr, inv_s, alpha,
                                                        frc)
         nforce += 1
+    state[1] = dt
+    state[2] = a
+    state[3] = n_pos
+    state[4] = n_neg
+    state[5] = total
     return status, step, nforce, energy, virial, residual, nc
 
 

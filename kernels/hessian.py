@@ -21,7 +21,7 @@ Rattlers and translations are the caller's business: the Newton endgame (``kerne
 shifts the diagonal; ``hessian(..., rattlers=False)`` drops the rattlers (the project's rule,
 ``kernels.network``) and their pairs, leaving the two translations as zero modes.
 
-Jitted core: ``_hessian_rows(positions, box, start, nbr, inv_s, alpha, diag, offdiag, ncon)`` over a
+Jitted core: ``_hessian_rows(positions, box, start, nbr, inv_s, alpha, keep, diag, offdiag, ncon)`` over a
 CSR pair list (the layout of ``kernels.potential._energy_forces_rows``, with the same minimum
 image and contact test as the force loop), returning the number of contacts and the sum of
 their ``V''``. Checked wrapper: ``hessian(...) -> HessianBlocks`` and ``HessianBlocks.dense()``.
@@ -51,11 +51,13 @@ def pair_stiffness(r, inv_s, alpha):
 
 
 @njit(cache=True)
-def _hessian_rows(positions, box, start, nbr, inv_s, alpha, diag, offdiag, ncon):
+def _hessian_rows(positions, box, start, nbr, inv_s, alpha, keep, diag, offdiag, ncon):
     """Fill ``diag`` (n, 3) and ``offdiag`` (len(nbr), 3) with the Hessian blocks of the pairs
     of the CSR list ``(start, nbr)`` (row ``i`` holds neighbours ``j > i``, aligned with
-    ``inv_s``), and ``ncon`` (n,) with each disk's number of contacts. Same precondition on
-    coordinates as the force loop. Returns ``(n_contacts, sum of V'')``."""
+    ``inv_s``), and ``ncon`` (n,) with each disk's number of contacts. Only contacts between
+    two disks with ``keep`` count (all True: the whole Hessian; the non-rattlers: the
+    rattler-free one). Same precondition on coordinates as the force loop. Returns
+    ``(n_contacts, sum of V'')``."""
     n = positions.shape[0]
     Lx = box[0]
     Ly = box[1]
@@ -85,7 +87,7 @@ def _hessian_rows(positions, box, start, nbr, inv_s, alpha, diag, offdiag, ncon)
                 dy += Ly
             d2 = dx * dx + dy * dy
             q = inv_s[k]
-            if d2 * q * q >= 1.0:
+            if d2 * q * q >= 1.0 or not (keep[i] and keep[j]):
                 offdiag[k, 0] = 0.0
                 offdiag[k, 1] = 0.0
                 offdiag[k, 2] = 0.0
@@ -148,8 +150,8 @@ def hessian(positions, radii, box, exponent=2.0, *, rattlers=True):
     start, nbr = _rows_from_pairs(n, pi, pj)
     diag = np.empty((n, 3))
     off = np.empty((pi.shape[0], 3))
-    _hessian_rows(pos, b, start, nbr, _pair_inv_sigma(rad, pi, pj), a, diag, off,
-                  np.empty(n, np.int64))
+    _hessian_rows(pos, b, start, nbr, _pair_inv_sigma(rad, pi, pj), a, np.ones(n, np.bool_),
+                  diag, off, np.empty(n, np.int64))
     contact = np.any(off != 0.0, axis=1)
     keep = np.ones(n, dtype=bool)
     if not rattlers:

@@ -21,7 +21,8 @@ from kernels.cells import _candidate_pairs_core
 from kernels.fire import _contacts_core, _nonrattler_mask_core
 from kernels.names import MAX_POLYDISPERSITY, SIZE_DISTRIBUTIONS
 from kernels.potential import ALPHA_RANGE, check_exponent
-from kernels.protocol import (MINIMIZER_NAMES, SEARCH_NAMES, STATUS_NAMES, _ohern_core)
+from kernels.protocol import (ENDGAME_NAMES, MINIMIZER_NAMES, SEARCH_NAMES, STATUS_NAMES,
+                              _ohern_core)
 
 DEFAULT_SPECIES = ((0.5, 1.4), (0.5, 1.0))
 
@@ -44,6 +45,7 @@ DEFAULTS = dict(
     skin=0.3,
     route="ohern",
     sizes=None,
+    endgame="none",
 )
 
 
@@ -81,6 +83,7 @@ class Packing:
     exponent: float
     n_nonrattlers: int
     settings: dict = field(default_factory=dict, compare=False)
+    factorizations: int = 0  # sparse Cholesky factorisations of the Newton endgame
 
     @property
     def converged(self):
@@ -328,6 +331,12 @@ def jam(n, energy, seed, start=None, **settings):
         secant corrections and a final polish at fixed radii (``kernels.barostat``).
         ``search`` and ``delta`` only apply to "ohern"; ``iterations`` counts the
         minimisations either way.
+    endgame : "none" (default: FIRE alone) or "newton": every minimisation of the
+        O'Hern search (FIRE, stop "force") hands over to Newton steps on the sparse
+        Hessian of the contact network once FIRE has brought the force residual
+        below 1e-2, and ends at a minimum whose rattler-free Hessian is positive
+        definite (``kernels.newton``); ``Packing.factorizations`` counts the sparse
+        Cholesky factorisations.
 
     Returns a ``Packing``; its ``status`` is "converged" or the bound that stopped
     the search ("max_search", "max_steps", "stalled", "too_dense").
@@ -375,6 +384,13 @@ def jam(n, energy, seed, start=None, **settings):
     if opt["route"] == "pressure" and (opt["minimizer"] != "fire" or opt["stop"] != "force"):
         raise ValueError("route: 'pressure' relaxes with FIRE and stops on the force residual; expected "
                          f"minimizer 'fire' and stop 'force', got {opt['minimizer']!r} and {opt['stop']!r}")
+    if opt["endgame"] not in ENDGAME_NAMES:
+        raise ValueError(f"endgame: expected one of {list(ENDGAME_NAMES)}, got {opt['endgame']!r}")
+    endgame = ENDGAME_NAMES.index(opt["endgame"])
+    if endgame and (opt["minimizer"] != "fire" or opt["stop"] != "force" or opt["route"] != "ohern"):
+        raise ValueError("endgame: 'newton' takes over FIRE's minimisations of the O'Hern route; expected "
+                         "minimizer 'fire', stop 'force' and route 'ohern', got "
+                         f"{opt['minimizer']!r}, {opt['stop']!r} and {opt['route']!r}")
     delta = _positive_float("delta", opt["delta"], upper=1.0)
     skin = _positive_float("skin", opt["skin"], upper=1.0)
     if start is None:
@@ -402,10 +418,11 @@ def jam(n, energy, seed, start=None, **settings):
         status, scale, e_tot, virial, residual, iterations, nforce = _pressure_core(
             positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search, max_steps,
             skin, max_radius, STAGE_STEP, BARO_SCALE, False)
+        nfact = 0
     else:
-        status, scale, e_tot, virial, residual, iterations, nforce = _ohern_core(
+        status, scale, e_tot, virial, residual, iterations, nforce, nfact = _ohern_core(
             positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search, max_steps,
-            skin, delta, rule, max_radius, ENERGY_STEP, minimizer, e_tol)
+            skin, delta, rule, max_radius, ENERGY_STEP, minimizer, e_tol, endgame)
     radii = radii0 * scale
     area = float(box[0] * box[1])
     pi, pj = _candidate_pairs_core(positions, radii, box, 0.0)
@@ -419,7 +436,7 @@ def jam(n, energy, seed, start=None, **settings):
         phi=float(math.pi * np.sum(radii ** 2) / area), pressure=virial / (2.0 * area),
         force_residual=float(residual), iterations=int(iterations),
         force_evaluations=int(nforce), status=STATUS_NAMES[status], exponent=alpha,
-        n_nonrattlers=n_g,
+        n_nonrattlers=n_g, factorizations=int(nfact),
         settings=dict(opt, box=tuple(box.tolist()), exponent=alpha, energy=e_min, n=n,
                       start="random" if start is None else "packing"),
     )

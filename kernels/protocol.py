@@ -60,6 +60,7 @@ import numpy as np
 from numba import njit
 
 from kernels.cg import _cg_core
+from kernels.newton import PATTERN_SKIN, _fire_newton
 from kernels.fire import BELOW, CONVERGED, DT_FACTOR, MAX_STEPS, _dt_for, _fire_core
 from kernels.space import _wrap_core
 
@@ -80,6 +81,10 @@ MIN_FIRE = 0
 MIN_CG = 1
 MINIMIZER_NAMES = ("fire", "cg")
 
+ENDGAME_NONE = 0
+ENDGAME_NEWTON = 1
+ENDGAME_NAMES = ("none", "newton")
+
 # status codes of _ohern_core
 ST_CONVERGED = 0
 ST_MAX_SEARCH = 1
@@ -90,14 +95,23 @@ STATUS_NAMES = ("converged", "max_search", "max_steps", "stalled", "too_dense")
 
 
 @njit(cache=True)
-def _minimize(minimizer, positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort, e_tol):
+def _minimize(minimizer, positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort, e_tol,
+              endgame, pskin):
     """One minimisation at fixed radii with FIRE 2.0 (``MIN_FIRE``) or conjugate
-    gradients (``MIN_CG``; ``e_tol > 0``: the paper's energy-change rule). The CG line
-    search starts at ``1 / k``, the step matching FIRE's ``dt0 = DT_FACTOR / sqrt(k)``."""
+    gradients (``MIN_CG``; ``e_tol > 0``: the paper's energy-change rule); with ``endgame ==
+    ENDGAME_NEWTON`` (FIRE only) FIRE hands over to Newton's method on the contact network
+    (``kernels.newton``, pattern skin ``pskin``). The CG line search starts at ``1 / k``, the
+    step matching FIRE's ``dt0 = DT_FACTOR / sqrt(k)``. Returns the minimiser's tuple
+    (``kernels.fire._fire_core``) and the number of factorisations."""
+    if endgame == ENDGAME_NEWTON:
+        r = _fire_newton(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort, pskin)
+        return r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7]
     if minimizer == MIN_CG:
-        return _cg_core(positions, radii, box, alpha, tol, max_steps, skin,
-                        (dt0 / DT_FACTOR) ** 2, e_abort, e_tol)
-    return _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort)
+        r = _cg_core(positions, radii, box, alpha, tol, max_steps, skin, (dt0 / DT_FACTOR) ** 2,
+                     e_abort, e_tol)
+    else:
+        r = _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort)
+    return r[0], r[1], r[2], r[3], r[4], r[5], r[6], 0
 
 
 @njit(cache=True)
@@ -122,7 +136,8 @@ def _spatial_order(positions, box, cell):
 
 @njit(cache=True)
 def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search,
-                max_steps, skin_factor, delta0, rule, max_radius, energy_step, minimizer, e_tol):
+                max_steps, skin_factor, delta0, rule, max_radius, energy_step, minimizer, e_tol,
+                endgame):
     """Run the O'Hern search in place.
 
     ``positions`` (n, 2): initial positions, overwritten by the final ones (wrapped).
@@ -134,10 +149,11 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
     allowed (stops with ``too_dense`` beyond it). ``energy_step``: the secant rule
     lowers the energy by at most this factor per minimisation. ``minimizer``:
     ``MIN_FIRE`` or ``MIN_CG``; ``e_tol`` > 0 (CG only): every minimisation stops on
-    the energy-change rule instead of the force tolerances (no polish).
+    the energy-change rule instead of the force tolerances (no polish). ``endgame``:
+    ``ENDGAME_NONE`` or ``ENDGAME_NEWTON`` (FIRE hands over to Newton, ``kernels.newton``).
 
     Returns ``(status, scale, energy_total, virial, residual, iterations,
-    force_evaluations)``; the final radii are ``scale * radii0``. Internally the disks
+    force_evaluations, factorisations)``; the final radii are ``scale * radii0``. Internally the disks
     are renumbered by position after the first minimisation (``_spatial_order``) and
     the result is written back in the caller's order.
     """
@@ -173,6 +189,7 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
     n_below = 0
     it = 0
     nforce = 0
+    nfact = 0
     status = ST_MAX_SEARCH
     e_last = 0.0
     w_last = 0.0
@@ -184,10 +201,13 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
         for i in range(n):
             radii[i] = scale * rad0[i]
         skin = skin_factor * mean_d * scale
+        pskin = PATTERN_SKIN * mean_d * scale
         dt0 = _dt_for(radii, alpha, e_guess)
-        st, steps, nf, e, w, res, nc = _minimize(minimizer, pos, radii, box, alpha, search_tol,
-                                                 max_steps, skin, dt0, abort, e_tol)
+        st, steps, nf, e, w, res, nc, fa = _minimize(minimizer, pos, radii, box, alpha, search_tol,
+                                                     max_steps, skin, dt0, abort, e_tol, endgame,
+                                                     pskin)
         nforce += nf
+        nfact += fa
         if it == 1:
             # the random start has relaxed: reorder the disks by cell
             perm = _spatial_order(pos, box, mean_d)
@@ -197,9 +217,11 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
             order = order[perm].copy()
         if st == CONVERGED and e_min <= e / n <= e_max and search_tol > tol and e_tol == 0.0:
             # polish to the final tolerance at the same radii
-            st, steps, nf, e, w, res, nc = _minimize(minimizer, pos, radii, box, alpha, tol,
-                                                     max_steps, skin, dt0, abort, 0.0)
+            st, steps, nf, e, w, res, nc, fa = _minimize(minimizer, pos, radii, box, alpha, tol,
+                                                         max_steps, skin, dt0, abort, 0.0, endgame,
+                                                         pskin)
             nforce += nf
+            nfact += fa
         e_last = e
         w_last = w
         res_last = res
@@ -275,4 +297,4 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
     for i in range(n):
         positions[order[i], 0] = wrapped[i, 0]
         positions[order[i], 1] = wrapped[i, 1]
-    return status, scale, e_last, w_last, res_last, it, nforce
+    return status, scale, e_last, w_last, res_last, it, nforce, nfact

@@ -228,3 +228,52 @@ def test_system_variants_under_mpi_jam_each_variants_system(tmp_path):
             assert E <= e <= 1.1 * E * (1 + 1e-9), (variant[i], E, e)
             distinct = len(np.unique(rad))
             assert distinct == (24 if variant[i] == "poly" else 2), (variant[i], distinct)
+
+
+NEWTON_SPEC = """\
+name: newton
+seed: 5
+grid: {N_G: [48, 96], E_G: [1.0e-7, 1.0e-12], seeds: 2}
+protocol: {endgame: newton}
+variants: [{name: fire, endgame: none}]
+observables: [scalars]
+store: {configurations: true}
+"""
+
+
+def test_newton_endgame_is_identical_for_1_2_3_workers(tmp_path):
+    """The Newton endgame is as deterministic as FIRE: in-process, 2 local workers and 3 MPI
+    ranks store bit-identical packings; the endgame did factorise, and the FIRE variant keeps
+    the ids (and the bits) of a campaign that never named an endgame."""
+    spec = tmp_path / "s.yaml"
+    spec.write_text(NEWTON_SPEC)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env.pop("CAMPAIGN_TASK_FUNCTION", None)
+    files = {}
+    for label, n, extra in (("w1", None, ["--launcher", "inline"]), ("w2", None, ["--workers", "2"]),
+                            ("w3", 4, [])):
+        files[label] = tmp_path / f"{label}.h5"
+        r = _campaign(["run", str(spec), "--out", str(files[label])] + extra, n=n, env=env, timeout=600)
+        assert r.returncode == 0, r.stderr
+    ref, ref_attrs, _ = _datasets(files["w1"])
+    assert (ref["tasks/status"] == 1).all() and (ref["scalars/jam_status"] == 0).all()
+    newton = np.array([v == b"default" for v in ref["tasks/variant"]])
+    fact = ref["scalars/factorizations"]
+    assert (fact[newton] > 0).mean() >= 0.5 and np.isnan(fact[~newton]).all()
+    for label in ("w2", "w3"):
+        got, attrs, _ = _datasets(files[label])
+        assert attrs == ref_attrs
+        for k in [k for k in ref if k.endswith("_seconds")]:
+            got[k] = ref[k]
+        _same(ref, got)
+    # the FIRE variant is the plain campaign: same ids, same packings
+    plain = tmp_path / "plain.yaml"
+    plain.write_text(NEWTON_SPEC.replace("protocol: {endgame: newton}\nvariants: [{name: fire, endgame: none}]\n", ""))
+    r = _campaign(["run", str(plain), "--out", str(tmp_path / "plain.h5"), "--launcher", "inline"], env=env,
+                  timeout=600)
+    assert r.returncode == 0, r.stderr
+    with h5py.File(tmp_path / "plain.h5", "r") as f, h5py.File(files["w1"], "r") as g:
+        ids = [t.decode() for t in f["tasks/id"][()]]
+        assert set(ids) == {t.decode() for t, v in zip(g["tasks/id"][()], g["tasks/variant"][()]) if v == b"fire"}
+        for t in ids:
+            assert f[f"configurations/{t}/positions"][()].tobytes() == g[f"configurations/{t}/positions"][()].tobytes()
