@@ -6,8 +6,9 @@ from pathlib import Path
 import pytest
 
 from campaign import cli
+from campaign import tasks
 from campaign.errors import UserError
-from campaign.spec import OBSERVABLES, load_spec, packaged_spec_text, parse_spec
+from campaign.spec import load_spec, packaged_spec_text, parse_spec
 from kernels.names import DEFAULT_OBSERVABLES
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -224,3 +225,13 @@ def test_every_shipped_campaign_validates(path):
     spec = load_spec(path)
     assert energy_floor_problems(spec) == []
     assert len(expand(spec)) == spec.n_tasks > 0
+
+
+def test_endgame_none_keeps_the_ids_and_newton_is_part_of_the_identity():
+    plain = parse_spec(MINIMAL)
+    none = parse_spec(MINIMAL + "protocol: {endgame: none}\n")
+    newton = parse_spec(MINIMAL + "protocol: {endgame: newton}\n")
+    assert none.variants[0].protocol_dict == plain.variants[0].protocol_dict
+    assert newton.variants[0].protocol_dict == dict(plain.variants[0].protocol_dict, endgame="newton")
+    ids = lambda s: [t.id for t in tasks.expand(s)]  # noqa: E731
+    assert ids(none) == ids(plain) and not set(ids(newton)) & set(ids(plain))
