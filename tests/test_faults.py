@@ -441,3 +441,23 @@ def test_local_worker_killed_the_run_goes_on(tmp_path, reference):
     with h5py.File(out, "r") as f:
         attempts = f["tasks/attempts"][:]
     assert 1 <= (attempts == 2).sum() <= 16 and ((attempts == 1) | (attempts == 2)).all()  # the killed one's tasks
+
+
+def test_an_exhausted_quota_is_out_of_space_like_a_full_disk(tmp_path):
+    """EDQUOT takes the full disk's path (exit 3, the same paragraph). A real quota cannot be
+    exhausted on these machines: their kernel is built without CONFIG_QUOTA (ext4 refuses to
+    mount with its quota feature, tmpfs refuses usrquota), so the error is built here as the
+    operating system and HDF5 report it."""
+    import errno
+
+    from campaign import faults
+
+    path = tmp_path / "x.h5"
+    for exc in (OSError(errno.EDQUOT, os.strerror(errno.EDQUOT)),
+                RuntimeError(f"Can't write data (file write failed: ..., errno = {errno.EDQUOT}, "
+                             "error message = 'Disk quota exceeded', ...)")):
+        fault = faults.write_fault(exc, path, "writing a block of the store")
+        assert isinstance(fault, faults.OutOfSpace) and fault.errno == errno.EDQUOT
+        text = faults.stop_paragraph(fault, path, counts={"done": 3, "failed": 0, "pending": 2}, total=5)
+        assert "out of space" in text and "Disk quota exceeded" in text
+        assert "raise the quota" in text and "rerun the same command" in text
