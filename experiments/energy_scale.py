@@ -3,6 +3,7 @@ which they match the paper's quoted values (hypothesis (a) of docs/PAPER.md).
 
     python experiments/energy_scale.py --n 8192 --energies 1e-5 5e-6 2.5e-6 1.25e-6 --seeds 3
     python experiments/energy_scale.py --n 8192 --energies 1e-10 2.5e-11 --seeds 2 --json low.json
+    python experiments/energy_scale.py --n 8192 --energies 2.5e-6 2.5e-11 --seeds 40 --factor 4
 
 Each (energy, seed) is one ``kernels.jam`` (default protocol, random start) followed by
 ``kernels.analyze``; packings run in ``--workers`` processes. Prints one row per energy
@@ -11,8 +12,11 @@ same packings: this project's (pair sum over unordered pairs / all disks), per
 non-rattler, and the paper's Eq. (2) read literally (sum over ordered pairs / N_G, twice
 the former). Then, for each value the paper quotes at N = 8192, the energy at which this
 project's packings reach it (log-linear interpolation between neighbouring energies), and
-the factor between the paper's energy label and that energy. ``--json FILE`` writes the
-per-packing rows too; ``--merge FILE ...`` adds rows measured before.
+the factor between the paper's energy label and that energy. ``--factor F`` tests the
+hypothesis "the paper's label is F times this project's E_G" where energies label / F were
+run: the difference from the paper's value and its z-scores against the combined error (ours,
+the paper's three-digit rounding, its own sampling error, ``--paper-error``). ``--json FILE``
+writes the per-packing rows too; ``--merge FILE ...`` adds rows measured before.
 """
 
 from __future__ import annotations
@@ -71,6 +75,26 @@ def match(summary, key, target):
     return None
 
 
+def factor_tests(summary, factors, paper_errors):
+    """For each factor F and each value the paper quotes at label E, this project's mean at the
+    measured energy E / F (when one was run), the difference and its z-scores: the difference
+    over sqrt(our standard error^2 + (5e-4 / sqrt 3)^2 (the paper's rounding to three digits,
+    uniform) + s^2) for each of the paper's sampling errors s."""
+    out = []
+    for f in factors:
+        for key, vals in PAPER.items():
+            for e_paper, v in vals.items():
+                cell = [r for r in summary if abs(r["energy"] * f / e_paper - 1.0) < 1e-9]
+                if not cell:
+                    continue
+                r = cell[0]
+                d = r[key] - v
+                z = [d / math.sqrt(r[key + "_err"] ** 2 + (5e-4 / math.sqrt(3)) ** 2 + s * s) for s in paper_errors]
+                out.append(dict(factor=f, quantity=key, paper_energy=e_paper, paper_value=v, energy=r["E_G"],
+                                ours=r[key], ours_err=r[key + "_err"], difference=d, z=z))
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--n", type=int, default=8192)
@@ -80,6 +104,10 @@ def main(argv=None):
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--json", metavar="FILE")
     ap.add_argument("--merge", metavar="FILE", nargs="*", default=[])
+    ap.add_argument("--factor", type=float, nargs="*", default=[],
+                    help="test 'paper label = factor x this project's E_G' at the measured energies")
+    ap.add_argument("--paper-error", type=float, nargs="+", default=[2e-4, 4e-4],
+                    help="the paper's own sampling error of a value at N = 8192 (Table 2: 2e-4 to 4e-4)")
     args = ap.parse_args(argv)
 
     jobs = [(args.n, e, s) for e in args.energies for s in range(args.first_seed, args.first_seed + args.seeds)]
@@ -110,9 +138,21 @@ def main(argv=None):
                                 factor=(e_paper / e) if e else None))
             print(f"| {key} | {e_paper:g} | {v} | {e:.3g} | {e_paper / e:.2f} |" if e else
                   f"| {key} | {e_paper:g} | {v} | outside the measured range | - |")
+    tests = factor_tests(summary, args.factor, args.paper_error)
+    if tests:
+        print("\nThe paper's values against this project's at the paper's label / factor (z: the difference "
+              "over the combined error: ours, the paper's rounding to three digits, its sampling error)\n")
+        print("| factor | quantity | paper's label | paper's value | this project's E_G | ours | difference | "
+              + " | ".join(f"z (paper error {s:g})" for s in args.paper_error) + " |")
+        print("|---|---|---|---|---|---|---|" + "---|" * len(args.paper_error))
+        for t in tests:
+            print(f"| {t['factor']:g} | {t['quantity']} | {t['paper_energy']:g} | {t['paper_value']} | "
+                  f"{t['energy']:.3g} | {t['ours']:.4f}({t['ours_err'] * 1e4:.0f}) | {t['difference']:+.4f} | "
+                  + " | ".join(f"{z:+.1f}" for z in t["z"]) + " |")
     if args.json:
         with open(args.json, "w") as fh:
-            json.dump({"n": args.n, "packings": rows, "summary": summary, "matches": matches}, fh, indent=1)
+            json.dump({"n": args.n, "packings": rows, "summary": summary, "matches": matches,
+                       "factor_tests": tests}, fh, indent=1)
     return 0
 
 
