@@ -361,6 +361,27 @@ def _etree(n, start, nbr):
 
 
 @njit(cache=True)
+def _children(parent):
+    """Children of each node of a forest (``parent``, -1 for roots) as compressed lists:
+    those of ``v`` are ``child[start[v]:start[v + 1]]``, in increasing order."""
+    n = parent.shape[0]
+    start = np.zeros(n + 1, dtype=np.int64)
+    for v in range(n):
+        if parent[v] != -1:
+            start[parent[v] + 1] += 1
+    for v in range(n):
+        start[v + 1] += start[v]
+    fill = start[:-1].copy()
+    child = np.empty(start[n], dtype=np.int64)
+    for v in range(n):
+        p = parent[v]
+        if p != -1:
+            child[fill[p]] = v
+            fill[p] += 1
+    return start, child
+
+
+@njit(cache=True)
 def _postorder(n, parent):
     """Nodes in a postorder of the forest (children in increasing order before parents)."""
     head = np.full(n, -1, dtype=np.int64)
@@ -419,20 +440,7 @@ def _symbolic_core(n, pi, pj, order):
     perm = order[post]
     iperm, qi, qj, start, nbr = _relabel(n, pi, pj, perm)
     parent = _etree(n, start, nbr)
-    # children lists
-    cstart = np.zeros(n + 1, dtype=np.int64)
-    for v in range(n):
-        if parent[v] != -1:
-            cstart[parent[v] + 1] += 1
-    for v in range(n):
-        cstart[v + 1] += cstart[v]
-    cfill = cstart[:-1].copy()
-    child = np.empty(cstart[n], dtype=np.int64)
-    for v in range(n):
-        p = parent[v]
-        if p != -1:
-            child[cfill[p]] = v
-            cfill[p] += 1
+    cstart, child = _children(parent)
     # column structures (rows below the diagonal, node level), children first
     sptr = np.zeros(n + 1, dtype=np.int64)
     cap = 8 * n + 16
@@ -529,20 +537,7 @@ def _symbolic_core(n, pi, pj, order):
     rel = np.empty(upd_ptr[nsup], dtype=np.int64)
     pos = np.full(n, -1, dtype=np.int64)
     # children of p come before p: fill pos for p lazily, per parent
-    # build per-parent lists of children
-    ch_start = np.zeros(nsup + 1, dtype=np.int64)
-    for s in range(nsup):
-        if sup_parent[s] != -1:
-            ch_start[sup_parent[s] + 1] += 1
-    for s in range(nsup):
-        ch_start[s + 1] += ch_start[s]
-    ch_fill = ch_start[:-1].copy()
-    ch = np.empty(ch_start[nsup], dtype=np.int64)
-    for s in range(nsup):
-        p = sup_parent[s]
-        if p != -1:
-            ch[ch_fill[p]] = s
-            ch_fill[p] += 1
+    ch_start, ch = _children(sup_parent)
     for p in range(nsup):
         f = sup_first[p]
         ns = sup_first[p + 1] - f
