@@ -50,6 +50,19 @@ def pair_stiffness(r, inv_s, alpha):
     return (alpha - 1.0) * xa2 * inv_s * inv_s, -xa2 * x * inv_s / r
 
 
+@njit(cache=True, inline="always")
+def pair_block(dx, dy, r, inv_s, alpha):
+    """The 2x2 Hessian block ``K = V'' n n^T + (V'/r)(I - n n^T)`` of a pair at separation
+    ``(dx, dy)``, ``r`` its length: ``(kxx, kxy, kyy, V'', V'/r)``."""
+    kpar, kperp = pair_stiffness(r, inv_s, alpha)
+    nx = dx / r
+    ny = dy / r
+    kxx = kpar * nx * nx + kperp * (1.0 - nx * nx)
+    kxy = (kpar - kperp) * nx * ny
+    kyy = kpar * ny * ny + kperp * (1.0 - ny * ny)
+    return kxx, kxy, kyy, kpar, kperp
+
+
 @njit(cache=True)
 def _hessian_rows(positions, box, start, nbr, inv_s, alpha, keep, diag, offdiag, ncon):
     """Fill ``diag`` (n, 3) and ``offdiag`` (len(nbr), 3) with the Hessian blocks of the pairs
@@ -92,13 +105,7 @@ def _hessian_rows(positions, box, start, nbr, inv_s, alpha, keep, diag, offdiag,
                 offdiag[k, 1] = 0.0
                 offdiag[k, 2] = 0.0
                 continue
-            r = np.sqrt(d2)
-            kpar, kperp = pair_stiffness(r, q, alpha)
-            nx = dx / r
-            ny = dy / r
-            kxx = kpar * nx * nx + kperp * (1.0 - nx * nx)
-            kxy = (kpar - kperp) * nx * ny
-            kyy = kpar * ny * ny + kperp * (1.0 - ny * ny)
+            kxx, kxy, kyy, kpar, _ = pair_block(dx, dy, np.sqrt(d2), q, alpha)
             offdiag[k, 0] = -kxx
             offdiag[k, 1] = -kxy
             offdiag[k, 2] = -kyy

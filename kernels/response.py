@@ -78,7 +78,7 @@ from numba import njit
 
 from kernels import sparse
 from kernels.cells import _candidate_pairs_core
-from kernels.hessian import pair_stiffness
+from kernels.hessian import pair_block, pair_stiffness
 from kernels.observables import _histogram_core, is_uniform
 from kernels.sparse import (
     _adjacency,
@@ -175,12 +175,9 @@ def _response_blocks_core(radii, bi, bj, dx, dy, index, m, alpha):
         ddy = dy[k]
         r = np.sqrt(ddx * ddx + ddy * ddy)
         s = radii[bi[k]] + radii[bj[k]]
-        kpar, kperp = pair_stiffness(r, 1.0 / s, alpha)
+        kxx, kxy, kyy, kpar, kperp = pair_block(ddx, ddy, r, 1.0 / s, alpha)
         nx = ddx / r
         ny = ddy / r
-        kxx = kpar * nx * nx + kperp * (1.0 - nx * nx)
-        kxy = (kpar - kperp) * nx * ny
-        kyy = kpar * ny * ny + kperp * (1.0 - ny * ny)
         pi[t] = a
         pj[t] = b
         off[t, 0] = -kxx
