@@ -44,40 +44,32 @@ def _solve_linear(f, y, w):
     return a, c, chi2
 
 
-def fit_power_law_batch(x, y, yerr, bounds=BETA_BOUNDS):
-    """Fit ``y = a + c x**beta`` to each row of ``x``, ``y`` (shape (B, K)).
-
-    ``yerr`` (K,) or (B, K) are the standard errors used as weights 1/yerr^2.
-    Returns arrays ``a, c, beta, chi2`` of shape (B,). ``x`` must be >= 0.
-    """
-    x = np.atleast_2d(np.asarray(x, float))
-    y = np.atleast_2d(np.asarray(y, float))
-    w = 1.0 / np.asarray(yerr, float) ** 2
-    # Work with x / x_ref (geometric mean of the positive x of each row) for conditioning.
-    # x = 0 is allowed (e.g. isostatic packings, Delta Z = 0): there x^beta = 0 for beta > 0.
+def _log_abscissa(x):
+    """log(x / x_ref) per row (x_ref the geometric mean of the row's positive x, for conditioning);
+    -inf where x = 0 (e.g. isostatic packings, Delta Z = 0: there x^beta = 0 for beta > 0)."""
     pos = x > 0
     with np.errstate(divide="ignore"):
         lx = np.where(pos, np.log(np.where(pos, x, 1.0)), -np.inf)
-    lref = (np.where(pos, lx, 0.0).sum(axis=-1) / np.maximum(pos.sum(axis=-1), 1))[:, None]
-    lu = lx - lref
+    lref = (np.where(pos, lx, 0.0).sum(axis=-1) / np.maximum(pos.sum(axis=-1), 1))[..., None]
+    return lx - lref, lref[..., 0]
 
-    def profile(beta):  # beta (B,) or (G, B)
-        f = np.exp(beta[..., None] * lu)
-        return _solve_linear(f, y, w)
 
+def _minimise_profile(chi2_of, n, bounds):
+    """The exponent minimising ``chi2_of(beta)`` (beta: (n,) or (G, n) -> same shape) for n
+    problems at once: a 121-point grid over ``bounds``, then golden section in the bracket
+    around the grid minimum."""
     lo, hi = bounds
     grid = np.linspace(lo, hi, _GRID)
-    chi_grid = profile(np.broadcast_to(grid[:, None], (_GRID, x.shape[0])).copy())[2]  # (G, B)
+    chi_grid = chi2_of(np.broadcast_to(grid[:, None], (_GRID, n)).copy())  # (G, n)
     chi_grid = np.where(np.isfinite(chi_grid), chi_grid, np.inf)
     k = np.argmin(chi_grid, axis=0)
     left = grid[np.clip(k - 1, 0, _GRID - 1)]
     right = grid[np.clip(k + 1, 0, _GRID - 1)]
-    # Vectorised golden-section search inside the bracket around the grid minimum.
     g = (np.sqrt(5.0) - 1.0) / 2.0
     p = right - g * (right - left)
     q = left + g * (right - left)
-    fp = profile(p)[2]
-    fq = profile(q)[2]
+    fp = chi2_of(p)
+    fq = chi2_of(q)
     for _ in range(_GOLDEN_ITERS):
         move = fp > fq  # minimum in [p, right]
         left = np.where(move, p, left)
@@ -88,14 +80,57 @@ def fit_power_law_batch(x, y, yerr, bounds=BETA_BOUNDS):
         p_next = np.where(move, q, newp)
         q_next = np.where(move, newq, p)
         f_keep = np.where(move, fq, fp)
-        f_new = profile(np.where(move, q_next, p_next))[2]
+        f_new = chi2_of(np.where(move, q_next, p_next))
         fp = np.where(move, f_keep, f_new)
         fq = np.where(move, f_new, f_keep)
         p, q = p_next, q_next
-    beta = 0.5 * (left + right)
+    return 0.5 * (left + right)
+
+
+def fit_power_law_batch(x, y, yerr, bounds=BETA_BOUNDS):
+    """Fit ``y = a + c x**beta`` to each row of ``x``, ``y`` (shape (B, K)).
+
+    ``yerr`` (K,) or (B, K) are the standard errors used as weights 1/yerr^2.
+    Returns arrays ``a, c, beta, chi2`` of shape (B,). ``x`` must be >= 0.
+    """
+    x = np.atleast_2d(np.asarray(x, float))
+    y = np.atleast_2d(np.asarray(y, float))
+    w = 1.0 / np.asarray(yerr, float) ** 2
+    lu, lref = _log_abscissa(x)
+
+    def profile(beta):  # beta (B,) or (G, B)
+        return _solve_linear(np.exp(beta[..., None] * lu), y, w)
+
+    beta = _minimise_profile(lambda b: profile(b)[2], x.shape[0], bounds)
     a, c_scaled, chi2 = profile(beta)
-    c = c_scaled * np.exp(-beta * lref[:, 0])
-    return a, c, beta, chi2
+    return a, c_scaled * np.exp(-beta * lref), beta, chi2
+
+
+def fit_shared_exponent_batch(x, y, yerr, bounds=BETA_BOUNDS):
+    """``y_gk = a_g + c_g x_gk**beta``: one exponent shared by the G groups of each of B data
+    sets, an intercept and an amplitude per group (the finite-size table's sizes: the exponent
+    belongs to the transition, the intercept and amplitude to the size).
+
+    ``x``, ``y``: (B, G, K) or (G, K), groups padded to K cells with ``yerr = inf`` (weight 0);
+    ``yerr`` (G, K) or (B, G, K). Returns ``a, c`` (B, G), ``beta, chi2`` (B,).
+    """
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    squeeze = x.ndim == 2
+    if squeeze:
+        x, y = x[None], y[None]
+    w = 1.0 / np.asarray(yerr, float) ** 2
+    x = np.where(w > 0, x, 1.0)  # padding: any positive abscissa, weight 0
+    lu, lref = _log_abscissa(x)   # (B, G, K), (B, G)
+
+    def profile(beta):  # beta (B,) or (Q, B)
+        return _solve_linear(np.exp(beta[..., None, None] * lu), y, w)
+
+    beta = _minimise_profile(lambda b: profile(b)[2].sum(axis=-1), x.shape[0], bounds)
+    a, c_scaled, chi2 = profile(beta)
+    c = c_scaled * np.exp(-beta[:, None] * lref)
+    out = a, c, beta, chi2.sum(axis=-1)
+    return tuple(v[0] for v in out) if squeeze else out
 
 
 @dataclass
@@ -116,10 +151,39 @@ class PowerLawFit:
     message: str = ""
     residuals: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (y - model)/yerr
     at_bound: bool = False
+    boot_at_bound: float = np.nan   # fraction of the bootstrap refits whose exponent is at a bound
 
     @property
     def chi2_dof(self):
         return self.chi2 / self.dof if self.dof > 0 else np.nan
+
+    @property
+    def undetermined(self) -> str:
+        """Why this fit's exponent is not a measurement ("" when it is): no fit, the exponent at
+        a search bound, no finite bootstrap error, or a bootstrap distribution cut by a bound."""
+        return undetermined_reason(self.ok, self.exponent, self.exponent_err, self.at_bound,
+                                   self.boot_at_bound, self.message)
+
+
+#: A fit whose bootstrap refits reach a search bound more often than this is undetermined: its
+#: 95% interval does not lie inside the range searched, so its error is not an error.
+MAX_BOOT_AT_BOUND = 0.025
+
+
+def undetermined_reason(ok, exponent, err, at_bound, boot_at_bound, message=""):
+    if not ok or not np.isfinite(exponent):
+        return message or "no fit"
+    if at_bound:
+        return f"exponent {exponent:.3g} at the search bound"
+    if not (np.isfinite(err) and err > 0):
+        return "no bootstrap error"
+    if np.isfinite(boot_at_bound) and boot_at_bound > MAX_BOOT_AT_BOUND:
+        return f"{100 * boot_at_bound:.0f}% of its bootstrap refits at a search bound"
+    return ""
+
+
+def _at_bound(beta, bounds):
+    return np.minimum(beta - bounds[0], bounds[1] - beta) < 1e-3 * (bounds[1] - bounds[0])
 
 
 def fit_power_law(x, y, yerr, *, boot_x=None, boot_y=None, bounds=BETA_BOUNDS) -> PowerLawFit:
@@ -134,7 +198,7 @@ def fit_power_law(x, y, yerr, *, boot_x=None, boot_y=None, bounds=BETA_BOUNDS) -
         return PowerLawFit(n_points=K, message=f"needs at least 4 cells, has {K}")
     a, c, beta, chi2 = (v[0] for v in fit_power_law_batch(x[None], y[None], yerr, bounds))
     res = (y - a - c * x**beta) / yerr
-    at_bound = bool(min(beta - bounds[0], bounds[1] - beta) < 1e-3 * (bounds[1] - bounds[0]))
+    at_bound = bool(_at_bound(beta, bounds))
     out = PowerLawFit(a, c, beta, chi2=chi2, dof=K - 3, n_points=K, ok=bool(np.isfinite(chi2)),
                       residuals=res, at_bound=at_bound,
                       message="exponent at the search bound" if at_bound else "")
@@ -143,7 +207,79 @@ def fit_power_law(x, y, yerr, *, boot_x=None, boot_y=None, bounds=BETA_BOUNDS) -
         out.intercept_err = float(np.std(ba, ddof=1))
         out.coeff_err = float(np.std(bc, ddof=1))
         out.exponent_err = float(np.std(bb, ddof=1))
+        out.boot_at_bound = float(np.mean(_at_bound(bb, bounds)))
         out.n_boot = len(boot_x)
+    return out
+
+
+@dataclass
+class SharedFit:
+    """``y_gk = a_g + c_g x_gk**beta`` over G groups (sizes) with one exponent, bootstrap errors."""
+
+    exponent: float = np.nan
+    exponent_err: float = np.nan
+    intercepts: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    intercept_errs: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    coeffs: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    chi2: float = np.nan
+    dof: int = 0
+    n_points: int = 0
+    n_boot: int = 0
+    ok: bool = False
+    at_bound: bool = False
+    boot_at_bound: float = np.nan
+    message: str = ""
+    residuals: list = field(default_factory=list)   # per group, (y - model) / yerr
+
+    @property
+    def chi2_dof(self):
+        return self.chi2 / self.dof if self.dof > 0 else np.nan
+
+    @property
+    def undetermined(self) -> str:
+        return undetermined_reason(self.ok, self.exponent, self.exponent_err, self.at_bound,
+                                   self.boot_at_bound, self.message)
+
+
+def _pad(rows, fill):
+    K = max(len(r) for r in rows)
+    out = np.full((len(rows), K), fill, float)
+    for i, r in enumerate(rows):
+        out[i, :len(r)] = r
+    return out
+
+
+def fit_shared_exponent(xs, ys, yerrs, *, boot_xs=None, boot_ys=None, bounds=BETA_BOUNDS) -> SharedFit:
+    """One exponent for several groups of cells (lists of 1-d arrays, one per group), each group
+    with its own intercept and amplitude; a group needs 3 cells (3 positive abscissae) to inform
+    the exponent and is refused below. ``boot_xs``, ``boot_ys``: per group (B, K_g) replicas of
+    its cell means (the bootstrap of packings within cells); the errors are their refits' std."""
+    G = len(xs)
+    if G == 0:
+        return SharedFit(message="no size with 3 cells in the fit range")
+    for x in xs:
+        if np.count_nonzero(np.asarray(x, float) > 0) < 3:
+            raise ValueError("fit_shared_exponent: every group needs 3 cells with a positive abscissa")
+        if np.any(np.asarray(x, float) < 0):
+            raise ValueError("fit_shared_exponent: x must be >= 0")
+    X, Y, W = _pad(xs, 1.0), _pad(ys, 0.0), _pad(yerrs, np.inf)
+    a, c, beta, chi2 = fit_shared_exponent_batch(X, Y, W, bounds)
+    K = sum(len(x) for x in xs)
+    res = [(np.asarray(y, float) - a[g] - c[g] * np.asarray(x, float) ** beta) / np.asarray(e, float)
+           for g, (x, y, e) in enumerate(zip(xs, ys, yerrs))]
+    at_bound = bool(_at_bound(beta, bounds))
+    out = SharedFit(float(beta), intercepts=a, coeffs=c, chi2=float(chi2), dof=K - 2 * G - 1,
+                    n_points=K, ok=bool(np.isfinite(chi2)), at_bound=at_bound, residuals=res,
+                    intercept_errs=np.full(G, np.nan),
+                    message="exponent at the search bound" if at_bound else "")
+    if boot_xs is not None and boot_ys is not None and len(boot_xs[0]) > 1:
+        BX = np.stack([_pad(list(b), 1.0) for b in zip(*[np.asarray(bx) for bx in boot_xs])])
+        BY = np.stack([_pad(list(b), 0.0) for b in zip(*[np.asarray(by) for by in boot_ys])])
+        ba, _, bb, _ = fit_shared_exponent_batch(BX, BY, W, bounds)
+        out.exponent_err = float(np.std(bb, ddof=1))
+        out.intercept_errs = np.std(ba, axis=0, ddof=1)
+        out.boot_at_bound = float(np.mean(_at_bound(bb, bounds)))
+        out.n_boot = BX.shape[0]
     return out
 
 

@@ -581,10 +581,11 @@ def typical_overlap(E, alpha):
 
 def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
     """The power-law fits of A_G and Psi_O against E_G and Delta Z per (variant, N), with
-    bootstrap errors; returns (fit records, normalised residuals per cell, table rows).
-    ``exponents``: variant -> alpha, for ``s.fit_overlap``."""
+    bootstrap errors; returns (fit records, normalised residuals per cell, table rows, the
+    inputs of the shared-exponent fits: (variant, quantity, abscissa) -> per N the cell means,
+    their errors and bootstrap replicas). ``exponents``: variant -> alpha, for ``s.fit_overlap``."""
     C, cv, cN, cE, n_done = g.C, g.cv, g.cN, g.cE, g.n_done
-    fit_records, residuals, rows = [], [], []
+    fit_records, residuals, rows, shared_in = [], [], [], {}
     cols = ["E_G", "delta_Z", "A_G", "psi_O"]
     have = all(c in fin.scalars for c in cols)
     if not have:
@@ -624,7 +625,7 @@ def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
         row["fit_E_min"] = float(cE[usable].min()) if len(usable) else np.nan
         row["fit_E_max"] = float(cE[usable].max()) if len(usable) else np.nan
         boot = None
-        if have and len(usable) >= 4 and s.n_boot > 1:
+        if have and len(usable) >= 3 and s.n_boot > 1:
             data = [np.column_stack([fin.scalars[c][g.packings(i)] for c in cols]) for i in usable]
             data = [d[np.all(np.isfinite(d), axis=1)] for d in data]
             if all(len(d) >= 2 for d in data):
@@ -632,6 +633,20 @@ def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
         for quantity, absc, key, bkey in FITS:
             res = np.full(C, np.nan)
             rec = {"variant": v, "N_G": n, "quantity": quantity, "abscissa": absc}
+            if have and len(usable):
+                x = cells[f"mean_{absc}"][usable]
+                y = cells[f"mean_{quantity}"][usable]
+                ye = cells[f"sem_{quantity}"][usable]
+                # x = 0 is a legitimate abscissa (an isostatic cell: Delta Z = 0 exactly)
+                ok = np.isfinite(x) & (x >= 0) & np.isfinite(y) & np.isfinite(ye) & (ye > 0)
+                n_pos = int(np.count_nonzero(x[ok] > 0))
+                bx = by = None
+                if boot is not None:
+                    bx = boot[:, ok, cols.index(absc)]
+                    by = boot[:, ok, cols.index(quantity)]
+                shared_in.setdefault((v, quantity, absc), {})[n] = (
+                    (x[ok], y[ok], ye[ok], bx, by) if n_pos >= 3 else
+                    f"{n_pos} cell(s) with a positive mean {absc} in the fit range (3 needed)")
             if not have:
                 f = fits.PowerLawFit(message="scalars missing")
                 ok_cells = np.zeros(0, int)
@@ -639,21 +654,11 @@ def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
                 f = fits.PowerLawFit(n_points=len(usable), message=why)
                 ok_cells = np.zeros(0, int)
             else:
-                x = cells[f"mean_{absc}"][usable]
-                y = cells[f"mean_{quantity}"][usable]
-                ye = cells[f"sem_{quantity}"][usable]
-                # x = 0 is a legitimate abscissa (an isostatic cell: Delta Z = 0 exactly)
-                ok = np.isfinite(x) & (x >= 0) & np.isfinite(y) & np.isfinite(ye) & (ye > 0)
                 ok_cells = usable[ok]
-                n_pos = int(np.count_nonzero(x[ok] > 0))
                 if n_pos < 3:  # the exponent needs three positive abscissae
                     f = fits.PowerLawFit(n_points=int(ok.sum()), message=(
                         f"needs at least 3 cells with a positive mean {absc}, has {n_pos}"))
                 else:
-                    bx = by = None
-                    if boot is not None:
-                        bx = boot[:, ok, cols.index(absc)]
-                        by = boot[:, ok, cols.index(quantity)]
                     f = fits.fit_power_law(x[ok], y[ok], ye[ok], boot_x=bx, boot_y=by)
                 if (~ok).any():
                     f.message = (f.message + "; " if f.message else "") + (
@@ -661,14 +666,17 @@ def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
                         f"a spread of {quantity} left out")
                 if f.residuals.size == len(ok_cells):
                     res[ok_cells] = f.residuals
+            undetermined = f.undetermined if (f.ok and not short) else ""
             if not f.ok and not short:
                 notes.append(f"{v} N={n}: no fit of {quantity} against {absc}: {f.message}")
-            elif f.at_bound:
-                notes.append(f"{v} N={n}: fit of {quantity} against {absc}: {f.message}")
+            elif undetermined:
+                notes.append(f"{v} N={n}: the exponent of {quantity} against {absc} is not determined "
+                             f"({undetermined}); marked * in the table")
             rec.update(intercept=f.intercept, intercept_err=f.intercept_err, coeff=f.coeff,
                        coeff_err=f.coeff_err, exponent=f.exponent, exponent_err=f.exponent_err,
                        chi2=f.chi2, dof=f.dof, chi2_dof=f.chi2_dof, n_points=f.n_points,
-                       n_boot=f.n_boot, ok=f.ok, message=f.message,
+                       n_boot=f.n_boot, ok=f.ok, message=f.message, undetermined=undetermined,
+                       boot_at_bound=f.boot_at_bound,
                        p_value=fits.chi2_p_value(f.chi2, f.dof),
                        E_min=float(cE[ok_cells].min()) if len(ok_cells) else np.nan,
                        E_max=float(cE[ok_cells].max()) if len(ok_cells) else np.nan,
@@ -678,29 +686,65 @@ def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
             residuals.append(res)
             row[key], row[f"{key}_err"] = f.intercept, f.intercept_err
             row[bkey], row[f"{bkey}_err"] = f.exponent, f.exponent_err
+            row[f"{bkey}_undetermined"] = undetermined
             row[f"chi2_dof_{quantity}_{absc}"] = f.chi2_dof
         row["fit_p"] = next(r["p_value"] for r in fit_records[-len(FITS):]
                             if r["quantity"] == "A_G" and r["abscissa"] == "E_G")
         rows.append(row)
-    return fit_records, np.array(residuals).reshape(len(fit_records), C), rows
+    return fit_records, np.array(residuals).reshape(len(fit_records), C), rows, shared_in
 
 
-def _extrapolate(rows, notes) -> dict:
-    """Every table entry extrapolated linearly in 1/N_G, per variant."""
+#: The N_G -> inf row's keys per shared fit (quantity, abscissa): (intercept key, exponent key).
+_SHARED_KEYS = {(q, a): (k, b) for q, a, k, b in FITS}
+
+
+def _extrapolate(rows, shared_in, notes) -> dict:
+    """The N_G -> inf row per variant (docs/REDUCED.md, "The N_G -> inf row"): for each of the
+    four laws one fit over every size with the exponent shared (``fits.fit_shared_exponent``: an
+    intercept and an amplitude per size); its exponent is the row's exponent and its intercepts,
+    extrapolated linearly in 1/N_G, the row's intercept. A size with fewer than three cells in
+    the fit range does not enter; an undetermined shared exponent gives no value."""
     extrapolated = {}
     for v in sorted({r["variant"] for r in rows}):
-        rs = [r for r in rows if r["variant"] == v]
         out = {}
-        for key in TABLE_KEYS:
-            r = fits.fit_inverse_n([x["N_G"] for x in rs], [x[key] for x in rs],
-                                   [x[f"{key}_err"] for x in rs])
+        for (quantity, absc), (key, bkey) in _SHARED_KEYS.items():
+            per_n = shared_in.get((v, quantity, absc), {})
+            sizes = sorted(n for n, d in per_n.items() if not isinstance(d, str))
+            left = {n: d for n, d in per_n.items() if isinstance(d, str)}
+            left.update({r["N_G"]: "no cell in the fit range" for r in rows
+                         if r["variant"] == v and r["N_G"] not in per_n})
+            d = [per_n[n] for n in sizes]
+            boot = all(x[3] is not None for x in d) and len(d) > 0
+            f = fits.fit_shared_exponent([x[0] for x in d], [x[1] for x in d], [x[2] for x in d],
+                                         boot_xs=[x[3] for x in d] if boot else None,
+                                         boot_ys=[x[4] for x in d] if boot else None)
+            why = f.undetermined
+            if not why and len(sizes) < 2:
+                why = ("one size with three cells or more in the fit range; an extrapolation in 1/N_G "
+                       "needs two")
+            out[f"{bkey}_sizes"] = " ".join(str(n) for n in sizes) if not why else ""
+            out[f"{bkey}_left_out"] = "; ".join(f"N_G={n}: {w}" for n, w in sorted(left.items()))
+            out[f"{bkey}_note"] = why
+            if why:
+                for k in (key, bkey):
+                    out[k] = out[f"{k}_err"] = out[f"{k}_slope"] = out[f"{k}_chi2_dof"] = np.nan
+                    out[f"{k}_n_sizes"] = 0
+                continue
+            r = fits.fit_inverse_n(sizes, f.intercepts, f.intercept_errs)
             out[key], out[f"{key}_err"] = r.value, r.err
-            out[f"{key}_slope"] = r.slope
-            out[f"{key}_chi2_dof"] = r.chi2_dof
-            out[f"{key}_n_sizes"] = r.n_points
+            out[f"{key}_slope"], out[f"{key}_chi2_dof"], out[f"{key}_n_sizes"] = r.slope, r.chi2_dof, r.n_points
+            out[bkey], out[f"{bkey}_err"] = f.exponent, f.exponent_err
+            out[f"{bkey}_slope"], out[f"{bkey}_chi2_dof"], out[f"{bkey}_n_sizes"] = 0.0, f.chi2_dof, len(sizes)
+            out[f"{bkey}_p"] = fits.chi2_p_value(f.chi2, f.dof)
         extrapolated[v] = out
-        if out["A_G_star_E_n_sizes"] < 2:
-            notes.append(f"{v}: fewer than two sizes with fits: no extrapolation in 1/N_G")
+        ex = out
+        if not np.isfinite(ex["beta_E"]):
+            notes.append(f"{v}: no N_G -> inf value of A_G against E_G: {ex['beta_E_note']}"
+                         + (f" ({ex['beta_E_left_out']})" if ex["beta_E_left_out"] else ""))
+        else:
+            notes.append(f"{v}: N_G -> inf from the sizes {ex['beta_E_sizes'].replace(' ', ', ')} "
+                         "(one exponent shared by the sizes, intercepts extrapolated in 1/N_G)"
+                         + (f"; left out: {ex['beta_E_left_out']}" if ex["beta_E_left_out"] else ""))
     return extrapolated
 
 
@@ -770,9 +814,9 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
     notes = _count_notes(fin, g, reasons)
     area_hist, width = _area_distributions(fin, g, s, cells)
     vsys = variant_systems(fin.attrs, variants=g.cv)
-    fit_records, residuals, rows = _scaling_fits(fin, g, s, cells, notes,
-                                                 {v: d["exponent"] for v, d in vsys.items()})
-    extrapolated = _extrapolate(rows, notes)
+    fit_records, residuals, rows, shared_in = _scaling_fits(fin, g, s, cells, notes,
+                                                            {v: d["exponent"] for v, d in vsys.items()})
+    extrapolated = _extrapolate(rows, shared_in, notes)
     t1 = time.perf_counter()
     dists, selfavg = _histograms(fin, g, s) if distributions else ({}, {})
     t_hist = time.perf_counter() - t1
@@ -842,11 +886,34 @@ def _table_lines(red: Reduction):
     out = []
     for v in sorted(red.extrapolated):
         for r in (r for r in red.rows if r["variant"] == v):
-            out.append((v, str(r["N_G"]), [fmt_err(r[k], r[f"{k}_err"]) for k in _SHOWN]
-                        + [fit_range_label(r)]))
+            out.append((v, str(r["N_G"]), [_row_cell(r, k) for k in _SHOWN] + [fit_range_label(r)]))
         x = red.extrapolated[v]
-        out.append((v, "inf", [fmt_err(x[k], x[f"{k}_err"]) for k in _SHOWN] + ["per N_G"]))
+        sizes = x.get("beta_E_sizes", "").split()
+        label = f"sizes {sizes[0]}..{sizes[-1]}" if sizes else "--"
+        out.append((v, "inf", [fmt_err(x[k], x[f"{k}_err"]) for k in _SHOWN] + [label]))
     return out
+
+
+#: The intercept key of each exponent's fit, whose value is as undetermined as its exponent.
+_EXPONENT_OF = {k: b for _, _, k, b in FITS}
+
+
+def _row_cell(row, key):
+    """A per-size entry; ``*`` after an entry whose fit has an undetermined exponent."""
+    text = fmt_err(row[key], row[f"{key}_err"])
+    bkey = _EXPONENT_OF.get(key, key)
+    return text + "*" if row.get(f"{bkey}_undetermined") and text != "--" else text
+
+
+def table_footnote(red: Reduction) -> str:
+    """What the table's marks and its N_G -> inf row mean, in one or two sentences."""
+    parts = []
+    if any(r.get(f"{b}_undetermined") for r in red.rows for b in ("beta_E", "beta_Z")):
+        parts.append("* the exponent of this size's own fit is not determined (at the search bound, or "
+                     "its bootstrap cut by one; see the notes)")
+    parts.append("N_G -> inf: one fit per law over the sizes named, the exponent shared by the sizes "
+                 "and the intercepts extrapolated in 1/N_G (docs/REDUCED.md)")
+    return "; ".join(parts) + "."
 
 
 def table_markdown(red: Reduction) -> str:
@@ -863,6 +930,7 @@ def table_markdown(red: Reduction) -> str:
                 lab = "N_G -> inf" if label == "inf" else label
                 lines.append("| " + " | ".join([lab] + cells) + " |")
         lines.append("")
+    lines += [table_footnote(red), ""]
     return "\n".join(lines)
 
 
@@ -895,7 +963,7 @@ def table_csv(red: Reduction) -> str:
     keys = ["variant", "N_G", "n_packings", "n_cells"]
     for k in TABLE_KEYS:
         keys += [k, f"{k}_err"]
-    keys += ["fit_rule", *RANGE_KEYS]
+    keys += ["fit_rule", *RANGE_KEYS, "beta_E_undetermined", "beta_Z_undetermined"]
     rule = red.meta.get("fit_rule_name", "")
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
@@ -904,7 +972,7 @@ def table_csv(red: Reduction) -> str:
         w.writerow([_csv_val(rule if k == "fit_rule" else r.get(k)) for k in keys])
     for v, x in sorted(red.extrapolated.items()):
         w.writerow([_csv_val(v if k == "variant" else "inf" if k == "N_G" else rule if k == "fit_rule"
-                             else x.get(k, "")) for k in keys])
+                             else x.get(k.replace("_undetermined", "_note"), "")) for k in keys])
     return buf.getvalue()
 
 

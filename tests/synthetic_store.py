@@ -60,6 +60,10 @@ class Truth:
     iso_E: float = 0.0   # below this E_G every packing is isostatic: delta_Z = 0 exactly
     alpha: float = 2.0   # potential exponent: delta_Z ~ E_G**(1/(2 alpha))
     z_exponent: float | None = None  # exponent of delta_Z in E_G; None: 1/(2 alpha)
+    # the finite-size plateau (0: none): delta_Z = c_Z E^z_power s with
+    # s = 1 - exp(-(N c_Z E^z_power / plateau)^2), and A_G - A*, psi_O - P* follow delta_Z (their
+    # laws in delta_Z hold at every size, as measured), so below N_G delta_Z ~ plateau both saturate
+    plateau: float = 0.0
 
     @classmethod
     def jamming(cls, alpha, beta_Z, **kw):
@@ -75,6 +79,13 @@ class Truth:
     def beta_Z(self):
         """The exponent of A_G - A* against delta_Z."""
         return self.beta_A / self.z_power
+
+    def suppression(self, N, E):
+        """The finite-size factor s of delta_Z (1 without a plateau)."""
+        if self.plateau <= 0:
+            return np.ones_like(np.asarray(E, float))
+        return 1.0 - np.exp(-(np.asarray(N, float) * self.c_Z * np.asarray(E, float) ** self.z_power
+                              / self.plateau) ** 2)
 
     def A_star(self, N):
         return self.A_inf + self.a_N / np.asarray(N, float)
@@ -187,10 +198,13 @@ def scalars_for(c: SyntheticCampaign, variant, N, E, rng):
         m = variant == v
         t = c.truth_of(v)
         n, e = N[m], E_G[m]
-        A_G[m] = (t.A_star(n) + vshift[m] + t.c_A * e**t.beta_A * (1 + t.k_A * e**t.omega_A)
+        sup = t.suppression(n, e)
+        A_G[m] = (t.A_star(n) + vshift[m]
+                  + t.c_A * e**t.beta_A * (1 + t.k_A * e**t.omega_A) * sup ** t.beta_Z
                   + noise_A[m] * t.sigma_A / np.sqrt(n))
-        psi[m] = t.P_star(n) + t.c_P * e**t.beta_P + noise_P[m] * t.sigma_P / np.sqrt(n)
-        dZ[m] = np.where(e < t.iso_E, 0.0, t.c_Z * e**t.z_power * (1 + t.sigma_Z * noise_Z[m]))
+        psi[m] = (t.P_star(n) + t.c_P * e**t.beta_P * sup ** (t.beta_P / t.z_power)
+                  + noise_P[m] * t.sigma_P / np.sqrt(n))
+        dZ[m] = np.where(e < t.iso_E, 0.0, t.c_Z * e**t.z_power * sup * (1 + t.sigma_Z * noise_Z[m]))
     N_R = rng.binomial(N.astype(np.int64), 0.04)
     N_G = N - N_R
     z_iso = 4.0 - 2.0 / N_G
