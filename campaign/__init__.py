@@ -8,7 +8,9 @@ results as pandas DataFrames (``campaign.frames``, the ``frames`` extra); they a
 imported on first use, so ``import campaign`` stays cheap.
 """
 
-__version__ = "0.1.0"
+#: The package version, the one place it is written (pyproject.toml reads it; stores record it as
+#: ``package_version``). How it changes: docs/DEVELOPMENT.md, "Versions and the changelog".
+__version__ = "0.2.3"
 
 _FRAMES = ("read_packings", "read_cells")
 
