@@ -630,6 +630,7 @@ def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
             data = [d[np.all(np.isfinite(d), axis=1)] for d in data]
             if all(len(d) >= 2 for d in data):
                 boot = fits.bootstrap_cell_means(data, s.n_boot, seed=[s.boot_seed, gi])
+        not_determined = []
         for quantity, absc, key, bkey in FITS:
             res = np.full(C, np.nan)
             rec = {"variant": v, "N_G": n, "quantity": quantity, "abscissa": absc}
@@ -670,8 +671,7 @@ def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
             if not f.ok and not short:
                 notes.append(f"{v} N={n}: no fit of {quantity} against {absc}: {f.message}")
             elif undetermined:
-                notes.append(f"{v} N={n}: the exponent of {quantity} against {absc} is not determined "
-                             f"({undetermined}); marked * in the table")
+                not_determined.append(f"{quantity} against {absc} ({undetermined})")
             rec.update(intercept=f.intercept, intercept_err=f.intercept_err, coeff=f.coeff,
                        coeff_err=f.coeff_err, exponent=f.exponent, exponent_err=f.exponent_err,
                        chi2=f.chi2, dof=f.dof, chi2_dof=f.chi2_dof, n_points=f.n_points,
@@ -688,6 +688,9 @@ def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
             row[bkey], row[f"{bkey}_err"] = f.exponent, f.exponent_err
             row[f"{bkey}_undetermined"] = undetermined
             row[f"chi2_dof_{quantity}_{absc}"] = f.chi2_dof
+        if not_determined:
+            notes.append(f"{v} N={n}: exponents not determined, marked * in the table: "
+                         + "; ".join(not_determined))
         row["fit_p"] = next(r["p_value"] for r in fit_records[-len(FITS):]
                             if r["quantity"] == "A_G" and r["abscissa"] == "E_G")
         rows.append(row)
