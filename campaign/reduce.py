@@ -646,8 +646,9 @@ def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
                     bx = boot[:, ok, cols.index(absc)]
                     by = boot[:, ok, cols.index(quantity)]
                 shared_in.setdefault((v, quantity, absc), {})[n] = (
-                    (x[ok], y[ok], ye[ok], bx, by) if n_pos >= 3 else
-                    f"{n_pos} cell(s) with a positive mean {absc} in the fit range (3 needed)")
+                    f"{n_pos} cell(s) with a positive mean {absc} in the fit range (3 needed)"
+                    if n_pos < 3 else "a cell with fewer than 2 usable packings (no bootstrap)"
+                    if bx is None and s.n_boot > 1 else (x[ok], y[ok], ye[ok], bx, by))
             if not have:
                 f = fits.PowerLawFit(message="scalars missing")
                 ok_cells = np.zeros(0, int)
