@@ -177,3 +177,28 @@ def test_a_flat_law_gives_no_exponent(tmp_path):
                   N=(64, 128), seeds=8)
     ex = red.extrapolated["default"]
     assert not np.isfinite(ex["beta_E"]) and ex["beta_E_note"]
+
+
+def test_the_row_is_the_shared_fit_of_the_cells_not_the_per_size_fits(tmp_path):
+    """A reference computation: the N_G -> inf exponent recomputed from the reduction's own cell
+    means (typical overlap <= 0.001, every size) with the shared fit equals the reducer's,
+    whatever the per-size fits gave (one size's is undetermined here)."""
+    red = None
+    for seed in range(10):
+        red = _reduce(tmp_path, f"s{seed}", plateau_truth(), seed=seed, n_boot=50)
+        if any(r["beta_E_undetermined"] for r in red.rows):
+            break
+    c = red.cells
+    xs, ys, es, Ns = [], [], [], []
+    for N in SIZES:
+        m = (np.asarray(c["N"]) == N) & (np.sqrt(np.asarray(c["E"], float)) <= 0.001 * (1 + 1e-9))
+        xs.append(c["mean_E_G"][m])
+        ys.append(c["mean_A_G"][m])
+        es.append(c["sem_A_G"][m])
+        Ns.append(N)
+    f = fits.fit_shared_exponent(xs, ys, es)
+    ex = red.extrapolated["default"]
+    assert ex["beta_E"] == pytest.approx(f.exponent, abs=1e-9)
+    # the per-size fit of an undetermined size differs: the row did not come from it
+    row = next(r for r in red.rows if r["beta_E_undetermined"])
+    assert abs(row["beta_E"] - f.exponent) > 1e-3
