@@ -10,7 +10,7 @@ imported on first use, so ``import campaign`` stays cheap.
 
 #: The package version, the one place it is written (pyproject.toml reads it; stores record it as
 #: ``package_version``). How it changes: docs/DEVELOPMENT.md, "Versions and the changelog".
-__version__ = "0.2.3"
+__version__ = "0.2.4"
 
 _FRAMES = ("read_packings", "read_cells")
 

@@ -20,7 +20,7 @@ import traceback
 from campaign import __version__
 from campaign.errors import UserError, WriteFault
 
-SUBCOMMANDS = ("validate", "run", "status", "reduce", "plot", "analyze", "draw", "slurm", "export")
+SUBCOMMANDS = ("validate", "run", "status", "reduce", "plot", "analyze", "draw", "slurm", "export", "verify")
 
 
 class _Parser(argparse.ArgumentParser):

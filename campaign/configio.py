@@ -230,22 +230,36 @@ def _read_hdf5(path, group):
         import h5py
     except ImportError:  # pragma: no cover - h5py is a dependency
         raise UserError(f"{path}: reading HDF5 needs h5py") from None
+    from campaign.checksums import check_configuration, open_failure
+    from campaign.integrity import read_failure
+
     try:
         fh = h5py.File(path, "r", locking=False)
     except OSError as exc:
-        raise UserError(f"{path}: not a readable HDF5 file ({exc})") from None
+        raise open_failure(path, exc, f"{path}: not a readable HDF5 file ({exc})") from None
     with fh:
-        if group not in fh:
-            raise UserError(f"{path}: no group {group!r} (expected datasets positions, radii, box there)")
-        g = fh[group]
-        missing = [k for k in ("positions", "radii", "box") if k not in g]
-        if missing:
-            raise UserError(f"{path}: group {group!r}: expected datasets 'positions', 'radii', 'box'; "
-                            f"missing {', '.join(missing)}")
-        pos = np.asarray(g["positions"][()])
-        rad = np.asarray(g["radii"][()])
-        box = np.asarray(g["box"][()])
-        species = np.asarray(g["species"][()]) if "species" in g else None
+        try:
+            if group not in fh:
+                raise UserError(f"{path}: no group {group!r} (expected datasets positions, radii, box there)")
+            g = fh[group]
+            missing = [k for k in ("positions", "radii", "box") if k not in g]
+            if missing:
+                raise UserError(f"{path}: group {group!r}: expected datasets 'positions', 'radii', 'box'; "
+                                f"missing {', '.join(missing)}")
+            # a campaign store's configuration carries a checksum: StoreDamaged if its bytes changed
+            got = check_configuration(g, path, group.strip("/") or "/",
+                                      ("positions", "radii", "box", "species"))
+        except UserError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
+            err = read_failure(path, exc, fh, [group.strip("/")], what=f"group {group!r}")
+            if err is None:
+                raise
+            raise err from None
+        pos = np.asarray(got["positions"])
+        rad = np.asarray(got["radii"])
+        box = np.asarray(got["box"])
+        species = np.asarray(got["species"]) if "species" in got else None
     return _check_arrays(path, *_as_float(path, pos, rad, box), species)
 
 

@@ -452,8 +452,16 @@ def _store_exponent(attrs):
 def _store_ids_with_configurations(path):
     import h5py
 
+    from campaign.integrity import read_failure
+
     with h5py.File(path, "r", locking=False) as f:
-        return set(f["configurations"].keys()) if "configurations" in f else set()
+        try:
+            return set(f["configurations"].keys()) if "configurations" in f else set()
+        except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
+            err = read_failure(path, exc, f, ["configurations"])
+            if err is None:
+                raise
+            raise err from None
 
 
 def store_packings(path):

@@ -1,6 +1,7 @@
 """Errors the command line reports without a traceback.
 
 * ``UserError``: exit status 2, a mistake in what the user gave (spec, file, option).
+  ``StoreDamaged`` (a UserError): a store whose bytes no longer match their checksums.
 * ``WriteFault``: exit status 3, a file the command writes could not be written any more
   (``OutOfSpace``: a full disk or quota; else a file system gone read-only or failing).
   ``campaign run`` stops with everything it finished kept (the store and its journal
@@ -20,6 +21,12 @@ class UserError(Exception):
     The message is shown as-is, so it must name what was expected, what came,
     and where (file, line, key path) when that is known.
     """
+
+
+class StoreDamaged(UserError):
+    """A campaign store is damaged: a checksum or an HDF5 filter failed, or the file's structure
+    cannot be read where a run is not writing it. Exit status 2; the message names the damaged
+    part and points at ``campaign verify`` (docs/STORE.md, "Checksums, verify and repair")."""
 
 
 class MissingExtra(UserError, ImportError):

@@ -74,12 +74,28 @@ class Packings:
         try:
             self._f = h5py.File(self.path, "r", locking=False)
         except OSError as exc:
-            raise UserError(f"{self.path}: not a readable HDF5 file ({exc})") from None
+            from campaign.checksums import open_failure
+
+            raise open_failure(self.path, exc, f"{self.path}: not a readable HDF5 file ({exc})") from None
         try:
             self._setup(h5py, variant)
+        except UserError:
+            self._f.close()
+            raise
+        except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
+            err = self._failure(exc, ["tasks", "scalars"])
+            self._f.close()
+            if err is None:
+                raise
+            raise err from None
         except BaseException:
             self._f.close()
             raise
+
+    def _failure(self, exc, patterns):
+        from campaign.integrity import read_failure
+
+        return read_failure(self.path, exc, self._f, patterns)
 
     # ------------------------------------------------------------------ opening
     def _setup(self, h5py, variant):
@@ -173,28 +189,46 @@ class Packings:
                        "status": st[idx]}
                 out.update((n, scal[n]) for n in self._own_scalars)
                 yield out
-        except (OSError, KeyError, ValueError, RuntimeError) as exc:
-            raise UserError(f"{self.path}: could not read the store ({exc}); if a run is writing it, "
-                            "try again in a moment") from None
+        except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
+            err = self._failure(exc, ["tasks", "scalars"])
+            if err is None:
+                raise
+            raise err from None
 
     @property
     def n_configurations(self) -> int:
         """How many packings of the store keep their configuration (``/configurations/<id>``)."""
-        g = self._f.get("configurations")
-        return len(g) if g is not None else 0
+        try:
+            g = self._f.get("configurations")
+            return len(g) if g is not None else 0
+        except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
+            err = self._failure(exc, ["configurations"])
+            if err is None:
+                raise
+            raise err from None
 
     def configuration(self, task_id):
         """The stored configuration of a task: ``{"positions", "radii", "box", "species"}`` (float64,
         species int), or None when the store did not keep it."""
-        g = self._f.get(f"configurations/{task_id}")
+        from campaign.checksums import check_configuration
+
+        name = f"configurations/{task_id}"
+        try:
+            g = self._f.get(name)
+        except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
+            err = self._failure(exc, [name])
+            if err is None:
+                raise
+            raise err from None
         if g is None:
             return None
+        got = check_configuration(g, self.path, name)  # StoreDamaged if it fails its checksum
         try:
-            out = {k: np.asarray(g[k][()]) for k in ("positions", "radii", "box")}
+            out = {k: np.asarray(got[k]) for k in ("positions", "radii", "box")}
             n = out["radii"].shape[0]
-            out["species"] = (np.asarray(g["species"][()]).astype(np.int64) if "species" in g
+            out["species"] = (np.asarray(got["species"]).astype(np.int64) if "species" in got
                               else np.zeros(n, np.int64))
-        except (OSError, KeyError, ValueError, RuntimeError) as exc:
+        except (KeyError, ValueError, IndexError) as exc:
             raise UserError(f"{self.path}: could not read the configuration of task {task_id} ({exc})") from None
         return out
 

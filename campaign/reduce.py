@@ -202,9 +202,13 @@ class Finished:
                             continue
                         data = ds[s:e]
                         yield pos[m], np.asarray(data[rows[m] - s], dtype=np.int64)
-                except (OSError, KeyError, ValueError, RuntimeError) as exc:
-                    raise UserError(f"{path}: could not read histogram {name!r} ({exc}); if a "
-                                    "run is writing the file, try again in a moment") from None
+                except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
+                    from campaign.integrity import read_failure
+
+                    err = read_failure(path, exc, f, [f"histograms/{name}/counts"], what=f"histogram {name!r}")
+                    if err is None:
+                        raise
+                    raise err from None
 
 
 def _failed_errors(f, status, block=65536):
@@ -234,7 +238,9 @@ def _open(path, h5py):
     except FileNotFoundError:
         raise UserError(f"{path}: no such file") from None
     except OSError as exc:
-        raise UserError(f"{path}: not a readable HDF5 file ({exc})") from None
+        from campaign.checksums import open_failure
+
+        raise open_failure(path, exc, f"{path}: not a readable HDF5 file ({exc})") from None
 
 
 def load_finished(paths) -> Finished:
@@ -255,14 +261,14 @@ def load_finished(paths) -> Finished:
     offset = 0
     for path in paths:
         with _open(path, h5py) as f:
-            if "tasks" not in f:
-                raise UserError(f"{path}: not a campaign file (no /tasks table); "
-                                "expected the layout of docs/CONTRACTS.md")
-            if "schema" in f.attrs:
-                from campaign.store import check_format
-
-                check_format(f.attrs, path)
             try:
+                if "tasks" not in f:
+                    raise UserError(f"{path}: not a campaign file (no /tasks table); "
+                                    "expected the layout of docs/CONTRACTS.md")
+                if "schema" in f.attrs:
+                    from campaign.store import check_format
+
+                    check_format(f.attrs, path)
                 # status first: a row's data is complete before its status says done
                 cols = _columns(f, ("status", "id", "variant", "N", "E", "seed"))
                 for need in ("status", "id", "N", "E"):
@@ -281,9 +287,13 @@ def load_finished(paths) -> Finished:
                 if "histograms" in f:
                     for n in f["histograms"]:
                         hedges[n] = np.asarray(f[f"histograms/{n}/edges"][...], dtype=float)
-            except (OSError, KeyError, ValueError, RuntimeError) as exc:
-                raise UserError(f"{path}: could not read the store ({exc}); if a run is "
-                                "writing it, try again in a moment") from None
+            except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
+                from campaign.integrity import read_failure
+
+                err = read_failure(path, exc, f, ["tasks", "scalars", "histograms/*/edges"])
+                if err is None:
+                    raise
+                raise err from None
         attrs = attrs or file_attrs
         if edges is None:
             edges = hedges

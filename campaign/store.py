@@ -54,8 +54,11 @@ from pathlib import Path
 
 import numpy as np
 
-from campaign.errors import OutOfSpace, UserError
+from campaign.errors import OutOfSpace, StoreDamaged, UserError
 from campaign.faults import GuardedFile, release, reserve, write_fault
+from campaign.storefile import BLOCK_ROWS  # rows per chunk of every per-task dataset
+from campaign.checksums import (CONFIG_KEYS, check_configuration, write_configuration, write_failure,
+                                write_scalar_names)
 from campaign.journal import (  # noqa: F401 - part of this module's interface
     MAX_RECORD, Journal, decode_payload, encode_record, read_journal, scan_journal)
 from campaign.storefile import (  # noqa: F401 - part of this module's interface
@@ -68,7 +71,6 @@ FLUSH_SECONDS = 0.5     # staged complete blocks are written at least this often
 HOLD_SECONDS = 2.0      # a block still partly pending is written after waiting this long
 BUFFER_BYTES = 96 << 20  # staged rows beyond this are written whether their block is complete or not
 JOURNAL_BYTES = 64 << 20  # checkpoint when the journal grows past this
-BLOCK_ROWS = 256        # rows per chunk of every per-task dataset
 
 
 class Store:
@@ -139,13 +141,20 @@ class Store:
         if self.path.exists():
             problem = check_file(self.path, spec_hash, self.tasks, self.edges, self.B, touched)
             if problem is None:
-                load_state(self.path, self.status, self.attempts, self.wall)
+                try:
+                    load_state(self.path, self.status, self.attempts, self.wall)
+                except (OSError, KeyError, ValueError, RuntimeError) as exc:
+                    from campaign.integrity import read_failure
+
+                    raise read_failure(self.path, exc, None, ["tasks/attempts", "tasks/wall"],
+                                       what="its task table") from None
                 self.n_status = [int(np.count_nonzero(self.status == k)) for k in (PENDING, DONE, FAILED)]
             elif problem.startswith("refuse:"):
                 raise UserError(problem[len("refuse:"):])
             elif not records:
                 raise UserError(f"{str(self.path)!r} is unreadable ({problem}) and has no journal to rebuild it "
-                                "from; move it away or rerun with --new")
+                                f"from. `campaign verify {self.path}` says what is damaged, and `--repair` rebuilds "
+                                "it from its readable rows; or move it away, or rerun with --new")
             else:
                 self.log(f"campaign: {self.path} is damaged ({problem}); salvaging its readable rows into a "
                          "new file and replaying the journal")
@@ -318,9 +327,38 @@ class Store:
             return None
         tid = self.tasks[index].id
         if tid in self.have_configs:
-            g = self.f[f"configurations/{tid}"]
-            return {k: g[k][()] for k in ("positions", "radii", "box", "species")}
+            return self._stored_configuration(tid)
         return None
+
+    def _stored_configuration(self, tid):
+        """A configuration the store holds, checked against its checksum (StoreDamaged if not)."""
+        try:
+            g = self.f[f"configurations/{tid}"]
+        except (OSError, KeyError, ValueError, RuntimeError) as exc:
+            raise StoreDamaged(self._damaged(f"configurations/{tid}", f"cannot be read ({exc})")) from None
+        try:
+            return check_configuration(g, self.path, f"configurations/{tid}")
+        except StoreDamaged as exc:
+            raise StoreDamaged(self._damaged(f"configurations/{tid}", str(exc))) from None
+
+    def _read_block(self, name, lo, hi):
+        """Rows [lo, hi) of a block dataset this run adds rows to. A chunk that fails its checksum
+        (or cannot be read) stops the run with StoreDamaged: it must not be written back."""
+        try:
+            return self._dataset(name)[0][lo:hi]
+        except (OSError, KeyError, ValueError, RuntimeError) as exc:
+            raise StoreDamaged(self._damaged(name, f"rows {lo}-{hi - 1} cannot be read ({exc})")) from None
+
+    def _damaged(self, name, how):
+        how = how.split(". `campaign verify")[0]
+        if how.startswith(f"{self.path} is damaged: "):
+            how = how[len(f"{self.path} is damaged: "):]
+        else:
+            how = f"{name} {how}"
+        return (f"{self.path} is damaged: {how}. This run met it while adding finished tasks to the store and "
+                f"stopped; nothing it finished is lost (the journal {self.journal.path} keeps it). Run `campaign "
+                f"verify {self.path} --repair` (it marks the tasks of the damaged part pending), then this command "
+                "again: it replays the journal and recomputes those tasks")
 
     def read(self, column: str, index: int):
         """One value of a per-task dataset (``tasks/error``, ``scalars/phi``, ...), staged or stored."""
@@ -473,6 +511,7 @@ class Store:
                 if name[8:] not in self.scalar_names:
                     f["scalars"].create_dataset(name[8:], dtype=np.float64, **self._dataset_kwargs((self.T,), np.nan))
                     self.scalar_names.add(name[8:])
+                    write_scalar_names(f["scalars"], self.scalar_names)
             columns = [f"tasks/{n}" for n in ROW_FIELDS] + [f"scalars/{n}" for n in sorted(self.scalar_names)]
             columns += [f"histograms/{h}/counts" for h in self.edges]
             for name in columns:
@@ -480,7 +519,7 @@ class Store:
                 if whole:
                     block = np.full((hi - lo,) + shape, fill, dtype=dtype)
                 else:
-                    block = ds[lo:hi]
+                    block = self._read_block(name, lo, hi)
                 col = [v.get(name) for v in values]
                 if shape:  # histogram rows
                     zero = np.zeros(shape, dtype)
@@ -493,17 +532,16 @@ class Store:
                 if "c/positions" in arrays:
                     if tid in self.have_configs:
                         del f[f"configurations/{tid}"]
-                    g = f.require_group("configurations").create_group(tid)
-                    for k in ("positions", "radii", "box", "species"):
-                        g.create_dataset(k, data=arrays["c/" + k])
+                    write_configuration(f.require_group("configurations"), tid,
+                                        {k: arrays["c/" + k] for k in CONFIG_KEYS})
                     self.have_configs.add(tid)
                 if tid in self.have_failures:
                     del f[f"failures/{tid}"]
                     self.have_failures.discard(tid)
                 if int(meta["status"]) == FAILED:
-                    g = f["failures"].create_group(tid)
-                    g.attrs.update(message=meta["message"], traceback=meta["traceback"],
-                                   attempts=int(meta["attempts"]), rank=int(meta["rank"]), host=meta["host"])
+                    write_failure(f["failures"], tid, {"message": meta["message"], "traceback": meta["traceback"],
+                                                       "attempts": int(meta["attempts"]), "rank": int(meta["rank"]),
+                                                       "host": meta["host"]})
                     self.have_failures.add(tid)
         f.flush()
         # ... then the commit marker
@@ -521,9 +559,9 @@ class Store:
     def _rejournal(self, lo, hi, rows):
         """Append records, rebuilt from the store, for committed ``rows`` of block [lo, hi)."""
         f = self.f
-        cols = {n: f[f"tasks/{n}"][lo:hi] for n in ROW_FIELDS}
-        scal = {n: f[f"scalars/{n}"][lo:hi] for n in sorted(self.scalar_names)}
-        hist = {h: f[f"histograms/{h}/counts"][lo:hi] for h in self.edges}
+        cols = {n: self._read_block(f"tasks/{n}", lo, hi) for n in ROW_FIELDS}
+        scal = {n: self._read_block(f"scalars/{n}", lo, hi) for n in sorted(self.scalar_names)}
+        hist = {h: self._read_block(f"histograms/{h}/counts", lo, hi) for h in self.edges}
         for i in rows:
             k = i - lo
             t = self.tasks[i]
@@ -540,9 +578,8 @@ class Store:
                 a = f[f"failures/{t.id}"].attrs
                 meta["message"], meta["traceback"] = str(a.get("message", "")), str(a.get("traceback", ""))
             if t.id in self.have_configs:
-                g = f[f"configurations/{t.id}"]
-                for key in ("positions", "radii", "box", "species"):
-                    arrays["c/" + key] = g[key][()]
+                conf = self._stored_configuration(t.id)
+                arrays.update(("c/" + k, a) for k, a in conf.items())
             self.journal.append(meta, arrays)
             self.in_journal.add(i)
         self.journal.sync()
@@ -692,9 +729,22 @@ def open_store(path):
     except FileNotFoundError:
         raise UserError(f"no such file: {str(path)!r}") from None
     except OSError as exc:
-        raise UserError(f"{str(path)!r} is not a readable HDF5 file ({exc})") from None
+        from campaign.checksums import open_failure
+
+        raise open_failure(path, exc, f"{str(path)!r} is not a readable HDF5 file ({exc})") from None
     try:
-        check_format(f.attrs, path)
+        check_format({k: f.attrs[k] for k in f.attrs}, path)
+    except UserError:
+        f.close()
+        raise
+    except Exception as exc:  # noqa: BLE001 - its root attributes cannot be read
+        f.close()
+        from campaign.integrity import read_failure
+
+        err = read_failure(path, exc, None, (), what="its root attributes")
+        if err is None:
+            raise
+        raise err from None
     except BaseException:
         f.close()
         raise
@@ -720,7 +770,15 @@ def read_summary(path, fields=TASK_FIELDS):
                 return out
         except UserError:
             raise
-        except (OSError, KeyError, ValueError) as exc:
-            last = exc
+        except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
+            from campaign.checksums import run_is_writing
+            from campaign.integrity import read_failure
+
+            err = read_failure(path, exc, None, ["tasks", "failures"])
+            if err is None:
+                raise
+            last = err
+            if not run_is_writing(path) or isinstance(err, StoreDamaged):
+                break
             time.sleep(0.2)
-    raise UserError(f"cannot read {str(path)!r} as a campaign store: {last}")
+    raise last

@@ -12,6 +12,7 @@ removes the temporary file.
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -19,6 +20,8 @@ import numpy as np
 
 from campaign.errors import UserError
 from campaign.faults import GuardedFile, release, reserve, write_fault
+
+BLOCK_ROWS = 256        # rows per chunk of every per-task dataset
 
 SCHEMA = "jamming-campaign/1"
 #: Layout version of the store (root attribute ``format_version``). 1 (no attribute): dense
@@ -60,8 +63,22 @@ def fsync_path(path):
 
 
 def dataset_kwargs(B, shape, fill):
+    """A per-task block dataset: chunks of ``B`` rows, shuffled, deflated, and HDF5's fletcher32
+    checksum on each chunk (written last, checked first on every read; ``campaign.checksums``)."""
+    from campaign.checksums import checksums_on
+
     chunks = (B,) + tuple(shape[1:])
-    return dict(shape=shape, chunks=chunks, fillvalue=fill, **COMPRESSION)
+    return dict(shape=shape, chunks=chunks, fillvalue=fill, fletcher32=checksums_on(), **COMPRESSION)
+
+
+def edges_kwargs(e):
+    """A histogram's bin edges: one chunk with its checksum (contiguous without checksums)."""
+    from campaign.checksums import checksums_on
+
+    e = np.asarray(e, np.float64)
+    if checksums_on():
+        return dict(data=e, chunks=e.shape, fletcher32=True)
+    return dict(data=e)
 
 
 # --------------------------------------------------------------------------- format version
@@ -151,7 +168,7 @@ def check_file(path, spec_hash, tasks, edges, B, touched=()):
                         return f"configurations/{tid} lacks {k}"
                     g[k].shape
             for g in (f["failures"].values() if "failures" in f else ()):
-                dict(g.attrs)
+                dict(g.attrs)  # an object that is not a group (a damaged header) fails here too
             names = [f"tasks/{n}" for n in ROW_FIELDS] + [f"scalars/{n}" for n in f["scalars"]]
             names += [f"histograms/{h}/counts" for h in edges]
             for name in names:
@@ -159,7 +176,7 @@ def check_file(path, spec_hash, tasks, edges, B, touched=()):
                 for b in sorted(touched):
                     ds[b * B:(b + 1) * B]
             f["tasks/status"][:]
-    except (OSError, KeyError, ValueError, RuntimeError, TypeError) as exc:
+    except Exception as exc:  # noqa: BLE001 - whatever a damaged file makes h5py raise: salvage it
         return f"{type(exc).__name__}: {exc}"
     return None
 
@@ -190,12 +207,15 @@ def creation_bytes(T, edges, salvage_from=None) -> int:
     return int(1.05 * (raw + extra)) + 8 * SLACK
 
 
-def create_file(path, spec, tasks, edges, B, *, salvage=False, state=None):
+def create_file(path, spec, tasks, edges, B, *, salvage=False, state=None, drop=(), renames=None):
     """A fresh store at ``path``, created under a temporary name and renamed into place.
 
     With ``salvage``, the committed rows that can still be read from the damaged file at
     ``path`` are copied into it (block by block; a block that cannot be read is lost and its
-    tasks are pending again), and ``state`` (status, attempts, wall arrays) gets their values.
+    tasks are pending again; so is a row in ``drop``, a row whose commit marker contradicts it,
+    and one whose configuration or failure record cannot be read or fails its checksum), and
+    ``state`` (status, attempts, wall arrays) gets their values; ``renames`` maps scalar datasets
+    found under a damaged name to their name.
     The space it needs is reserved first; a full disk (OutOfSpace) or any other fault
     removes the temporary file and leaves ``path`` as it was.
     """
@@ -214,7 +234,7 @@ def create_file(path, spec, tasks, edges, B, *, salvage=False, state=None):
         f = h5py.File(io, "w")
         _write_layout(f, spec, tasks, edges, B)
         if salvage:
-            _salvage_into(f, path, tasks, edges, B, state)
+            _salvage_into(f, path, tasks, edges, B, state, drop, renames or {})
         f.flush()
         if io.failed is not None:
             raise io.failed
@@ -265,7 +285,7 @@ def _write_layout(f, spec, tasks, edges, B):
     f.create_group("scalars")
     hg = f.create_group("histograms")
     for h, e in edges.items():
-        hg.create_dataset(f"{h}/edges", data=e)
+        hg.create_dataset(f"{h}/edges", **edges_kwargs(e))
         hg.create_dataset(f"{h}/counts", dtype=np.int64, **dataset_kwargs(B, (T, len(e) - 1), 0))
     if spec.configurations:
         f.create_group("configurations")
@@ -277,62 +297,101 @@ def _write_layout(f, spec, tasks, edges, B):
     f.attrs["spec_yaml"] = spec.text
 
 
-def _salvage_into(f, old_path, tasks, edges, B, state):
-    """Copy every readable committed row of the damaged store ``old_path`` into ``f``."""
+def _salvage_into(f, old_path, tasks, edges, B, state, drop=(), renames=None):
+    """Copy every readable committed row of the damaged store ``old_path`` into ``f``.
+
+    Dropped (pending again, every column at its fill value): the rows of a block that cannot be
+    read, the rows in ``drop``, a row whose status is not 0, 1 or 2 or says finished where its
+    row holds no finished task (``attempts`` 0), and a finished row whose configuration or failure
+    record cannot be read or fails its checksum. Root attributes that read are carried over."""
     import h5py
+
+    from campaign.checksums import (configuration_problem, failure_problem, good_scalar_name, write_configuration,
+                                    write_failure, write_scalar_names)
 
     T = len(tasks)
     status, attempts, wall = state
+    drop = set(int(i) for i in drop)
     try:
         old = h5py.File(old_path, "r", locking=False)
     except (OSError, ValueError, RuntimeError):
         return
     with old:
         try:
-            attrs = dict(old.attrs)
-            if "runs" in attrs:
-                f.attrs["runs"] = attrs["runs"]
+            for key in old.attrs.keys():
+                if key in f.attrs:
+                    continue
+                try:
+                    value = old.attrs[key]
+                    if key in ("runs", "hosts", "versions"):
+                        json.loads(value)
+                    f.attrs[key] = value
+                except (OSError, KeyError, ValueError, RuntimeError, TypeError):
+                    continue  # a damaged provenance attribute: left out (the next run writes it again)
         except (OSError, KeyError, ValueError, RuntimeError):
             pass
-        try:
-            scalar_names = list(old["scalars"].keys())
+        renames = renames or {}
+        try:  # old name -> name (a damaged name is renamed back when known, else left out)
+            scalar_names = {n: renames.get(n, n) for n in old["scalars"].keys()
+                            if n in renames or good_scalar_name(n)}
         except (OSError, KeyError, ValueError, RuntimeError):
-            scalar_names = []
+            scalar_names = {}
+        fills = {f"tasks/{n}": fill_value(n) for n in ROW_FIELDS}
+        fills.update({f"scalars/{n}": np.nan for n in scalar_names.values()})
+        fills.update({f"histograms/{h}/counts": 0 for h in edges})
         for lo in range(0, T, B):
             hi = min(lo + B, T)
             try:
-                st = old["tasks/status"][lo:hi]
+                st = np.array(old["tasks/status"][lo:hi])
                 rows = np.flatnonzero(st != PENDING)
                 if not len(rows):
                     continue
                 data = {f"tasks/{n}": old[f"tasks/{n}"][lo:hi] for n in ROW_FIELDS}
-                for n in scalar_names:
-                    data[f"scalars/{n}"] = old[f"scalars/{n}"][lo:hi]
+                for n, new in scalar_names.items():
+                    data[f"scalars/{new}"] = old["scalars"][n][lo:hi]
                 for h in edges:
                     data[f"histograms/{h}/counts"] = old[f"histograms/{h}/counts"][lo:hi]
-                extra = {}
-                for r in rows:
-                    tid = tasks[lo + r].id
-                    if "configurations" in old and tid in old["configurations"]:
-                        g = old[f"configurations/{tid}"]
-                        extra[("c", tid)] = {k: g[k][()] for k in ("positions", "radii", "box", "species")}
-                    if st[r] == FAILED and "failures" in old and tid in old["failures"]:
-                        extra[("f", tid)] = dict(old[f"failures/{tid}"].attrs)
-            except (OSError, KeyError, ValueError, RuntimeError, TypeError):
+            except (OSError, KeyError, ValueError, RuntimeError, TypeError, MemoryError):
                 continue  # this block is lost: its tasks are pending again
+            bad = {int(r) for r in rows if lo + int(r) in drop or st[r] not in (DONE, FAILED)
+                   or data["tasks/attempts"][r] < 1}
+            bad.update(int(r) for r in np.flatnonzero(st == PENDING))  # nothing of a pending row is kept
+            extra = {}
+            for r in rows:
+                if int(r) in bad:
+                    continue
+                tid = tasks[lo + r].id
+                try:
+                    if "configurations" in old and tid in old["configurations"]:
+                        conf, problem = configuration_problem(old[f"configurations/{tid}"])
+                        if problem is not None:
+                            raise ValueError(problem)
+                        extra[("c", tid)] = conf
+                    if st[r] == FAILED and "failures" in old and tid in old["failures"]:
+                        rec = dict(old[f"failures/{tid}"].attrs)
+                        problem = failure_problem(rec)
+                        if problem is not None:
+                            raise ValueError(problem)
+                        extra[("f", tid)] = rec
+                except (OSError, KeyError, ValueError, RuntimeError, TypeError):
+                    bad.add(int(r))  # this task is pending again
+                    extra.pop(("c", tid), None)
+            for r in bad:
+                st[r] = PENDING
+                extra.pop(("c", tasks[lo + r].id), None)
+                extra.pop(("f", tasks[lo + r].id), None)
+                for name, a in data.items():
+                    a[r] = fills[name]
             for name, a in data.items():
                 if name.startswith("scalars/") and name not in f:
                     f["scalars"].create_dataset(name[8:], dtype=np.float64, **dataset_kwargs(B, (T,), np.nan))
+                    write_scalar_names(f["scalars"], f["scalars"].keys())
                 f[name][lo:hi] = a
             for (kind, tid), v in extra.items():
                 if kind == "c":
-                    g = f.require_group("configurations").create_group(tid)
-                    for k, a in v.items():
-                        g.create_dataset(k, data=a)
+                    write_configuration(f.require_group("configurations"), tid, v)
                 else:
-                    g = f["failures"].create_group(tid)
-                    for k, a in v.items():
-                        g.attrs[k] = a
+                    write_failure(f["failures"], tid, v)
             f["tasks/status"][lo:hi] = st
             status[lo:hi] = st
             attempts[lo:hi] = data["tasks/attempts"]

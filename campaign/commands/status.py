@@ -40,7 +40,7 @@ def main(args) -> int:
             last = json.loads(attrs.get("runs", "[]"))[-1]
             if last.get("seconds"):
                 state["per_hour"] = 3600.0 * (last.get("completed", 0) + last.get("failed", 0)) / last["seconds"]
-        except (ValueError, IndexError, TypeError):
+        except (ValueError, IndexError, TypeError, AttributeError):
             pass
     failures = s["failures"]
     waiting = _journal_only(args.file, s["status"])
@@ -99,17 +99,26 @@ def _scan(path):
 
     from campaign.store import DONE, FAILED, PENDING, open_store
 
+    from campaign.errors import StoreDamaged, UserError
+    from campaign.checksums import run_is_writing
+    from campaign.integrity import read_failure
+
     last = None
-    for _ in range(5):  # the file may be caught in the middle of a flush
+    for _ in range(5):  # while a run writes, the file may be caught in the middle of a flush
         try:
             with open_store(path) as f:
                 return _scan_open(f, np, DONE, FAILED, PENDING)
-        except (OSError, KeyError, ValueError) as exc:
-            last = exc
+        except UserError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
+            err = read_failure(path, exc, None, ["tasks", "failures"])
+            if err is None:
+                raise
+            last = err
+            if isinstance(err, StoreDamaged) or not run_is_writing(path):
+                break
             time.sleep(0.2)
-    from campaign.errors import UserError
-
-    raise UserError(f"cannot read {str(path)!r} as a campaign store: {last}")
+    raise last
 
 
 def _scan_open(f, np, DONE, FAILED, PENDING):
@@ -118,7 +127,15 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
     T = len(status_all)
     n_done = int(np.count_nonzero(status_all == DONE))
     stride = max(1, -(-n_done // FIT_ROWS))
-    failure_recs = {tid: dict(g.attrs) for tid, g in f["failures"].items()} if "failures" in f else {}
+    failure_recs = {tid: dict(f["failures"][tid].attrs) for tid in f["failures"]} if "failures" in f else {}
+    for tid, rec in failure_recs.items():
+        from campaign.checksums import damaged_message, failure_problem
+
+        problem = failure_problem(rec)
+        if problem is not None:
+            from campaign.errors import StoreDamaged
+
+            raise StoreDamaged(damaged_message(f.filename, f"failures/{tid}", problem))
     cells, failures = {}, []
     sample = {"N": [], "E": [], "wall": [], "variant": []}
     done_seen = 0
@@ -182,7 +199,7 @@ def _remaining_core_hours(attrs, s):
 
     try:
         spec = parse_spec(str(attrs["spec_yaml"]), "the file's spec")
-    except (KeyError, UserError):
+    except (KeyError, UserError, TypeError, ValueError):  # no estimate from a spec that does not read
         return None, 0
     if spec.n_tasks != s["totals"]["tasks"]:
         return None, 0
