@@ -553,17 +553,7 @@ class Scan:
         for lo in range(0, T, step):
             hi = min(lo + step, T)
             if skip and any(lo < b and a < hi for a, b in skip):  # read chunk by chunk, past the bad ones
-                for a in range(lo, hi, chunk):
-                    b = min(a + chunk, hi)
-                    if (a, b) in skip:
-                        continue
-                    try:
-                        data = ds[a:b]
-                    except Exception as exc:  # noqa: BLE001
-                        self._bad_chunk(name, ds, a, b, exc, repair)
-                        continue
-                    r.checked["chunks"] += 1
-                    self._values(col, a, b, data)
+                self._by_chunks(name, ds, col, lo, hi, chunk, repair, skip)
                 self.tick((hi - lo) * rowbytes, name)
                 continue
             try:
@@ -573,17 +563,24 @@ class Scan:
             except _Found:
                 raise
             except Exception:  # noqa: BLE001 - find the damaged chunks of this slab
-                for a in range(lo, hi, chunk):
-                    b = min(a + chunk, hi)
-                    try:
-                        data = ds[a:b]
-                    except Exception as exc:  # noqa: BLE001
-                        self._bad_chunk(name, ds, a, b, exc, repair)
-                        continue
-                    r.checked["chunks"] += 1
-                    self._values(col, a, b, data)
+                self._by_chunks(name, ds, col, lo, hi, chunk, repair)
             self.tick((hi - lo) * rowbytes, name)
         r.checked["bytes"] += _stored_size(ds)
+
+    def _by_chunks(self, name, ds, col, lo, hi, chunk, repair, skip=()):
+        """Read rows [lo, hi) of ``ds`` chunk by chunk, past the chunks in ``skip``: a chunk that
+        cannot be read is damage (``_bad_chunk``), the others are checked as usual."""
+        for a in range(lo, hi, chunk):
+            b = min(a + chunk, hi)
+            if (a, b) in skip:
+                continue
+            try:
+                data = ds[a:b]
+            except Exception as exc:  # noqa: BLE001
+                self._bad_chunk(name, ds, a, b, exc, repair)
+                continue
+            self.report.checked["chunks"] += 1
+            self._values(col, a, b, data)
 
     def _chunk_index(self, name, ds, chunk, rowbytes, repair):
         """Every chunk the index lists must have had every filter applied (a set bit of its filter
