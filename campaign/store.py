@@ -751,30 +751,22 @@ def open_store(path):
     return f
 
 
-def read_summary(path, fields=TASK_FIELDS):
-    """The task table's columns ``fields`` (all rows), the root attributes and the failure
-    records, read-only. Retries a few times if it catches the file in the middle of a flush.
-    Memory grows with the tasks (the error column alone is 512 bytes a task): ``campaign
-    status`` reads the table in blocks instead; ask for the columns you need.
-    """
+def read_retrying(path, read, patterns=("tasks", "failures")):
+    """``read(f)`` on the store opened read-only, retried a few times while a run writes it (the
+    read may catch the file in the middle of a flush); a failure that is the file's becomes the
+    readers' error (``campaign.integrity.read_failure``: damaged, naming ``patterns``' datasets)."""
     last = None
-    for attempt in range(5):
+    for _ in range(5):
         try:
             with open_store(path) as f:
-                out = {k: f[f"tasks/{k}"][:] for k in fields}
-                out["attrs"] = {k: f.attrs[k] for k in f.attrs}
-                out["failures"] = {}
-                if "failures" in f:
-                    for tid in f["failures"]:
-                        out["failures"][tid] = dict(f[f"failures/{tid}"].attrs)
-                return out
+                return read(f)
         except UserError:
             raise
         except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
             from campaign.checksums import run_is_writing
             from campaign.integrity import read_failure
 
-            err = read_failure(path, exc, None, ["tasks", "failures"])
+            err = read_failure(path, exc, None, list(patterns))
             if err is None:
                 raise
             last = err
@@ -782,3 +774,21 @@ def read_summary(path, fields=TASK_FIELDS):
                 break
             time.sleep(0.2)
     raise last
+
+
+def read_summary(path, fields=TASK_FIELDS):
+    """The task table's columns ``fields`` (all rows), the root attributes and the failure
+    records, read-only. Retries a few times if it catches the file in the middle of a flush.
+    Memory grows with the tasks (the error column alone is 512 bytes a task): ``campaign
+    status`` reads the table in blocks instead; ask for the columns you need.
+    """
+    def read(f):
+        out = {k: f[f"tasks/{k}"][:] for k in fields}
+        out["attrs"] = {k: f.attrs[k] for k in f.attrs}
+        out["failures"] = {}
+        if "failures" in f:
+            for tid in f["failures"]:
+                out["failures"][tid] = dict(f[f"failures/{tid}"].attrs)
+        return out
+
+    return read_retrying(path, read)

@@ -9,7 +9,6 @@ updated within the last ``STALE_SECONDS``.
 from __future__ import annotations
 
 import json
-import time
 
 HELP = "show the progress and failures recorded in a campaign store (also while it runs)"
 
@@ -97,28 +96,9 @@ def _scan(path):
     space the sample."""
     import numpy as np
 
-    from campaign.store import DONE, FAILED, PENDING, open_store
+    from campaign.store import DONE, FAILED, PENDING, read_retrying
 
-    from campaign.errors import StoreDamaged, UserError
-    from campaign.checksums import run_is_writing
-    from campaign.integrity import read_failure
-
-    last = None
-    for _ in range(5):  # while a run writes, the file may be caught in the middle of a flush
-        try:
-            with open_store(path) as f:
-                return _scan_open(f, np, DONE, FAILED, PENDING)
-        except UserError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
-            err = read_failure(path, exc, None, ["tasks", "failures"])
-            if err is None:
-                raise
-            last = err
-            if isinstance(err, StoreDamaged) or not run_is_writing(path):
-                break
-            time.sleep(0.2)
-    raise last
+    return read_retrying(path, lambda f: _scan_open(f, np, DONE, FAILED, PENDING))
 
 
 def _scan_open(f, np, DONE, FAILED, PENDING):
