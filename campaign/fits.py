@@ -229,7 +229,6 @@ class SharedFit:
     at_bound: bool = False
     boot_at_bound: float = np.nan
     message: str = ""
-    residuals: list = field(default_factory=list)   # per group, (y - model) / yerr
 
     @property
     def chi2_dof(self):
@@ -241,11 +240,13 @@ class SharedFit:
                                    self.boot_at_bound, self.message)
 
 
-def _pad(rows, fill):
-    K = max(len(r) for r in rows)
-    out = np.full((len(rows), K), fill, float)
-    for i, r in enumerate(rows):
-        out[i, :len(r)] = r
+def _pad(groups, fill):
+    """Stack groups of shape (..., K_g) into (..., G, K), K the longest, padded with ``fill``."""
+    groups = [np.asarray(r, float) for r in groups]
+    K = max(r.shape[-1] for r in groups)
+    out = np.full(groups[0].shape[:-1] + (len(groups), K), fill)
+    for i, r in enumerate(groups):
+        out[..., i, :r.shape[-1]] = r
     return out
 
 
@@ -265,16 +266,13 @@ def fit_shared_exponent(xs, ys, yerrs, *, boot_xs=None, boot_ys=None, bounds=BET
     X, Y, W = _pad(xs, 1.0), _pad(ys, 0.0), _pad(yerrs, np.inf)
     a, c, beta, chi2 = fit_shared_exponent_batch(X, Y, W, bounds)
     K = sum(len(x) for x in xs)
-    res = [(np.asarray(y, float) - a[g] - c[g] * np.asarray(x, float) ** beta) / np.asarray(e, float)
-           for g, (x, y, e) in enumerate(zip(xs, ys, yerrs))]
     at_bound = bool(_at_bound(beta, bounds))
     out = SharedFit(float(beta), intercepts=a, coeffs=c, chi2=float(chi2), dof=K - 2 * G - 1,
-                    n_points=K, ok=bool(np.isfinite(chi2)), at_bound=at_bound, residuals=res,
+                    n_points=K, ok=bool(np.isfinite(chi2)), at_bound=at_bound,
                     intercept_errs=np.full(G, np.nan),
                     message="exponent at the search bound" if at_bound else "")
     if boot_xs is not None and boot_ys is not None and len(boot_xs[0]) > 1:
-        BX = np.stack([_pad(list(b), 1.0) for b in zip(*[np.asarray(bx) for bx in boot_xs])])
-        BY = np.stack([_pad(list(b), 0.0) for b in zip(*[np.asarray(by) for by in boot_ys])])
+        BX, BY = _pad(boot_xs, 1.0), _pad(boot_ys, 0.0)   # (B, G, K)
         ba, _, bb, _ = fit_shared_exponent_batch(BX, BY, W, bounds)
         out.exponent_err = float(np.std(bb, ddof=1))
         out.intercept_errs = np.std(ba, axis=0, ddof=1)

@@ -655,10 +655,13 @@ def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
                 if boot is not None:
                     bx = boot[:, ok, cols.index(absc)]
                     by = boot[:, ok, cols.index(quantity)]
-                shared_in.setdefault((v, quantity, absc), {})[n] = (
-                    f"{n_pos} cell(s) with a positive mean {absc} in the fit range (3 needed)"
-                    if n_pos < 3 else "a cell with fewer than 2 usable packings (no bootstrap)"
-                    if bx is None and s.n_boot > 1 else (x[ok], y[ok], ye[ok], bx, by))
+                if n_pos < 3:  # the size's cells, or why it cannot enter the shared fit
+                    entry = f"{n_pos} cell(s) with a positive mean {absc} in the fit range (3 needed)"
+                elif bx is None and s.n_boot > 1:
+                    entry = "a cell with fewer than 2 usable packings (no bootstrap)"
+                else:
+                    entry = (x[ok], y[ok], ye[ok], bx, by)
+                shared_in.setdefault((v, quantity, absc), {})[n] = entry
             if not have:
                 f = fits.PowerLawFit(message="scalars missing")
                 ok_cells = np.zeros(0, int)
@@ -708,10 +711,6 @@ def _scaling_fits(fin, g: _Grid, s: Settings, cells, notes, exponents=None):
     return fit_records, np.array(residuals).reshape(len(fit_records), C), rows, shared_in
 
 
-#: The N_G -> inf row's keys per shared fit (quantity, abscissa): (intercept key, exponent key).
-_SHARED_KEYS = {(q, a): (k, b) for q, a, k, b in FITS}
-
-
 def _extrapolate(rows, shared_in, notes) -> dict:
     """The N_G -> inf row per variant (docs/REDUCED.md, "The N_G -> inf row"): for each of the
     four laws one fit over every size with the exponent shared (``fits.fit_shared_exponent``: an
@@ -721,7 +720,7 @@ def _extrapolate(rows, shared_in, notes) -> dict:
     extrapolated = {}
     for v in sorted({r["variant"] for r in rows}):
         out = {}
-        for (quantity, absc), (key, bkey) in _SHARED_KEYS.items():
+        for quantity, absc, key, bkey in FITS:
             per_n = shared_in.get((v, quantity, absc), {})
             sizes = sorted(n for n, d in per_n.items() if not isinstance(d, str))
             left = {n: d for n, d in per_n.items() if isinstance(d, str)}
@@ -751,14 +750,13 @@ def _extrapolate(rows, shared_in, notes) -> dict:
             out[f"{bkey}_slope"], out[f"{bkey}_chi2_dof"], out[f"{bkey}_n_sizes"] = 0.0, f.chi2_dof, len(sizes)
             out[f"{bkey}_p"] = fits.chi2_p_value(f.chi2, f.dof)
         extrapolated[v] = out
-        ex = out
-        if not np.isfinite(ex["beta_E"]):
-            notes.append(f"{v}: no N_G -> inf value of A_G against E_G: {ex['beta_E_note']}"
-                         + (f" ({ex['beta_E_left_out']})" if ex["beta_E_left_out"] else ""))
+        if not np.isfinite(out["beta_E"]):
+            notes.append(f"{v}: no N_G -> inf value of A_G against E_G: {out['beta_E_note']}"
+                         + (f" ({out['beta_E_left_out']})" if out["beta_E_left_out"] else ""))
         else:
-            notes.append(f"{v}: N_G -> inf from the sizes {ex['beta_E_sizes'].replace(' ', ', ')} "
+            notes.append(f"{v}: N_G -> inf from the sizes {out['beta_E_sizes'].replace(' ', ', ')} "
                          "(one exponent shared by the sizes, intercepts extrapolated in 1/N_G)"
-                         + (f"; left out: {ex['beta_E_left_out']}" if ex["beta_E_left_out"] else ""))
+                         + (f"; left out: {out['beta_E_left_out']}" if out["beta_E_left_out"] else ""))
     return extrapolated
 
 
