@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
 def _spec(n_tasks):
-    from campaign.spec import parse_spec
+    from campaign.plan.spec import parse_spec
 
     seeds = max(1, n_tasks // 10)
     return parse_spec(f"name: cks\nseed: 1\ngrid: {{N_G: [16], E_G: {{log_range: [1.0e-10, 1.0e-1], per_decade: 1}}, "
@@ -45,9 +45,9 @@ def _spec(n_tasks):
 
 def write_store(path, n_tasks, checksums):
     """Seconds of CPU the store path takes for n_tasks finished tasks; the file written."""
-    from campaign.store import Store
-    from campaign.tasks import expand
-    from campaign.worker import SyntheticTask, run_task
+    from campaign.storage.store import Store
+    from campaign.plan.tasks import expand
+    from campaign.run.worker import SyntheticTask, run_task
 
     if checksums:
         os.environ.pop("CAMPAIGN_NO_CHECKSUMS", None)
@@ -92,7 +92,7 @@ def read_blocks(path):
 
 
 def verify_seconds(path):
-    from campaign.integrity import scan
+    from campaign.storage.integrity import scan
 
     t0 = time.perf_counter()
     r = scan(path)
@@ -101,7 +101,7 @@ def verify_seconds(path):
 
 
 def crc_rate():
-    from campaign.checksums import config_crc
+    from campaign.storage.checksums import config_crc
 
     out = {}
     for n in (1024, 8192):

@@ -17,7 +17,7 @@ import importlib
 import sys
 import traceback
 
-from campaign import __version__
+from campaign.version import __version__
 from campaign.errors import UserError, WriteFault
 
 SUBCOMMANDS = ("validate", "run", "status", "reduce", "plot", "analyze", "draw", "slurm", "export", "verify")
@@ -95,7 +95,7 @@ def _write_fault_exit(command, exc):
     import os
     import re
 
-    from campaign.faults import describe_filesystem, neutralise_open_files, write_fault
+    from campaign.storage.faults import describe_filesystem, neutralise_open_files, write_fault
 
     m = re.search(r"filename = '([^']*)'", str(exc))
     path = getattr(exc, "filename", None) or (m.group(1) if m else None)

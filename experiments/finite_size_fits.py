@@ -52,7 +52,7 @@ import time
 
 import numpy as np
 
-from campaign import fits
+from campaign.results import fits
 
 Z0, X0, Z_P = 5.0, 4.3, 0.55
 A_INF, B_N, B_COEFF, SD_A0 = 0.446, -0.4, 0.22, 0.10
@@ -196,7 +196,7 @@ def print_rows(rows, title):
 
 def store_data(paths, halves):
     """{label: {N: [cells]}} of a store's default variant: every seed, or two disjoint halves."""
-    from campaign.reduce import load_finished
+    from campaign.results.reduce import load_finished
 
     fin = load_finished(paths)
     ok, _ = fin.usable()
@@ -219,7 +219,7 @@ def store_data(paths, halves):
 def real_store(paths, estimators, boot, halves):
     print("| seeds | estimator | beta_E | beta_Z | A*(E_G=0) | A*(Delta Z=0) |")
     print("|---|---|---|---|---|---|")
-    from campaign.tables import fmt_err
+    from campaign.results.tables import fmt_err
 
     for label, data in store_data(paths, halves).items():
         for name in estimators:

@@ -6,7 +6,7 @@
 Reads the finished, usable packings of the store (converged jams whose identities hold,
 as `campaign reduce` does), groups them into (N_G, E_G) cells of the default variant and
 fits ``A_G = A* + c x^beta`` per N_G with the reducer's fitting code
-(``campaign.fits.fit_power_law``: weighted least squares on the cell means, errors from a
+(``campaign.results.fits.fit_power_law``: weighted least squares on the cell means, errors from a
 bootstrap over packings), for these choices of the abscissa ``x`` and of the fit:
 
 * ``E`` -- this project's E_G (sum over unordered pairs / all disks): the reducer's fit over
@@ -33,8 +33,8 @@ import sys
 
 import numpy as np
 
-from campaign.fits import bootstrap_cell_means, fit_power_law
-from campaign.reduce import load_finished
+from campaign.results.fits import bootstrap_cell_means, fit_power_law
+from campaign.results.reduce import load_finished
 
 
 def cells(fin, quantity, abscissa, keep=None):

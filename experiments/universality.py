@@ -34,8 +34,8 @@ import numpy as np
 
 from scipy import stats
 
-from campaign.fits import bootstrap_cell_means, fit_inverse_n
-from campaign.reduce import Settings, fmt_err, reduce_campaign, typical_overlap
+from campaign.results.fits import bootstrap_cell_means, fit_inverse_n
+from campaign.results.reduce import Settings, fmt_err, reduce_campaign, typical_overlap
 
 WINDOWS = (math.inf, 1e-2, 3e-3, 1e-3)
 
@@ -92,7 +92,7 @@ def main(argv=None):
     ap.add_argument("--json", metavar="FILE")
     args = ap.parse_args(argv)
 
-    from campaign.reduce import load_finished
+    from campaign.results.reduce import load_finished
 
     everything = load_finished(args.store)
     out = {}

@@ -251,8 +251,8 @@ variants: [{name: halving, search: halving}]
 
 def test_settings_are_protocol_keys_and_part_of_the_task_identity():
     from campaign.errors import UserError
-    from campaign.spec import parse_spec
-    from campaign.tasks import expand
+    from campaign.plan.spec import parse_spec
+    from campaign.plan.tasks import expand
 
     ids = {t.variant: t.id for t in expand(parse_spec(SPEC))}
     # ids computed by the code before the minimiser settings existed: unchanged

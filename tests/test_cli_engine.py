@@ -13,7 +13,7 @@ import h5py
 import pytest
 
 from campaign import cli
-from campaign.progress import Progress
+from campaign.storage.progress import Progress
 
 ROOT = Path(__file__).resolve().parents[1]
 SPEC = """\
@@ -175,7 +175,7 @@ class WarmProbe:
     """A task function that logs who warms up and when (see the test below)."""
 
     def __init__(self):
-        from campaign.worker import SyntheticTask
+        from campaign.run.worker import SyntheticTask
 
         self.inner = SyntheticTask()
 

@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from campaign import tasks
-from campaign.costmodel import CostModel
+from campaign.plan import tasks
+from campaign.plan.costmodel import CostModel
 
 SIZES = np.array([64, 128, 256, 512, 1024])
 ENERGIES = 10.0 ** -np.arange(3, 16)

@@ -14,7 +14,8 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import kernels  # noqa: E402
-from campaign import cli, draw  # noqa: E402
+from campaign import cli  # noqa: E402
+from campaign.results import draw
 from kernels.network import network  # noqa: E402
 
 

@@ -123,7 +123,7 @@ def test_read_packings_is_the_store_bit_for_bit(real):
 
 
 def test_read_packings_keeps_the_rows_the_reducer_uses(synth):
-    from campaign.reduce import load_finished
+    from campaign.results.reduce import load_finished
 
     t, s, done, good = _h5(synth)
     assert (t["status"] == 2).any() and (t["status"] == 0).any() and (done & ~good).sum() == 3
@@ -386,7 +386,7 @@ def test_analyze_an_exported_frame_gives_the_stores_scalars(real, tmp_path, caps
 
 
 def test_draw_an_exported_frame(real, tmp_path, capsys):
-    from campaign import draw
+    from campaign.results import draw
 
     out = tmp_path / "p.gsd"
     assert _export(capsys, real, "--out", out)[0] == 0
@@ -406,7 +406,7 @@ def test_reader_takes_other_programs_extended_xyz(tmp_path, monkeypatch):
     from ase.io import write
 
     _serial_ase(monkeypatch)
-    from campaign.configio import read_configuration
+    from campaign.storage.configio import read_configuration
 
     rng = np.random.default_rng(2)
     pos = np.column_stack([rng.random(20) * 3.0, rng.random(20) * 2.0, np.zeros(20)])
@@ -438,7 +438,7 @@ def test_reader_takes_float32_gsd_from_other_programs(tmp_path, capsys):
     fr.particles.diameter = np.array([0.5, 0.4, 0.5], np.float32)
     with gsd.hoomd.open(str(tmp_path / "h.gsd"), "w") as t:
         t.append(fr)
-    from campaign.configio import read_configuration
+    from campaign.storage.configio import read_configuration
 
     c = read_configuration(tmp_path / "h.gsd")
     assert c.positions.tolist() == [[0.5, 0.5], [1.5, 0.5], [1.0, 1.5]]
@@ -564,7 +564,7 @@ def test_malformed_gsd_exits_2(tmp_path, capsys):
 
 
 def test_extended_xyz_header_parser():
-    from campaign.configio import parse_xyz_header
+    from campaign.storage.configio import parse_xyz_header
 
     quoted = set()
     h = parse_xyz_header('Lattice="1 0 0 0 2 0 0 0 1" a = 3  name="say \\"hi\\"" v="1e5" flag '
@@ -578,8 +578,8 @@ def test_extended_xyz_header_parser():
 
 def test_frame_columns_keep_their_types(tmp_path):
     """Strings stay strings (a variant named like a number, a one-letter one), numbers numbers."""
-    from campaign.configio import read_configuration
-    from campaign.export import xyz_frame
+    from campaign.storage.configio import read_configuration
+    from campaign.results.export import xyz_frame
 
     conf = {"positions": np.array([[0.1, 0.2], [0.6, 0.7]]), "radii": np.array([0.1, 0.12]),
             "box": np.array([1.0, 1.0]), "species": np.array([0, 1])}

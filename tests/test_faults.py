@@ -450,7 +450,7 @@ def test_an_exhausted_quota_is_out_of_space_like_a_full_disk(tmp_path):
     operating system and HDF5 report it."""
     import errno
 
-    from campaign import faults
+    from campaign.storage import faults
 
     path = tmp_path / "x.h5"
     for exc in (OSError(errno.EDQUOT, os.strerror(errno.EDQUOT)),

@@ -8,8 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from synthetic_store import SyntheticCampaign, Truth, task_table, write_store
 
-from campaign import fits
-from campaign import reduce as R
+from campaign.results import fits
+from campaign.results import reduce as R
 
 # The grid of a small campaign: four sizes, eight energies, 16 seeds (five energies inside the
 # default window typical overlap <= 0.001, E_G <= 1e-6 at alpha = 2).

@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 from synthetic_store import SyntheticCampaign, Truth, write_store
 
-from campaign import cli, fits
-from campaign import reduce as R
+from campaign import cli
+
+from campaign.results import fits
+from campaign.results import reduce as R
 from campaign.errors import UserError
 
 E13 = tuple(10.0 ** -np.arange(3, 16))       # paper-small's grid: 1e-3 .. 1e-15, one per decade

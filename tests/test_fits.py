@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import curve_fit
 
-from campaign import fits
+from campaign.results import fits
 
 E_GRID = np.logspace(-15, -3, 13)
 Z_GRID = np.logspace(-3, 0, 10)

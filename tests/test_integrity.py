@@ -73,21 +73,21 @@ def synth_run(capsys, spec, out):
 
 @pytest.fixture
 def blocks(monkeypatch):
-    import campaign.store
+    import campaign.storage.store
 
-    monkeypatch.setattr(campaign.store, "BLOCK_ROWS", BLOCK)
+    monkeypatch.setattr(campaign.storage.store, "BLOCK_ROWS", BLOCK)
     monkeypatch.setenv("CAMPAIGN_SYNTHETIC_FAIL", FAIL)
 
 
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory):
     """A finished synthetic store (6 blocks of 4 rows, configurations, 8 failed tasks)."""
-    import campaign.store
+    import campaign.storage.store
 
     d = tmp_path_factory.mktemp("ref")
     (d / "s.yaml").write_text(SPEC)
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(campaign.store, "BLOCK_ROWS", BLOCK)
+        mp.setattr(campaign.storage.store, "BLOCK_ROWS", BLOCK)
         mp.setenv("CAMPAIGN_SYNTHETIC_FAIL", FAIL)
         assert cli.main(["run", str(d / "s.yaml"), "--out", str(d / "ref.h5"), "--launcher", "inline",
                          "--task-function", "synthetic", "--quiet"]) == 0
@@ -210,7 +210,7 @@ def test_damage_is_found_named_and_repaired(reference, blocks, tmp_path, capsys,
 
 
 def test_checksums_are_written(reference):
-    from campaign.checksums import config_crc, failure_crc
+    from campaign.storage.checksums import config_crc, failure_crc
 
     _, ref = reference
     with h5py.File(ref, "r") as f:
@@ -229,10 +229,10 @@ def test_checksums_are_written(reference):
 def test_a_run_meeting_a_damaged_chunk_stops_and_loses_nothing(reference, blocks, tmp_path, capsys):
     """A run adding rows to a block whose chunk fails its checksum stops (exit 2, no traceback) before
     writing it back; the journal keeps what it finished; repair + rerun gives the reference."""
-    from campaign.spec import parse_spec
-    from campaign.store import Store
-    from campaign.tasks import expand
-    from campaign.worker import SyntheticTask, run_task
+    from campaign.plan.spec import parse_spec
+    from campaign.storage.store import Store
+    from campaign.plan.tasks import expand
+    from campaign.run.worker import SyntheticTask, run_task
 
     spec_path, ref = reference
     spec = parse_spec(spec_path.read_text())
@@ -264,7 +264,7 @@ def test_a_run_meeting_a_damaged_chunk_stops_and_loses_nothing(reference, blocks
 
 
 def test_verify_refuses_while_a_run_writes_and_foreign_files(reference, tmp_path, capsys):
-    from campaign.journal import Journal
+    from campaign.storage.journal import Journal
 
     _, ref = reference
     path = tmp_path / "d.h5"
@@ -319,7 +319,7 @@ def test_stores_without_checksums_still_read(blocks, tmp_path, capsys, monkeypat
 
 def test_a_scalar_added_by_a_writer_keeping_no_list_is_not_damage(reference, tmp_path, capsys):
     """An earlier version of the program resuming a store adds scalars without listing them."""
-    from campaign.checksums import write_scalar_names
+    from campaign.storage.checksums import write_scalar_names
 
     _, ref = reference
     path = tmp_path / "d.h5"
@@ -337,10 +337,10 @@ TRIALS = 50
 HARNESS = r"""
 import contextlib, io, json, os, random, shutil, sys
 import h5py, numpy as np
-import campaign.store
+import campaign.storage.store
 from campaign import cli
 sys.path.insert(0, os.path.dirname(os.path.abspath(sys.argv[1])))
-campaign.store.BLOCK_ROWS = int(sys.argv[6])
+campaign.storage.store.BLOCK_ROWS = int(sys.argv[6])
 ref, spec, d, n, seed = sys.argv[2], sys.argv[3], sys.argv[4], int(sys.argv[5]), int(sys.argv[7])
 from test_integrity import assert_same, contents
 with h5py.File(ref, "r") as f:

@@ -23,9 +23,9 @@ import h5py
 import numpy as np
 import pytest
 
-from campaign.spec import parse_spec
-from campaign.store import read_journal
-from campaign.tasks import expand
+from campaign.plan.spec import parse_spec
+from campaign.storage.store import read_journal
+from campaign.plan.tasks import expand
 
 ROOT = Path(__file__).resolve().parents[1]
 SPEC = """\

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from campaign.errors import UserError
-from campaign.master import Master
-from campaign.spec import parse_spec
-from campaign.store import DONE, FAILED, PENDING, Store
-from campaign.tasks import expand, task_cost
-from campaign.worker import SyntheticTask
+from campaign.run.master import Master
+from campaign.plan.spec import parse_spec
+from campaign.storage.store import DONE, FAILED, PENDING, Store
+from campaign.plan.tasks import expand, task_cost
+from campaign.run.worker import SyntheticTask
 from tests.test_master import FakeComm
 
 SPEC = """\

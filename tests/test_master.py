@@ -8,12 +8,12 @@ import h5py
 import numpy as np
 import pytest
 
-from campaign.comm import InlineComm, LocalComm
-from campaign.master import Master
-from campaign.spec import parse_spec
-from campaign.store import DONE, FAILED, Store
-from campaign.tasks import expand, task_cost
-from campaign.worker import SyntheticTask, run_task
+from campaign.run.comm import InlineComm, LocalComm
+from campaign.run.master import Master
+from campaign.plan.spec import parse_spec
+from campaign.storage.store import DONE, FAILED, Store
+from campaign.plan.tasks import expand, task_cost
+from campaign.run.worker import SyntheticTask, run_task
 
 SPEC = """\
 name: m

@@ -125,7 +125,7 @@ def test_sigkill_of_the_whole_mpi_job_then_resume(runs, tmp_path):
     from test_faults import remove_segments_of_killed_jobs
 
     remove_segments_of_killed_jobs(segments)
-    from campaign.store import read_journal
+    from campaign.storage.store import read_journal
 
     recs, _ = read_journal(Path(str(path) + ".journal").read_bytes())
     assert 0 < sum(m.get("type") == "task" for m, _ in recs) < 72  # killed in the middle of the run

@@ -5,8 +5,10 @@ import numpy as np
 import pytest
 from synthetic_store import SyntheticCampaign, Truth, write_store
 
-from campaign import cli, plots
-from campaign import reduce as R
+from campaign import cli
+
+from campaign.results import plots
+from campaign.results import reduce as R
 
 PNG = b"\x89PNG\r\n\x1a\n"
 

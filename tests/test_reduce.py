@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from campaign import cli
-from campaign import reduce as R
+from campaign.results import reduce as R
 from synthetic_store import SyntheticCampaign, Truth, split_store, write_store
 
 FAST = R.Settings(n_boot=150)
@@ -437,7 +437,7 @@ def test_files_with_different_bins_are_refused(tmp_path, capsys):
 def test_fit_energy_range_selects_the_cells_of_the_fits(tmp_path, capsys):
     """--fit-energies LO HI: the scaling fits use exactly the cells in the range, and equal a
     fit to those cells' means (the paper's fit range, docs/PAPER.md)."""
-    from campaign.fits import fit_power_law
+    from campaign.results.fits import fit_power_law
 
     camp = SyntheticCampaign(N=(64, 128), seeds=8)
     path = tmp_path / "c.h5"

@@ -15,7 +15,7 @@ import yaml
 
 import campaign
 from campaign import cli
-from campaign.store import FORMAT_VERSION, SCHEMA
+from campaign.storage.store import FORMAT_VERSION, SCHEMA
 
 ROOT = Path(__file__).resolve().parents[1]
 SEMVER = re.compile(r"^(0|[1-9]\d*)\.(0|[1-9]\d*)\.(0|[1-9]\d*)$")
@@ -143,7 +143,7 @@ def test_pyproject_reads_the_version_from_the_package():
     tomllib = pytest.importorskip("tomllib")
     data = tomllib.loads((ROOT / "pyproject.toml").read_text())
     assert "version" not in data["project"] and "version" in data["project"]["dynamic"]
-    assert data["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "campaign.__version__"}
+    assert data["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "campaign.version.__version__"}
 
 
 def test_installed_distribution_has_the_package_version():

@@ -1,4 +1,4 @@
-"""The reducer's linear-response section (campaign.response) and its figures: exponent fits on
+"""The reducer's linear-response section (campaign.results.response) and its figures: exponent fits on
 draws from known laws, and a real campaign of moduli, modes and gaps through run, reduce and
 plot, checked against the store's own per-packing scalars."""
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from campaign import cli
-from campaign import response as resp
+from campaign.results import response as resp
 
 EDGES = np.r_[0.0, np.logspace(-16, 0, 129)]
 

@@ -68,7 +68,7 @@ def test_polydisperse_packing_is_deterministic_and_valid():
 
 def test_worker_runs_the_variants_system(monkeypatch):
     """The worker jams with the system of the task's variant (the context's ``systems``)."""
-    from campaign.worker import KernelTask
+    from campaign.run.worker import KernelTask
 
     poly = {"box": [1.0, 1.0], "potential": {"exponent": 2.0},
             "sizes": {"distribution": "uniform", "polydispersity": 0.3}}

@@ -18,7 +18,7 @@ import pytest
 
 from campaign.cli import main as cli_main
 from campaign.errors import UserError
-from campaign.slurm import SlurmOptions, chain_commands, parse_time
+from campaign.run.slurm import SlurmOptions, chain_commands, parse_time
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLES = REPO / "slurm" / "examples"
@@ -203,7 +203,7 @@ def test_one_task_or_one_world_is_not_a_split_launch(tmp_path):
                           "--workers", "1"], env=_run_env({"SLURM_STEP_NUM_TASKS": "1", "SLURM_NTASKS": "4"}),
                          capture_output=True, text=True, timeout=120)
     assert got.returncode == 0, got.stderr
-    from campaign.launch import launched_tasks, split_launch_error
+    from campaign.run.launch import launched_tasks, split_launch_error
 
     assert launched_tasks({}) == (1, None)
     assert launched_tasks({"SLURM_NTASKS": "8"})[0] == 1  # the allocation, not a step: one process

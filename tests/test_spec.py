@@ -6,9 +6,9 @@ from pathlib import Path
 import pytest
 
 from campaign import cli
-from campaign import tasks
+from campaign.plan import tasks
 from campaign.errors import UserError
-from campaign.spec import load_spec, packaged_spec_text, parse_spec
+from campaign.plan.spec import load_spec, packaged_spec_text, parse_spec
 from kernels.names import DEFAULT_OBSERVABLES
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -199,7 +199,7 @@ def test_billion_laughs_is_refused_at_once(tmp_path):
 
 
 def test_a_spec_file_larger_than_the_limit_is_refused(tmp_path, capsys):
-    from campaign.spec import MAX_SPEC_BYTES
+    from campaign.plan.spec import MAX_SPEC_BYTES
 
     p = tmp_path / "big.yaml"
     p.write_text(MINIMAL + "#" * MAX_SPEC_BYTES + "\n")
@@ -220,7 +220,7 @@ def test_an_integer_of_too_many_digits_is_a_user_error(capsys, tmp_path):
 @pytest.mark.parametrize("path", sorted((ROOT / "campaigns").glob("*.yaml")), ids=lambda p: p.stem)
 def test_every_shipped_campaign_validates(path):
     """The specs in campaigns/ parse and keep every (variant, N_G) above its float64 floor."""
-    from campaign.tasks import energy_floor_problems, expand
+    from campaign.plan.tasks import energy_floor_problems, expand
 
     spec = load_spec(path)
     assert energy_floor_problems(spec) == []

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from campaign.errors import UserError
-from campaign.spec import parse_spec
-from campaign.store import DONE, FAILED, PENDING, Store, encode_record, read_journal, scan_journal
-from campaign.tasks import expand
-from campaign.worker import SyntheticTask, run_task
+from campaign.plan.spec import parse_spec
+from campaign.storage.store import DONE, FAILED, PENDING, Store, encode_record, read_journal, scan_journal
+from campaign.plan.tasks import expand
+from campaign.run.worker import SyntheticTask, run_task
 
 SPEC = """\
 name: st
@@ -201,7 +201,7 @@ def test_a_chunk_torn_while_rewriting_a_block_loses_nothing(tmp_path, monkeypatc
     chunks; those rows are put back into the journal first. Tear such a chunk (as a SIGKILL
     in the middle of the write would): the store is salvaged block by block and the journal
     gives back every row of the torn block."""
-    import campaign.store as S
+    import campaign.storage.store as S
 
     monkeypatch.setattr(S, "BLOCK_ROWS", 4)
     spec, tasks, fn, ctx, edges = _setup()
@@ -428,7 +428,7 @@ def test_a_store_of_the_old_format_is_refused_by_every_command(tmp_path, capsys)
 def test_synthetic_bins_are_the_kernels_default_bins():
     from kernels.analysis import DEFAULT_BINS
 
-    from campaign.worker import SYNTHETIC_BINS
+    from campaign.run.worker import SYNTHETIC_BINS
 
     from kernels.names import DEFAULT_OBSERVABLES, OBSERVABLES
 

@@ -7,8 +7,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from campaign import cli
-from campaign.spec import System, parse_spec
-from campaign.tasks import expand, seed_entropy, task_id
+from campaign.plan.spec import System, parse_spec
+from campaign.plan.tasks import expand, seed_entropy, task_id
 
 BASE = """\
 name: t

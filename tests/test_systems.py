@@ -1,4 +1,4 @@
-"""Reduction across physical systems (variants overriding ``system``): campaign.systems."""
+"""Reduction across physical systems (variants overriding ``system``): campaign.results.systems."""
 
 import csv
 import os
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from synthetic_store import SyntheticCampaign, Truth, write_store
 
-from campaign import plots, systems
-from campaign import reduce as R
+from campaign.results import plots, systems
+from campaign.results import reduce as R
 
 ROOT = Path(__file__).resolve().parents[1]
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -255,7 +255,7 @@ def test_cli_reduce_prints_the_systems_table(multi, tmp_path):
 
 def test_speed_accuracy_compares_only_packings_of_the_reference_system(multi):
     """Pairing (N, E, seed) across physical systems means nothing: those variants are left out
-    of campaign.tradeoff and named in the notes."""
+    of campaign.results.tradeoff and named in the notes."""
     _, red = multi
     assert red.variants == []  # every other variant is another system
     assert any("other systems than 'default'" in n for n in red.notes)

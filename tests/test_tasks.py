@@ -4,8 +4,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from campaign.spec import parse_spec
-from campaign.tasks import cost, dispatch_order, expand, task_cost
+from campaign.plan.spec import parse_spec
+from campaign.plan.tasks import cost, dispatch_order, expand, task_cost
 
 BASE = """\
 name: t
@@ -89,7 +89,7 @@ def test_task_count_is_the_product(ns, es, seeds, nvar):
 def test_expand_ids_and_seeds_equal_the_reference_hashes(seed, n, e, seeds, tol, ladder):
     """expand assembles the canonical JSON from its parts; it must hash exactly what task_id
     and seed_entropy hash."""
-    from campaign.tasks import seed_entropy, task_id
+    from campaign.plan.tasks import seed_entropy, task_id
 
     start = ", start: ladder" if ladder else ""
     energies = ", ".join(f"{x:.17e}" for x in e)  # YAML 1.1 reads a float only with its dot

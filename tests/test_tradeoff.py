@@ -1,11 +1,11 @@
-"""Variants compared with a reference packing by packing (campaign.tradeoff, campaign reduce)."""
+"""Variants compared with a reference packing by packing (campaign.results.tradeoff, campaign reduce)."""
 
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from campaign import tradeoff
+from campaign.results import tradeoff
 
 
 class _Fin(SimpleNamespace):
@@ -141,7 +141,7 @@ def test_no_reference_no_comparison():
 def test_reduce_and_plot_a_campaign_with_variants(tmp_path, capsys, monkeypatch):
     """End to end: a synthetic campaign with a ladder variant, reduced and plotted by the CLI."""
     from campaign.cli import main
-    from campaign.master import Master
+    from campaign.run.master import Master
     from tests.test_ladder import _setup
     from tests.test_master import FakeComm
 
@@ -157,8 +157,8 @@ def test_reduce_and_plot_a_campaign_with_variants(tmp_path, capsys, monkeypatch)
                  "--boot", "0"]) == 0
     assert "Variants against 'ladder'" in capsys.readouterr().out
     pytest.importorskip("matplotlib")
-    from campaign import plots
-    from campaign.reduce import Settings, reduce_campaign
+    from campaign.results import plots
+    from campaign.results.reduce import Settings, reduce_campaign
 
     red = reduce_campaign([tmp_path / "s.h5"], Settings(n_boot=0), distributions=False)
     monkeypatch.setattr(plots, "FIGURES", {})  # only the campaign-wide figure

@@ -18,10 +18,10 @@ import pytest
 from test_kill_resume import SKIP_DATASETS, _contents
 
 from campaign.errors import UserError
-from campaign.spec import parse_spec
-from campaign.store import DONE
-from campaign.tasks import expand
-from campaign.walltime import Deadline, deadline, parse_limit
+from campaign.plan.spec import parse_spec
+from campaign.storage.store import DONE
+from campaign.plan.tasks import expand
+from campaign.run.walltime import Deadline, deadline, parse_limit
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent

@@ -63,7 +63,7 @@ def _clean(value):
 
 
 def main(args) -> int:
-    from campaign.configio import read_configuration
+    from campaign.storage.configio import read_configuration
     from campaign.errors import UserError
     from kernels.analysis import analyze
     from kernels.observables import OBSERVABLES

@@ -35,7 +35,7 @@ a missing extra, no configurations for gsd/xyz), 1 internal fault.
 def configure(parser):
     import argparse
 
-    from campaign.export import FORMATS
+    from campaign.results.export import FORMATS
 
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = EPILOG
@@ -55,7 +55,7 @@ def configure(parser):
 def main(args) -> int:
     from pathlib import Path
 
-    from campaign.export import EXTENSION, export, format_of, require_format
+    from campaign.results.export import EXTENSION, export, format_of, require_format
 
     fmt = format_of(args.format, args.out)
     require_format(fmt)  # a missing extra is reported before the store is read

@@ -27,8 +27,8 @@ def configure(parser):
 
 
 def main(args) -> int:
-    from campaign import plots
-    from campaign import reduce as R
+    from campaign.results import plots
+    from campaign.results import reduce as R
 
     if args.boot < 0 or args.boot == 1:
         raise UserError(f"--boot must be 0 or at least 2, got {args.boot}")
@@ -50,8 +50,8 @@ def main(args) -> int:
 
 
 def _gallery(files, out, dpi):
-    """packing_gallery.png from the first file that keeps configurations (campaign.draw), or None."""
-    from campaign import draw
+    """packing_gallery.png from the first file that keeps configurations (campaign.results.draw), or None."""
+    from campaign.results import draw
 
     for f in files:
         if draw.store_packings(f)[2].size:

@@ -74,7 +74,7 @@ def fit_range(args, settings):
 
 
 def main(args) -> int:
-    from campaign import reduce as R
+    from campaign.results import reduce as R
 
     if args.boot < 0 or args.boot == 1:
         raise UserError(f"--boot must be 0 (no errors) or at least 2, got {args.boot}")
@@ -100,13 +100,13 @@ def main(args) -> int:
     print("", file=text)
     print(R.table_markdown(red), file=text)
     if red.systems:
-        from campaign import systems
+        from campaign.results import systems
 
         print(f"Systems (beta_E against the prediction beta_Z/(2 alpha); beta_Z against "
               f"{red.systems[0]['reference']!r}'s; tensions in standard deviations)\n", file=text)
         print(systems.table_markdown(red.systems), file=text)
     if red.variants:
-        from campaign import tradeoff
+        from campaign.results import tradeoff
 
         print(f"\nVariants against {args.reference!r} (cost: ratio of summed force evaluations / seconds over the "
               "same packings; deviations: mean paired difference; bias in units of the reference's "
@@ -134,7 +134,7 @@ def _write_in_place(red, path):
     import fcntl
     import os
 
-    from campaign import reduce as R
+    from campaign.results import reduce as R
 
     if red.meta["pending"]:
         raise UserError(f"{path}: {red.meta['pending']} tasks are still pending (a run may be "

@@ -71,7 +71,7 @@ def main(args) -> int:
     # the master (which then starts no task) instead of dying of it.
     args.warned = []
     signal.signal(signal.SIGUSR1, lambda signum, frame: args.warned.append(signum))
-    from campaign.launch import launched_tasks, mpi_env_detected, split_launch_error
+    from campaign.run.launch import launched_tasks, mpi_env_detected, split_launch_error
 
     # First, before anything heavy is imported: a launcher started several tasks that must form one
     # MPI world, and nothing connects them (srun without --mpi, or --launcher local/inline).
@@ -82,7 +82,7 @@ def main(args) -> int:
                                                       f" (--launcher {args.launcher} makes each task a master.)"))
 
     from campaign.errors import UserError
-    from campaign.walltime import deadline
+    from campaign.run.walltime import deadline
 
     args.deadline = deadline(time.time(), args.time_limit)
     if args.margin < 0:
@@ -99,11 +99,11 @@ def main(args) -> int:
             _refuse_split_launch(refused)
         if comm.Get_size() > 1:
             if comm.Get_rank() != 0:
-                from campaign.engine import mpi_worker
+                from campaign.run.engine import mpi_worker
 
                 return mpi_worker(comm)
             return _mpi_master(args, comm, MPI)
-    from campaign.engine import run_campaign
+    from campaign.run.engine import run_campaign
 
     return run_campaign(args)
 
@@ -122,7 +122,7 @@ def _refuse_split_launch(message):
 def _mpi_master(args, comm, MPI) -> int:
     from campaign.errors import UserError, WriteFault
 
-    from campaign.engine import run_campaign
+    from campaign.run.engine import run_campaign
 
     state = {"sent": False}
     try:

@@ -36,8 +36,8 @@ def configure(p):
 
 
 def main(args) -> int:
-    from campaign.slurm import SlurmOptions, chain_commands, render_script
-    from campaign.spec import load_spec
+    from campaign.run.slurm import SlurmOptions, chain_commands, render_script
+    from campaign.plan.spec import load_spec
 
     spec = load_spec(args.spec)
     results = Path(args.results or spec.output or f"results/{spec.name}.h5")

@@ -1,7 +1,7 @@
 """campaign status FILE: progress of a campaign store, per (variant, N, E), and its failures.
 
 Works while a run is writing the file (it opens it read-only, without locking). Whether a
-run is writing it comes from the run's progress file (``campaign.progress.writer_state``):
+run is writing it comes from the run's progress file (``campaign.storage.progress.writer_state``):
 on the same host its process must still exist; from another host the file must have been
 updated within the last ``STALE_SECONDS``.
 """
@@ -20,7 +20,7 @@ def configure(parser):
 
 
 def main(args) -> int:
-    from campaign.progress import progress_text, read_sidecar, writer_state
+    from campaign.storage.progress import progress_text, read_sidecar, writer_state
 
     s = _scan(args.file)
     groups = [[key, c[0], c[1], c[2]] for key, c in s["cells"].items()]
@@ -96,7 +96,7 @@ def _scan(path):
     space the sample."""
     import numpy as np
 
-    from campaign.store import DONE, FAILED, PENDING, read_retrying
+    from campaign.storage.store import DONE, FAILED, PENDING, read_retrying
 
     return read_retrying(path, lambda f: _scan_open(f, np, DONE, FAILED, PENDING))
 
@@ -109,7 +109,7 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
     stride = max(1, -(-n_done // FIT_ROWS))
     failure_recs = {tid: dict(f["failures"][tid].attrs) for tid in f["failures"]} if "failures" in f else {}
     for tid, rec in failure_recs.items():
-        from campaign.checksums import damaged_message, failure_problem
+        from campaign.storage.checksums import damaged_message, failure_problem
 
         problem = failure_problem(rec)
         if problem is not None:
@@ -163,7 +163,7 @@ def _journal_only(path, status):
     run that is still to write them, or that stopped before it could: the next run replays them)."""
     import numpy as np
 
-    from campaign.journal import task_indices
+    from campaign.storage.journal import task_indices
 
     idx = np.fromiter((i for i in task_indices(str(path) + ".journal") if 0 <= i < len(status)), np.int64)
     return int(np.count_nonzero(status[idx] == 0)) if len(idx) else 0
@@ -173,9 +173,9 @@ def _remaining_core_hours(attrs, s):
     """Core-hours of the unfinished tasks by the cost model learnt from (a sample of at most
     FIT_ROWS of) the finished ones. Per cell: the tasks of a (variant, N, E) cell cost the
     same, so the sum over the unfinished tasks is the count per cell times the cell's estimate."""
-    from campaign.costmodel import CostModel
+    from campaign.plan.costmodel import CostModel
     from campaign.errors import UserError
-    from campaign.spec import parse_spec
+    from campaign.plan.spec import parse_spec
 
     try:
         spec = parse_spec(str(attrs["spec_yaml"]), "the file's spec")

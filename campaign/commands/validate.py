@@ -10,10 +10,10 @@ def configure(parser):
 
 
 def main(args) -> int:
-    from campaign.progress import fmt_duration
-    from campaign.spec import load_spec
+    from campaign.storage.progress import fmt_duration
+    from campaign.plan.spec import load_spec
     from campaign.errors import UserError
-    from campaign.tasks import energy_floor_problems, estimate_seconds, expand, task_cost
+    from campaign.plan.tasks import energy_floor_problems, estimate_seconds, expand, task_cost
 
     spec = load_spec(args.spec)
     problems = energy_floor_problems(spec)
@@ -44,7 +44,7 @@ def main(args) -> int:
     print(f"  observables {', '.join(spec.observables)}")
     print(f"  output      {spec.output}")
     print(f"  estimated cost {seconds / 3600:.3g} core-hours ({fmt_duration(seconds)} on one core; "
-          f"longest task ~{fmt_duration(longest)}; a rough model, see campaign/tasks.py)")
+          f"longest task ~{fmt_duration(longest)}; a rough model, see campaign/plan/tasks.py)")
     learnt = _learnt_remaining(spec, tasks)
     if learnt:
         print(f"  {spec.output}: {learnt}")
@@ -56,8 +56,8 @@ def _learnt_remaining(spec, tasks):
     from pathlib import Path
 
     from campaign.errors import UserError
-    from campaign.store import DONE, read_summary
-    from campaign.walltime import remaining_seconds
+    from campaign.storage.store import DONE, read_summary
+    from campaign.run.walltime import remaining_seconds
 
     if not spec.output or not Path(spec.output).exists():
         return None

@@ -211,7 +211,7 @@ class Progress:
                     tmp.unlink()
                 except OSError:
                     pass
-                from campaign.faults import write_fault
+                from campaign.storage.faults import write_fault
 
                 fault = write_fault(exc, self.sidecar, "writing the progress file")
                 if fault is not None and fault.out_of_space:

@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from campaign.tables import fmt_err, records_csv
+from campaign.results.tables import fmt_err, records_csv
 
 #: finite-size table entries carried into a record (each with ``_err``)
 KEYS = ("A_G_star_E", "beta_E", "beta_Z", "psi_O_star")
@@ -68,7 +68,7 @@ def compare(rows, extrapolated, systems, reference="default") -> list:
 
     ``rows``: the reducer's table rows (per variant and ``N_G``); ``extrapolated``: variant ->
     the ``N_G -> inf`` entries; ``systems``: variant -> ``{"exponent", "sizes", "box"}``
-    (``campaign.reduce.variant_systems``; a variant it does not list has the "default" one's
+    (``campaign.results.reduce.variant_systems``; a variant it does not list has the "default" one's
     system). ``reference``: the variant ``beta_Z_diff`` is taken against (the first variant
     when it is absent).
 

@@ -1,5 +1,5 @@
 """How much a write step of the campaign store may add to its file: the estimate the store
-reserves (``campaign.faults.reserve``) before HDF5 writes anything (docs/STORE.md, "Out of space").
+reserves (``campaign.storage.faults.reserve``) before HDF5 writes anything (docs/STORE.md, "Out of space").
 
 A step rewrites whole chunks (blocks of ``B`` rows of every per-task dataset), compressed;
 HDF5 may place a rewritten chunk at the end of the file, so each counts in full: its raw size
@@ -19,7 +19,7 @@ import zlib
 
 import numpy as np
 
-from campaign.storefile import FAILED, ROW_FIELDS, SLACK, fill_value, row_dtype
+from campaign.storage.storefile import FAILED, ROW_FIELDS, SLACK, fill_value, row_dtype
 
 
 class SpaceModel:

@@ -292,7 +292,7 @@ def render(sc: Scene, *, title=None, ax=None, legend=True, scale=True, size=None
     """
     from matplotlib.collections import EllipseCollection, LineCollection, PolyCollection
 
-    from campaign.plots import _plt
+    from campaign.results.plots import _plt
 
     plt = _plt()
     x0, y0, x1, y1 = sc.window
@@ -430,7 +430,7 @@ class Source:
 def _is_store(path):
     import h5py
 
-    from campaign.store import SCHEMA
+    from campaign.storage.store import SCHEMA
 
     try:
         with h5py.File(path, "r", locking=False) as f:
@@ -452,7 +452,7 @@ def _store_exponent(attrs):
 def _store_ids_with_configurations(path):
     import h5py
 
-    from campaign.integrity import read_failure
+    from campaign.storage.integrity import read_failure
 
     with h5py.File(path, "r", locking=False) as f:
         try:
@@ -466,7 +466,7 @@ def _store_ids_with_configurations(path):
 
 def store_packings(path):
     """Rows of a campaign store that hold a configuration: (task table, rows, attrs)."""
-    from campaign.store import read_summary
+    from campaign.storage.store import read_summary
 
     table = read_summary(path)
     have = _store_ids_with_configurations(path)
@@ -478,7 +478,7 @@ def store_packings(path):
 def read_source(path, *, task=None, index=None, fmt="auto", group="/", exponent=None, frame=None) -> Source:
     """The configuration to draw: a configuration file (``frame`` K of a GSD or extended XYZ
     file), or one packing of a campaign store."""
-    from campaign.configio import detect_format, read_configuration
+    from campaign.storage.configio import detect_format, read_configuration
 
     path = str(path)
     if not os.path.exists(path):
@@ -569,7 +569,7 @@ def gallery(path, out, *, dpi=90):
     best = sorted(best, key=lambda r: E[r])
     chosen = [best[0], best[len(best) // 2], best[-1]] if len(best) >= 3 else best
     chosen = list(dict.fromkeys(chosen))
-    from campaign.plots import _plt
+    from campaign.results.plots import _plt
 
     plt = _plt()
     fig, axes = plt.subplots(1, len(chosen), figsize=(3.6 * len(chosen), 4.2), layout="constrained",

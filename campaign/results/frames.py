@@ -4,7 +4,7 @@
     one row per finished packing (index ``row``: the store's task row), columns ``id``,
     ``variant``, ``N``, ``E``, ``seed``, ``status`` and every stored scalar under its store
     name (``A_G``, ``N_G``, ``psi_O``, ...). ``good=True`` keeps exactly the packings the
-    reducer uses (``campaign.reduce.first_done`` and ``usable_mask``: done, first row of its
+    reducer uses (``campaign.results.reduce.first_done`` and ``usable_mask``: done, first row of its
     task id, ``jam_status == 0``, ``identities_ok == 1``); ``good=False`` every finished row.
 ``read_cells(path)``
     the reducer's per-(variant, N, E) table (``/reduced/cells``), computed by the reducer.
@@ -74,7 +74,7 @@ class Packings:
         try:
             self._f = h5py.File(self.path, "r", locking=False)
         except OSError as exc:
-            from campaign.checksums import open_failure
+            from campaign.storage.checksums import open_failure
 
             raise open_failure(self.path, exc, f"{self.path}: not a readable HDF5 file ({exc})") from None
         try:
@@ -93,7 +93,7 @@ class Packings:
             raise
 
     def _failure(self, exc, patterns):
-        from campaign.integrity import read_failure
+        from campaign.storage.integrity import read_failure
 
         return read_failure(self.path, exc, self._f, patterns)
 
@@ -104,7 +104,7 @@ class Packings:
             raise UserError(f"{self.path}: not a campaign store (no /tasks table of datasets); expected the "
                             "layout of docs/STORE.md")
         if "schema" in f.attrs:
-            from campaign.store import check_format
+            from campaign.storage.store import check_format
 
             check_format(f.attrs, self.path)
         t = f["tasks"]
@@ -155,7 +155,7 @@ class Packings:
     # ------------------------------------------------------------------ reading
     def blocks(self):
         """Yield the selected packings block by block (see the class docstring)."""
-        from campaign.reduce import first_done, usable_mask
+        from campaign.results.reduce import first_done, usable_mask
 
         f, t = self._f, self._f["tasks"]
         try:
@@ -210,7 +210,7 @@ class Packings:
     def configuration(self, task_id):
         """The stored configuration of a task: ``{"positions", "radii", "box", "species"}`` (float64,
         species int), or None when the store did not keep it."""
-        from campaign.checksums import check_configuration
+        from campaign.storage.checksums import check_configuration
 
         name = f"configurations/{task_id}"
         try:
@@ -263,11 +263,11 @@ def read_cells(path, settings=None):
     """The reducer's per-(variant, N, E) table as a pandas DataFrame: the columns of
     ``/reduced/cells`` (docs/REDUCED.md: ``n_packings``, ``n_excluded``, ``n_pending``,
     ``n_failed``, ``n_tasks``, ``mean_``/``std_``/``sem_`` of every scalar, the Gaussian fit of
-    P(A_G)), computed by ``campaign.reduce.reduce_campaign`` itself (without the histograms and
+    P(A_G)), computed by ``campaign.results.reduce.reduce_campaign`` itself (without the histograms and
     without bootstrap resamples, which the cells do not use). ``path`` may be a list of stores,
     pooled as ``campaign reduce`` pools them."""
     pd = require("pandas", "frames", "campaign.read_cells")
-    from campaign.reduce import Settings, reduce_campaign
+    from campaign.results.reduce import Settings, reduce_campaign
 
     red = reduce_campaign(path, settings or Settings(n_boot=0), distributions=False)
     df = pd.DataFrame({k: np.asarray(v) for k, v in red.cells.items()})

@@ -1,6 +1,6 @@
 """A cost model that learns from the packings a campaign has finished.
 
-The static model ``campaign.tasks.cost(N, E, protocol)`` is the prior. Finished tasks (their
+The static model ``campaign.plan.tasks.cost(N, E, protocol)`` is the prior. Finished tasks (their
 measured wall time t) fit a correction to it, log-linear in size and in decades of energy:
 
     log t = log cost(N, E, protocol) + theta_0 + theta_1 (log N - m_N) + theta_2 (log(1 + L) - m_L),
@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from campaign import tasks as _tasks
+from campaign.plan import tasks as _tasks
 
 _PRIOR_SD = np.array([3.0, 0.5, 0.5])  # level (a factor e^3), size exponent, energy exponent
 _SIGMA_PRIOR = 0.5   # scatter of log t before any data (about a factor 1.6)

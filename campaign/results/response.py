@@ -1,6 +1,6 @@
 """The reducer's linear-response section: moduli, modes, gaps and small forces per cell.
 
-Pure numpy on what ``campaign.reduce`` has already read (the usable packings' scalars, the
+Pure numpy on what ``campaign.results.reduce`` has already read (the usable packings' scalars, the
 cells, the summed histograms); the per-packing gap and force histograms are read once more,
 through ``Finished.histogram_blocks``, for the bootstrap of the exponents. Nothing here runs
 unless the store holds the scalars of the ``moduli`` or ``modes`` observable or the
@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from campaign import fits
+from campaign.results import fits
 
 #: Gap window of the exponent fit: from 10 typical overlaps (or where the cumulative count of
 #: a cell reaches ``MIN_COUNT`` pairs, whichever is larger) up to ``h = 1e-2``.
@@ -188,7 +188,7 @@ def reduce_response(fin, g, s, dists, exponents, notes):
             rec[f"frac_{flag}"], rec[f"frac_{flag}_err"] = f, err
         rec["n_moduli"] = n  # packings with elastic constants (moduli_ok)
         alpha = exponents.get(v, 2.0)
-        delta = (alpha * E / 2.0) ** (1.0 / alpha)  # the typical overlap (campaign.reduce)
+        delta = (alpha * E / 2.0) ** (1.0 / alpha)  # the typical overlap (campaign.results.reduce)
         for name, key, lo, hi, conv in (("gap", "gamma", GAP_WINDOW[0] * delta, GAP_WINDOW[1], lambda b: 1 - b),
                                         ("force", "theta", 0.0, FORCE_WINDOW, lambda b: b - 1),
                                         ("force_extended", "theta_ext", 0.0, FORCE_WINDOW, lambda b: b - 1)):

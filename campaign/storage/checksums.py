@@ -4,8 +4,8 @@ What carries a checksum (docs/STORE.md, "Checksums, verify and repair"): every p
 dataset and the bin edges (HDF5's ``fletcher32`` filter, checked by HDF5 on every read), every
 configuration (attribute ``crc32`` of its arrays' bytes, ``config_crc``, checked by
 ``check_configuration``), every failure record (``failure_crc``) and the list of the scalars'
-names. The writers (``campaign.store``, ``campaign.storefile``) and every reader use this module;
-finding and repairing damage (``campaign verify``) is ``campaign.integrity``, which builds on it.
+names. The writers (``campaign.storage.store``, ``campaign.storage.storefile``) and every reader use this module;
+finding and repairing damage (``campaign verify``) is ``campaign.storage.integrity``, which builds on it.
 
 ``read_failure`` is the error a reader raises when a read of the store fails: damage found there
 is named, and "try again" is said only when a run writes the file and reading again worked.
@@ -206,7 +206,7 @@ def damaged_message(path, what, how, held="") -> str:
 def run_is_writing(path) -> bool:
     """Whether a live run writes the store (its progress file, judged as ``campaign status`` does)."""
     try:
-        from campaign.progress import read_sidecar, writer_state
+        from campaign.storage.progress import read_sidecar, writer_state
 
         return writer_state(read_sidecar(path))["state"] == "running"
     except Exception:  # noqa: BLE001 - no progress file, or an unreadable one: no run known

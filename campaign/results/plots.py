@@ -2,7 +2,7 @@
 
 ``make_figures(reduction, out_dir)`` writes one PNG per figure of the paper that a
 campaign can produce, plus the goodness-of-fit, width-scaling and extrapolation
-figures. Every function takes a ``Reduction`` (campaign.reduce) and never reads files.
+figures. Every function takes a ``Reduction`` (campaign.results.reduce) and never reads files.
 """
 
 from __future__ import annotations
@@ -434,13 +434,13 @@ FIGURES = {
 
 
 def fig_pareto(red, plt):
-    """Cost against deviation from the reference variant (campaign.tradeoff): the Pareto front.
+    """Cost against deviation from the reference variant (campaign.results.tradeoff): the Pareto front.
 
     Log axes; deviations below 1e-12 (the reference itself, or variants that reproduce its
     packings to rounding) are drawn at 1e-12."""
     from matplotlib.ticker import FormatStrFormatter
 
-    from campaign.tradeoff import QUANTITIES
+    from campaign.results.tradeoff import QUANTITIES
 
     floor = 1e-12
     recs = [r for r in red.variants if np.isfinite(r.get("cost_ratio_fe", np.nan))]
@@ -623,7 +623,7 @@ def fig_exponents_vs_alpha(red, plt):
 
 # --------------------------------------------------------------------------- linear response
 def _resp_cells(red, v):
-    """The response records of variant ``v`` (campaign.response), as column arrays."""
+    """The response records of variant ``v`` (campaign.results.response), as column arrays."""
     recs = [r for r in red.response.get("cells", []) if r["variant"] == v]
     keys = recs[0].keys() if recs else ()
     return {k: np.array([r.get(k, np.nan) for r in recs]) for k in keys if k not in ("variant",)
@@ -636,7 +636,7 @@ def _resp_fit(red, v, N, name):
 
 
 def _alpha_of(red, v):
-    """The variant's potential exponent (kept by campaign.response for the guide lines)."""
+    """The variant's potential exponent (kept by campaign.results.response for the guide lines)."""
     return float(red.response.get("alpha", {}).get(v, 2.0))
 
 
@@ -715,9 +715,9 @@ def fig_response_moduli(red, cs, plt):
 def fig_response_distributions(red, cs, plt):
     """The density of states per energy at the size with full spectra at the most energies; the gap
     distribution P(h) and the small-force distributions (all contacts, extended ones) per size,
-    summed over the cells closest to jamming (campaign.response.POOL_OVERLAP), with the pooled
+    summed over the cells closest to jamming (campaign.results.response.POOL_OVERLAP), with the pooled
     exponents (response_exponents.csv) over their fit windows and the literature's as guides."""
-    from campaign.response import POOL_OVERLAP
+    from campaign.results.response import POOL_OVERLAP
 
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
     ax = axes[0]
@@ -816,7 +816,7 @@ def make_figures(red, out_dir, *, dpi=90):
         fig.savefig(p, dpi=dpi)
         plt.close(fig)
         written.append(p)
-    if red.systems:  # two physical systems or more (campaign.systems)
+    if red.systems:  # two physical systems or more (campaign.results.systems)
         for name, fn in SYSTEM_FIGURES.items():
             fig = fn(red, plt)
             fig.suptitle(rule, fontsize=9)  # the range or rule the exponents come from

@@ -1,11 +1,11 @@
 """The campaign store's HDF5 layout: its names and types, the format version, creating a
 fresh file, checking an existing one against a spec, and salvaging a damaged one.
 
-``campaign.store`` (the master's writer) and the readers use these; everything here is
-re-exported by ``campaign.store``. The layout itself is documented in docs/STORE.md.
+``campaign.storage.store`` (the master's writer) and the readers use these; everything here is
+re-exported by ``campaign.storage.store``. The layout itself is documented in docs/STORE.md.
 
 Creating and salvaging write a new file under a temporary name (``OUT.tmp``), reserve the
-space they need first (``campaign.faults.reserve``), and rename it into place only when it
+space they need first (``campaign.storage.faults.reserve``), and rename it into place only when it
 is complete and durable: a full disk at any point leaves the existing store as it was and
 removes the temporary file.
 """
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import UserError
-from campaign.faults import GuardedFile, release, reserve, write_fault
+from campaign.storage.faults import GuardedFile, release, reserve, write_fault
 
 BLOCK_ROWS = 256        # rows per chunk of every per-task dataset
 
@@ -64,8 +64,8 @@ def fsync_path(path):
 
 def dataset_kwargs(B, shape, fill):
     """A per-task block dataset: chunks of ``B`` rows, shuffled, deflated, and HDF5's fletcher32
-    checksum on each chunk (written last, checked first on every read; ``campaign.checksums``)."""
-    from campaign.checksums import checksums_on
+    checksum on each chunk (written last, checked first on every read; ``campaign.storage.checksums``)."""
+    from campaign.storage.checksums import checksums_on
 
     chunks = (B,) + tuple(shape[1:])
     return dict(shape=shape, chunks=chunks, fillvalue=fill, fletcher32=checksums_on(), **COMPRESSION)
@@ -73,7 +73,7 @@ def dataset_kwargs(B, shape, fill):
 
 def edges_kwargs(e):
     """A histogram's bin edges: one chunk with its checksum (contiguous without checksums)."""
-    from campaign.checksums import checksums_on
+    from campaign.storage.checksums import checksums_on
 
     e = np.asarray(e, np.float64)
     if checksums_on():
@@ -306,7 +306,7 @@ def _salvage_into(f, old_path, tasks, edges, B, state, drop=(), renames=None):
     record cannot be read or fails its checksum. Root attributes that read are carried over."""
     import h5py
 
-    from campaign.checksums import (configuration_problem, failure_problem, good_scalar_name, write_configuration,
+    from campaign.storage.checksums import (configuration_problem, failure_problem, good_scalar_name, write_configuration,
                                     write_failure, write_scalar_names)
 
     T = len(tasks)

@@ -7,8 +7,8 @@ Two files per campaign, written only by the master:
   (shuffle + deflate), so the file grows with the finished packings, not with the
   grid; a chunk never written costs nothing. ``tasks/status`` (one byte a task, not
   compressed) is the commit marker: a row counts once its status says so. Its layout,
-  creation, checking and salvage: ``campaign.storefile``.
-* ``OUT.journal``: a write-ahead log (``campaign.journal``). One length-prefixed,
+  creation, checking and salvage: ``campaign.storage.storefile``.
+* ``OUT.journal``: a write-ahead log (``campaign.storage.journal``). One length-prefixed,
   CRC-checked record per finished task, written with a single ``write()`` before
   anything touches the HDF5 file. At a *checkpoint* (when the journal passes
   ``JOURNAL_BYTES``, and when a run ends) every staged row is written into the store,
@@ -35,10 +35,10 @@ with the damage are counted and run again: packings are pure functions of the sp
 
 A full disk (or quota, or a file system that fails) never leaves the two files
 disagreeing: every HDF5 write step first reserves the space it may need
-(``campaign.faults.reserve``) and raises ``OutOfSpace`` before writing anything when it
+(``campaign.storage.faults.reserve``) and raises ``OutOfSpace`` before writing anything when it
 is not there; a journal append that fails is cut back to the previous record. Should
 HDF5 itself still meet a failed write, its handle is *poisoned*: never flushed or closed
-normally again (``campaign.faults.neutralise``), since its cache then holds blocks that
+normally again (``campaign.storage.faults.neutralise``), since its cache then holds blocks that
 never reached the disk; the journal holds every finished task and the next start
 salvages the store. Either way the run stops with a ``WriteFault`` (exit status 3).
 """
@@ -55,17 +55,17 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import OutOfSpace, StoreDamaged, UserError
-from campaign.faults import GuardedFile, release, reserve, write_fault
-from campaign.storefile import BLOCK_ROWS  # rows per chunk of every per-task dataset
-from campaign.checksums import (CONFIG_KEYS, check_configuration, write_configuration, write_failure,
+from campaign.storage.faults import GuardedFile, release, reserve, write_fault
+from campaign.storage.storefile import BLOCK_ROWS  # rows per chunk of every per-task dataset
+from campaign.storage.checksums import (CONFIG_KEYS, check_configuration, write_configuration, write_failure,
                                 write_scalar_names)
-from campaign.journal import (  # noqa: F401 - part of this module's interface
+from campaign.storage.journal import (  # noqa: F401 - part of this module's interface
     MAX_RECORD, Journal, decode_payload, encode_record, read_journal, scan_journal)
-from campaign.storefile import (  # noqa: F401 - part of this module's interface
+from campaign.storage.storefile import (  # noqa: F401 - part of this module's interface
     CHUNK_CACHE, COMPRESSION, DONE, ERROR_LEN, FAILED, FORMAT_VERSION, HOST_LEN, OLD_FORMAT_HELP, PENDING,
     ROW_FIELDS, SCHEMA, SLACK, TASK_FIELDS, VARIANT_LEN, check_file, check_format, create_file, dataset_kwargs,
     fill_value, fixed, format_problem, fsync_path, load_state, row_dtype)
-from campaign.storespace import SpaceModel
+from campaign.storage.storespace import SpaceModel
 
 FLUSH_SECONDS = 0.5     # staged complete blocks are written at least this often
 HOLD_SECONDS = 2.0      # a block still partly pending is written after waiting this long
@@ -144,7 +144,7 @@ class Store:
                 try:
                     load_state(self.path, self.status, self.attempts, self.wall)
                 except (OSError, KeyError, ValueError, RuntimeError) as exc:
-                    from campaign.integrity import read_failure
+                    from campaign.storage.integrity import read_failure
 
                     raise read_failure(self.path, exc, None, ["tasks/attempts", "tasks/wall"],
                                        what="its task table") from None
@@ -729,7 +729,7 @@ def open_store(path):
     except FileNotFoundError:
         raise UserError(f"no such file: {str(path)!r}") from None
     except OSError as exc:
-        from campaign.checksums import open_failure
+        from campaign.storage.checksums import open_failure
 
         raise open_failure(path, exc, f"{str(path)!r} is not a readable HDF5 file ({exc})") from None
     try:
@@ -739,7 +739,7 @@ def open_store(path):
         raise
     except Exception as exc:  # noqa: BLE001 - its root attributes cannot be read
         f.close()
-        from campaign.integrity import read_failure
+        from campaign.storage.integrity import read_failure
 
         err = read_failure(path, exc, None, (), what="its root attributes")
         if err is None:
@@ -754,7 +754,7 @@ def open_store(path):
 def read_retrying(path, read, patterns=("tasks", "failures")):
     """``read(f)`` on the store opened read-only, retried a few times while a run writes it (the
     read may catch the file in the middle of a flush); a failure that is the file's becomes the
-    readers' error (``campaign.integrity.read_failure``: damaged, naming ``patterns``' datasets)."""
+    readers' error (``campaign.storage.integrity.read_failure``: damaged, naming ``patterns``' datasets)."""
     last = None
     for _ in range(5):
         try:
@@ -763,8 +763,8 @@ def read_retrying(path, read, patterns=("tasks", "failures")):
         except UserError:
             raise
         except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
-            from campaign.checksums import run_is_writing
-            from campaign.integrity import read_failure
+            from campaign.storage.checksums import run_is_writing
+            from campaign.storage.integrity import read_failure
 
             err = read_failure(path, exc, None, list(patterns))
             if err is None:

@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 import numpy as np
 from campaign.errors import StoreDamaged, UserError
-from campaign.checksums import (BLOCK_FILTERS, CHECKSUM_ATTR, CONFIG_KEYS, CONFIG_WEIGHT, EDGES_NOTE, IDENTITY,
+from campaign.storage.checksums import (BLOCK_FILTERS, CHECKSUM_ATTR, CONFIG_KEYS, CONFIG_WEIGHT, EDGES_NOTE, IDENTITY,
                                 ROOT_ATTRS, ROOT_MEMBERS, SLAB_BYTES, configuration_problem, failure_problem,
                                 good_scalar_name, is_filter_failure, looks_like_store, reason,
                                 scalar_names_listed, FLETCHER32, READ_ERRORS, _text, damaged_message,
@@ -265,7 +265,7 @@ class Scan:
         for name in names:
             self._dataset(name)
         if r.spec is not None and any(d.name == "tasks/id" for d in r.damage):
-            from campaign.tasks import expand  # the identities of the damaged rows, from the spec
+            from campaign.plan.tasks import expand  # the identities of the damaged rows, from the spec
 
             ids = np.array([t.id.encode() for t in expand(r.spec)], "S32")
             if len(ids) == r.T:
@@ -293,7 +293,7 @@ class Scan:
 
     # ---- root attributes and the spec
     def _root(self):
-        from campaign.storefile import FORMAT_VERSION, SCHEMA, format_problem
+        from campaign.storage.storefile import FORMAT_VERSION, SCHEMA, format_problem
 
         f, r = self.f, self.report
         attrs, unreadable = {}, []
@@ -347,7 +347,7 @@ class Scan:
             if "spec_yaml" in attrs:
                 self.add(Damage("/@spec_yaml", "is not text", repair="none"))
             return
-        from campaign.spec import parse_spec
+        from campaign.plan.spec import parse_spec
 
         try:
             spec = parse_spec(text, "the stored spec")
@@ -373,7 +373,7 @@ class Scan:
     def _layout(self):
         """The groups and names the layout has: a damaged link name shows as a member missing and a
         stray one."""
-        from campaign.storefile import TASK_FIELDS
+        from campaign.storage.storefile import TASK_FIELDS
 
         f, r = self.f, self.report
         spec = r.spec
@@ -462,7 +462,7 @@ class Scan:
         try:
             r.B = int(f["tasks/attempts"].chunks[0])
         except Exception:  # noqa: BLE001
-            from campaign.storefile import BLOCK_ROWS
+            from campaign.storage.storefile import BLOCK_ROWS
 
             r.B = max(1, min(BLOCK_ROWS, r.T))
 
@@ -805,7 +805,7 @@ class Scan:
 
     def _rows(self):
         """The commit marker against the rows it commits (it carries no checksum of its own)."""
-        from campaign.journal import task_indices
+        from campaign.storage.journal import task_indices
 
         r = self.report
         st = r.status
@@ -910,7 +910,7 @@ def _config_shape_problem(a, n):
 def _journal_spec_hash(path):
     """The spec hash in the header of the store's journal, or None."""
     try:
-        from campaign.journal import scan_journal
+        from campaign.storage.journal import scan_journal
 
         with open(str(path) + ".journal", "rb") as fh:
             records, _, _ = scan_journal(fh.read(1 << 20))
@@ -1013,8 +1013,8 @@ def repair(report: Report) -> dict:
     whatever is not a task's (damaged provenance, stray groups, ``/reduced``) is left out.
     Returns ``{"pending_again", "rows_before", "rows_after"}``. Raises UserError when it cannot be
     done (the file cannot be opened, its spec attributes are damaged, a run is writing it)."""
-    from campaign.storefile import create_file
-    from campaign.tasks import expand
+    from campaign.storage.storefile import create_file
+    from campaign.plan.tasks import expand
 
     if report.fatal is not None:
         raise UserError(f"{report.path}: cannot be repaired: {report.fatal}")
@@ -1026,10 +1026,9 @@ def repair(report: Report) -> dict:
     edges = dict(report.edges)
     missing = [h for h in spec.histograms if h not in edges]
     if missing:
-        from campaign.worker import resolve
+        from campaign.plan.spec import histogram_edges
 
-        bins = {h: list(e) for h, e in spec.bins}
-        edges.update(resolve("kernels").histogram_edges({"histograms": missing, "bins": bins}))
+        edges.update(histogram_edges(missing, {h: list(e) for h, e in spec.bins}))
     edges = {h: np.asarray(edges[h], np.float64) for h in sorted(spec.histograms)}
     T = len(tasks)
     B = report.B or 1

@@ -230,8 +230,8 @@ def _read_hdf5(path, group):
         import h5py
     except ImportError:  # pragma: no cover - h5py is a dependency
         raise UserError(f"{path}: reading HDF5 needs h5py") from None
-    from campaign.checksums import check_configuration, open_failure
-    from campaign.integrity import read_failure
+    from campaign.storage.checksums import check_configuration, open_failure
+    from campaign.storage.integrity import read_failure
 
     try:
         fh = h5py.File(path, "r", locking=False)

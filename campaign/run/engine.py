@@ -4,7 +4,7 @@ master schedule the tasks, close the store and say how it ended.
 
 ``campaign run`` (``campaign/commands/run.py``) parses the command line, checks the launch
 (one MPI world or none) and calls ``run_campaign`` on the master; MPI workers call
-``mpi_worker``. The scheduling itself is ``campaign.master``; the file is ``campaign.store``.
+``mpi_worker``. The scheduling itself is ``campaign.run.master``; the file is ``campaign.storage.store``.
 """
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ def _versions(mpi=None) -> dict:
 
 
 def provenance(launcher, n_workers, mpi=None) -> dict:
-    from campaign import __version__
+    from campaign.version import __version__
 
     return {"package_version": __version__, "git_commit": _git_commit(), "versions": _versions(mpi),
             "launcher": launcher, "workers": n_workers, "hosts": [socket.gethostname()],
@@ -85,7 +85,7 @@ def peak_rss_mb() -> float:
 
 
 def mpi_worker(comm) -> int:
-    from campaign.comm import mpi_worker as serve
+    from campaign.run.comm import mpi_worker as serve
 
     context = comm.bcast(None, root=0)
     if context is None:  # the master refused to start (bad spec, refused file): it says why
@@ -113,7 +113,7 @@ def node_warm_up(comm, context, first_warms):
     node = comm.Split_type(MPI.COMM_TYPE_SHARED)
     try:
         if first_warms and node.Get_rank() == 0 and context.get("warm_up", True):
-            from campaign.worker import resolve
+            from campaign.run.worker import resolve
 
             fn = resolve(context.get("task_function"))
             if hasattr(fn, "warm_up"):
@@ -149,15 +149,15 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     master: with ``mpi_comm`` the MPI world's other ranks are the workers. Returns the exit code."""
     import numpy as np
 
-    from campaign.comm import InlineComm, LocalComm, MPIComm
+    from campaign.run.comm import InlineComm, LocalComm, MPIComm
     from campaign.errors import UserError, WriteFault
-    from campaign.faults import check_writable, stop_paragraph
-    from campaign.master import Master
-    from campaign.progress import Progress
-    from campaign.spec import load_spec
-    from campaign.store import Store
-    from campaign.tasks import energy_floor_problems, expand
-    from campaign.worker import resolve
+    from campaign.storage.faults import check_writable, stop_paragraph
+    from campaign.run.master import Master
+    from campaign.storage.progress import Progress
+    from campaign.plan.spec import load_spec
+    from campaign.storage.store import Store
+    from campaign.plan.tasks import energy_floor_problems, expand
+    from campaign.run.worker import resolve
 
     state = state if state is not None else {}
     spec = load_spec(args.spec)
@@ -230,7 +230,7 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
         comm.dead = comm.wait_ready()  # workers have loaded (not compiled: see warm_up above) the kernels
         wall = None
         if args.deadline is not None:
-            from campaign.walltime import Deadline
+            from campaign.run.walltime import Deadline
 
             wall = Deadline(store, tasks, args.deadline, args.margin)
         master = Master(comm, store, tasks, retries=retries, depth=max(1, args.depth), progress=progress,
@@ -270,7 +270,7 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     if counts["failed"]:
         _log(f"campaign: see the failures with: campaign status {out}")
     if outcome["stopped"] is not None and counts["pending"]:
-        from campaign.walltime import fit_from_store
+        from campaign.run.walltime import fit_from_store
 
         pending = [tasks[i] for i in np.flatnonzero(store.status == 0)]
         hours = fit_from_store(store, tasks).total_seconds(pending) / 3600.0

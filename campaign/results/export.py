@@ -1,7 +1,7 @@
 """``campaign export``: a store's packings as CSV, Parquet, GSD or extended XYZ.
 
 ``export(path, out, fmt, variant=None, good=True) -> dict`` writes ``out`` and returns what it
-wrote. The rows are those of ``campaign.read_packings`` (``campaign.frames.Packings``, read in
+wrote. The rows are those of ``campaign.read_packings`` (``campaign.results.frames.Packings``, read in
 blocks, histograms never read), in store order:
 
 * ``csv``, ``parquet``: one row per packing, columns ``row``, ``id``, ``variant``, ``N``, ``E``,
@@ -10,7 +10,7 @@ blocks, histograms never read), in store order:
   packing that kept its configuration: box, positions, diameters (radii), species as particle
   types, and the packing's columns with the frame. GSD holds positions as float32, too coarse
   near jamming, so every frame also carries the float64 positions, radii and box sides in its
-  log (``campaign.configio.GSD_POSITIONS64`` ...); extended XYZ is text at full precision.
+  log (``campaign.storage.configio.GSD_POSITIONS64`` ...); extended XYZ is text at full precision.
 
 The layout of each format is documented in docs/STORE.md ("Export formats"). The file is
 written under a temporary name beside ``out`` and renamed into place when complete.
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from campaign.configio import GSD_BOX64, GSD_POSITIONS64, GSD_PREFIX, GSD_RADII64
+from campaign.storage.configio import GSD_BOX64, GSD_POSITIONS64, GSD_PREFIX, GSD_RADII64
 from campaign.errors import UserError, require
 
 FORMATS = ("csv", "parquet", "gsd", "xyz")
@@ -67,7 +67,7 @@ def require_format(fmt):
 def export(path, out, fmt, *, variant=None, good=True) -> dict:
     """Write the selected packings of the store ``path`` to ``out`` in ``fmt`` (see the module
     docstring). Returns ``{"format", "out", "packings", "without_configuration"}``."""
-    from campaign.frames import Packings
+    from campaign.results.frames import Packings
 
     if fmt not in FORMATS:
         raise UserError(f"--format: expected one of {', '.join(FORMATS)}, got {fmt!r}")
@@ -142,7 +142,7 @@ def _write_parquet(pk, tmp, pa):
 def variant_types(attrs) -> dict:
     """``{variant: (species names, exponent)}`` from the spec stored in the file; a spec this
     version cannot read gives the paper's system (A, B; exponent 2)."""
-    from campaign.spec import System, parse_spec
+    from campaign.plan.spec import System, parse_spec
 
     def describe(system):
         names = ("A",) if system.sizes is not None else tuple(s.name for s in system.species)

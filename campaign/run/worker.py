@@ -39,19 +39,9 @@ class KernelTask:
     """The real work: ``kernels.jam`` then ``kernels.analyze`` (docs/CONTRACTS.md)."""
 
     def histogram_edges(self, context) -> dict:
-        try:
-            from kernels.analysis import DEFAULT_BINS
-        except ImportError as exc:
-            from campaign.errors import UserError
-            raise UserError(f"the analysis kernels are not available in this installation ({exc})") from None
-        bins = context.get("bins") or {}
-        out = {}
-        for h in context["histograms"]:
-            edges = bins.get(h, DEFAULT_BINS.get(h))
-            if edges is None:
-                raise RuntimeError(f"kernels.analysis.DEFAULT_BINS has no entry for histogram {h!r}")
-            out[h] = np.asarray(edges, dtype=np.float64)
-        return out
+        from campaign.plan.spec import histogram_edges
+
+        return histogram_edges(context["histograms"], context.get("bins"))
 
     def warm_up(self, context) -> None:
         """Compile (or load from the numba cache) every kernel a task will use."""

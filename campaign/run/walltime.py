@@ -2,7 +2,7 @@
 
 The deadline is the earliest of ``SLURM_JOB_END_TIME`` (epoch seconds; SLURM sets it in the
 job's environment) and the run's start plus ``--time-limit``. A task is dispatched only if,
-by the learned cost model (campaign.costmodel), it and the tasks already queued at its worker
+by the learned cost model (campaign.plan.costmodel), it and the tasks already queued at its worker
 finish before ``deadline - margin``. The model is refitted from the store's finished rows as
 results come in, so estimates follow what this machine actually takes.
 """
@@ -15,10 +15,10 @@ import time
 
 import numpy as np
 
-from campaign.costmodel import CostModel
+from campaign.plan.costmodel import CostModel
 from campaign.errors import UserError
-from campaign.slurm import parse_time
-from campaign.store import DONE
+from campaign.run.slurm import parse_time
+from campaign.storage.store import DONE
 
 
 def parse_limit(text) -> float:

@@ -1,8 +1,8 @@
 """The master loop: dynamic scheduling, retries, signals, progress.
 
-It talks to a ``comm`` (campaign.comm: inline, local processes or MPI) and a
-``store`` (campaign.store) and knows nothing else about either. Tasks go out
-most expensive first (campaign.tasks.cost), ``depth`` (2) per worker at a time
+It talks to a ``comm`` (campaign.run.comm: inline, local processes or MPI) and a
+``store`` (campaign.storage.store) and knows nothing else about either. Tasks go out
+most expensive first (campaign.plan.tasks.cost), ``depth`` (2) per worker at a time
 so that a worker never waits for the master between two tasks (more when tasks
 are only milliseconds long).
 
@@ -11,7 +11,7 @@ are only milliseconds long).
   it is recorded as failed and the campaign goes on.
 * ``can_dispatch(task, ahead) -> bool``: a hook asked before each dispatch, with
   the tasks already queued at that worker; ``False`` stops dispatching (the next
-  task would not fit in the wall time left: campaign.walltime).
+  task would not fit in the wall time left: campaign.run.walltime).
 * First SIGINT/SIGTERM/SIGUSR1 (SLURM's warning before the time limit): stop
   dispatching, collect the running tasks for up to
   ``grace`` seconds; a second signal (or the end of the grace time) abandons
@@ -32,8 +32,8 @@ from collections import deque
 
 import numpy as np
 
-from campaign.store import DONE, FAILED, PENDING
-from campaign.tasks import task_cost
+from campaign.storage.store import DONE, FAILED, PENDING
+from campaign.plan.tasks import task_cost
 
 
 class Master:

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from campaign import fits
-from campaign.tables import _csv_val, fmt_err, records_csv  # noqa: F401 - also used as reduce.fmt_err
+from campaign.results import fits
+from campaign.results.tables import _csv_val, fmt_err, records_csv  # noqa: F401 - also used as reduce.fmt_err
 from campaign.errors import UserError
 
 STATUS_PENDING, STATUS_DONE, STATUS_FAILED = 0, 1, 2
@@ -48,7 +48,7 @@ class Settings:
     boot_seed: int = 20240917   # fixed: the same file gives the same errors
     area_bins: int = 30         # bins of the per-cell P(A_G) histogram
     sin_bins: int = 100         # bins of P(sin theta) on [0, 1]
-    reference: str = "default"  # the variant the others are compared with (campaign.tradeoff)
+    reference: str = "default"  # the variant the others are compared with (campaign.results.tradeoff)
     # The fit range of the scaling laws (docs/REDUCED.md, "The fit range"): the cells whose grid
     # energy lies in fit_energies = [lo, hi] and whose typical relative overlap
     # (alpha E_G / 2)^(1/alpha) is at most fit_overlap (alpha: the variant's exponent). The
@@ -123,7 +123,7 @@ def usable_mask(scalars, n):
     converged (``jam_status == 0``) and the analysis identities held (``identities_ok == 1``).
     ``scalars`` maps names to (n,) arrays; ``reasons`` maps each failed condition to its (n,)
     bool mask. Without one of the two columns a packing is taken as passing that condition.
-    The one definition of the packings the reducer uses (also ``campaign.frames``)."""
+    The one definition of the packings the reducer uses (also ``campaign.results.frames``)."""
     reasons = {}
     if "jam_status" in scalars:
         reasons["jam_status != 0"] = ~(np.asarray(scalars["jam_status"]) == 0)
@@ -203,7 +203,7 @@ class Finished:
                         data = ds[s:e]
                         yield pos[m], np.asarray(data[rows[m] - s], dtype=np.int64)
                 except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
-                    from campaign.integrity import read_failure
+                    from campaign.storage.integrity import read_failure
 
                     err = read_failure(path, exc, f, [f"histograms/{name}/counts"], what=f"histogram {name!r}")
                     if err is None:
@@ -238,7 +238,7 @@ def _open(path, h5py):
     except FileNotFoundError:
         raise UserError(f"{path}: no such file") from None
     except OSError as exc:
-        from campaign.checksums import open_failure
+        from campaign.storage.checksums import open_failure
 
         raise open_failure(path, exc, f"{path}: not a readable HDF5 file ({exc})") from None
 
@@ -266,7 +266,7 @@ def load_finished(paths) -> Finished:
                     raise UserError(f"{path}: not a campaign file (no /tasks table); "
                                     "expected the layout of docs/CONTRACTS.md")
                 if "schema" in f.attrs:
-                    from campaign.store import check_format
+                    from campaign.storage.store import check_format
 
                     check_format(f.attrs, path)
                 # status first: a row's data is complete before its status says done
@@ -288,7 +288,7 @@ def load_finished(paths) -> Finished:
                     for n in f["histograms"]:
                         hedges[n] = np.asarray(f[f"histograms/{n}/edges"][...], dtype=float)
             except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
-                from campaign.integrity import read_failure
+                from campaign.storage.integrity import read_failure
 
                 err = read_failure(path, exc, f, ["tasks", "scalars", "histograms/*/edges"])
                 if err is None:
@@ -337,12 +337,12 @@ def variant_systems(attrs, variants=()) -> dict:
 
     ``{variant: {"exponent": alpha, "sizes": label, "box": (L_x, L_y), "radii": distinct
     discrete radii or () for a continuous distribution}}`` for "default" and each of the
-    spec's variants (``campaign.spec``: a variant's ``system`` overrides the spec's).
+    spec's variants (``campaign.plan.spec``: a variant's ``system`` overrides the spec's).
     ``variants``: names found in the data; those the spec does not list get the base system.
     A spec this version cannot read gives every variant the paper's system (exponent 2, the
     1.4:1 mixture).
     """
-    from campaign.spec import System, parse_spec
+    from campaign.plan.spec import System, parse_spec
 
     try:
         spec = parse_spec(str(attrs.get("spec_yaml", "")), "the stored spec")
@@ -390,9 +390,9 @@ class Reduction:
     peaks: dict                  # variant -> {alpha_e, theta, alpha_v} (``three_disk_peaks``)
     notes: list                  # human-readable: what is missing, what was skipped
     meta: dict
-    variants: list = field(default_factory=list)  # campaign.tradeoff records, one per variant
-    systems: list = field(default_factory=list)   # campaign.systems records, with two systems or more
-    response: dict = field(default_factory=dict)  # campaign.response: {"cells", "fits"} records
+    variants: list = field(default_factory=list)  # campaign.results.tradeoff records, one per variant
+    systems: list = field(default_factory=list)   # campaign.results.systems records, with two systems or more
+    response: dict = field(default_factory=dict)  # campaign.results.response: {"cells", "fits"} records
 
     def fit_rule(self) -> dict:
         """Which cells the scaling fits use: the range's name and sentence, whether it is the
@@ -833,8 +833,8 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
     dists, selfavg = _histograms(fin, g, s) if distributions else ({}, {})
     t_hist = time.perf_counter() - t1
 
-    from campaign import systems as sysmod
-    from campaign import tradeoff
+    from campaign.results import systems as sysmod
+    from campaign.results import tradeoff
 
     # speed against accuracy compares packings of one physical system: the reference's
     ref_sys = vsys.get(s.reference)
@@ -848,7 +848,7 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                                         seed=s.boot_seed, usable=good[pick])
     notes += vnotes
     systems = sysmod.compare(rows, extrapolated, vsys, reference=s.reference)
-    from campaign import response as respmod
+    from campaign.results import response as respmod
 
     resp = (respmod.reduce_response(fin, g, s, dists, {v: d["exponent"] for v, d in vsys.items()}, notes)
             if respmod.present(fin) else {})
@@ -1027,7 +1027,7 @@ def write_reduced(red: Reduction, h5path, *, mode="w"):
     """Write the ``/reduced`` group (replacing an older one) into ``h5path``."""
     import h5py
 
-    from campaign import __version__
+    from campaign.version import __version__
 
     with h5py.File(h5path, mode) as f:
         if "reduced" in f:
@@ -1094,7 +1094,7 @@ def write_outputs(red: Reduction, out_dir, *, write_h5=True):
         files["response_fits.csv"] = records_csv(red.response.get("fits", []))
         files["response_exponents.csv"] = records_csv(red.response.get("exponents", []))
     if red.systems:
-        from campaign import systems
+        from campaign.results import systems
 
         files["systems.csv"] = systems.table_csv(red.systems)
         files["systems.md"] = systems.table_markdown(red.systems)

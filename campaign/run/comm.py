@@ -1,6 +1,6 @@
 """Transports between the master and its workers, behind one small interface.
 
-The master loop (campaign.master) only ever calls::
+The master loop (campaign.run.master) only ever calls::
 
     comm.n_workers                  # workers are numbered 1..n_workers
     comm.send(worker, payload)      # one task (a dict, see Task.payload)
@@ -27,8 +27,8 @@ import socket
 import sys
 import time
 
-from campaign import worker as _worker
-from campaign.launch import mpi_env_detected  # noqa: F401 - where it used to live
+from campaign.run import worker as _worker
+from campaign.run.launch import mpi_env_detected  # noqa: F401 - where it used to live
 
 TAG_TASK, TAG_STOP, TAG_RESULT = 1, 2, 3
 

@@ -29,6 +29,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from campaign.errors import UserError
@@ -731,3 +732,20 @@ def _bins(c, value, path, observables):
             edges = tuple(vals)
         out.append((name, edges))
     return tuple(sorted(out))
+
+
+def histogram_edges(histograms, bins=None) -> dict:
+    """The bin edges of each named histogram: the spec's ``bins`` where it gives them, else the
+    kernels' defaults (``kernels.analysis.DEFAULT_BINS``), as float64 arrays."""
+    try:
+        from kernels.analysis import DEFAULT_BINS
+    except ImportError as exc:
+        raise UserError(f"the analysis kernels are not available in this installation ({exc})") from None
+    bins = bins or {}
+    out = {}
+    for h in histograms:
+        edges = bins.get(h, DEFAULT_BINS.get(h))
+        if edges is None:
+            raise RuntimeError(f"kernels.analysis.DEFAULT_BINS has no entry for histogram {h!r}")
+        out[h] = np.asarray(edges, dtype=np.float64)
+    return out

@@ -27,7 +27,7 @@ import hashlib
 import math
 from dataclasses import dataclass
 
-from campaign.spec import Spec, canonical_json
+from campaign.plan.spec import Spec, canonical_json
 
 
 @dataclass(frozen=True, slots=True)

@@ -3,7 +3,7 @@
 A sequence of records, each a 12-byte header (magic, payload length, CRC-32 of the payload)
 and a payload: JSON metadata, then the raw bytes of the record's arrays. The master appends
 one record per finished task with a single ``write()`` before the task touches the HDF5
-file; a checkpoint (``campaign.store``) cuts the journal back once the store holds
+file; a checkpoint (``campaign.storage.store``) cuts the journal back once the store holds
 everything. Reading keeps every intact record: a record failing its length or checksum is
 skipped up to the next intact record header, and a torn tail is cut off.
 
@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import UserError
-from campaign.faults import write_fault
+from campaign.storage.faults import write_fault
 
 _HEAD = struct.Struct("<4sII")  # magic, payload length, crc32(payload)
 _MAGIC = b"JCJ1"
