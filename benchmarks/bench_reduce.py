@@ -29,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from synthetic_store import SyntheticCampaign, write_store  # noqa: E402
 
 from campaign.results import reduce as R  # noqa: E402
+from campaign.results.writing import write_outputs  # noqa: E402
 
 
 def main(argv=None):
@@ -62,7 +63,7 @@ def main(argv=None):
     for _ in range(a.repeat):
         t0 = time.perf_counter()
         red = R.reduce_campaign(path, R.Settings(n_boot=a.boot))
-        R.write_outputs(red, out)
+        write_outputs(red, out)
         times.append(time.perf_counter() - t0)
     res = {
         "packings": camp.n_tasks, "cells": len(N) * len(E), "bootstrap": a.boot,

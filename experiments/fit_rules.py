@@ -60,7 +60,7 @@ import numpy as np
 from scipy import stats
 
 from campaign.results import fits
-from campaign.results.reduce import typical_overlap
+from campaign.results.scaling import typical_overlap
 from campaign.results.tables import fmt_err
 
 SIZES = (64, 128, 256, 512, 1024)
@@ -378,7 +378,7 @@ def print_pivot(rows, size="inf", file=sys.stdout):
 # --------------------------------------------------------------------------- real stores
 def store_cells(paths):
     """{(variant, N): (Es, cells)} of a store's usable packings (3 or more per cell)."""
-    from campaign.results.reduce import load_finished, variant_systems
+    from campaign.results.reading import load_finished, variant_systems
 
     fin = load_finished(paths)
     ok, _ = fin.usable()

@@ -35,7 +35,9 @@ import numpy as np
 from scipy import stats
 
 from campaign.results.fits import bootstrap_cell_means, fit_inverse_n
-from campaign.results.reduce import Settings, fmt_err, reduce_campaign, typical_overlap
+from campaign.results.reduce import Settings, reduce_campaign
+from campaign.results.scaling import typical_overlap
+from campaign.results.tables import fmt_err
 
 WINDOWS = (math.inf, 1e-2, 3e-3, 1e-3)
 
@@ -92,7 +94,7 @@ def main(argv=None):
     ap.add_argument("--json", metavar="FILE")
     args = ap.parse_args(argv)
 
-    from campaign.results.reduce import load_finished
+    from campaign.results.reading import load_finished
 
     everything = load_finished(args.store)
     out = {}

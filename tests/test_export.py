@@ -123,7 +123,7 @@ def test_read_packings_is_the_store_bit_for_bit(real):
 
 
 def test_read_packings_keeps_the_rows_the_reducer_uses(synth):
-    from campaign.results.reduce import load_finished
+    from campaign.results.reading import load_finished
 
     t, s, done, good = _h5(synth)
     assert (t["status"] == 2).any() and (t["status"] == 0).any() and (done & ~good).sum() == 3

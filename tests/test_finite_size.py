@@ -10,6 +10,8 @@ from synthetic_store import SyntheticCampaign, Truth, task_table, write_store
 
 from campaign.results import fits
 from campaign.results import reduce as R
+from campaign.results.scaling import TABLE_KEYS
+from campaign.results.writing import table_csv, table_markdown
 
 # The grid of a small campaign: four sizes, eight energies, 16 seeds (five energies inside the
 # default window typical overlap <= 0.001, E_G <= 1e-6 at alpha = 2).
@@ -131,13 +133,13 @@ def test_an_undetermined_size_is_marked_and_named(tmp_path):
         if any(r["beta_E_undetermined"] for r in red.rows):
             break
     row = next(r for r in red.rows if r["beta_E_undetermined"])
-    text = R.table_markdown(red)
+    text = table_markdown(red)
     line = next(x for x in text.splitlines() if x.startswith(f"| {row['N_G']} |"))
     assert line.split(" | ")[2].endswith("*")
     assert "not determined" in text.split("\n\n")[-2] or "not determined" in text
     assert any(f"N={row['N_G']}: exponents not determined, marked * in the table: A_G against E_G (" in n
                for n in red.notes)
-    csv = R.table_csv(red)
+    csv = table_csv(red)
     assert row["beta_E_undetermined"] in csv
     ex = red.extrapolated["default"]
     assert ex["beta_E_sizes"] == " ".join(str(n) for n in SIZES)
@@ -164,10 +166,10 @@ def test_four_energies_give_a_note_not_a_number(tmp_path):
     the per-size fits nor the N_G -> inf row give a number, and the notes say why."""
     red = _reduce(tmp_path, "four", plateau_truth(), E=(1e-9, 1e-7, 1e-5, 1e-3))
     ex = red.extrapolated["default"]
-    for k in R.TABLE_KEYS:
+    for k in TABLE_KEYS:
         assert not np.isfinite(ex[k])
     assert any("no N_G -> inf value of A_G against E_G" in n and "3 needed" in n for n in red.notes)
-    assert "| N_G -> inf | -- | -- | -- | -- | -- | -- |" in R.table_markdown(red)
+    assert "| N_G -> inf | -- | -- | -- | -- | -- | -- |" in table_markdown(red)
 
 
 def test_a_flat_law_gives_no_exponent(tmp_path):

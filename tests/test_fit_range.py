@@ -14,6 +14,7 @@ from campaign import cli
 
 from campaign.results import fits
 from campaign.results import reduce as R
+from campaign.results.scaling import DEFAULT_FIT_OVERLAP, typical_overlap
 from campaign.errors import UserError
 
 E13 = tuple(10.0 ** -np.arange(3, 16))       # paper-small's grid: 1e-3 .. 1e-15, one per decade
@@ -60,7 +61,7 @@ def test_the_default_range_recovers_a_known_exponent_within_its_errors(k):
     correction is there (the test can fail)."""
     rng = np.random.default_rng(23)
     E = np.asarray(E13[::-1])
-    window = R.typical_overlap(E, 2.0) <= R.DEFAULT_FIT_OVERLAP * (1 + 1e-9)
+    window = typical_overlap(E, 2.0) <= DEFAULT_FIT_OVERLAP * (1 + 1e-9)
     assert window.sum() == 10 and E[window].max() == pytest.approx(1e-6)
     M = 100
     z_win, z_all, err_win = [], [], []
@@ -106,10 +107,10 @@ def test_default_range_in_the_reducer_recovers_a_corrected_law(tmp_path):
 
 def test_one_distance_from_jamming_for_every_potential():
     """The default keeps E_G <= (2 / alpha) 0.001^alpha: 1e-6, 2.5e-8, 6.7e-10 for alpha = 2, 2.5, 3."""
-    assert R.DEFAULT_FIT_OVERLAP == 0.001
+    assert DEFAULT_FIT_OVERLAP == 0.001
     for alpha, e_max in ((2.0, 1e-6), (2.5, 0.8 * 10**-7.5), (3.0, 2.0 / 3.0 * 1e-9)):
-        assert R.typical_overlap(e_max, alpha) == pytest.approx(0.001, rel=1e-12)
-        assert R.typical_overlap(e_max * 1.01, alpha) > R.DEFAULT_FIT_OVERLAP
+        assert typical_overlap(e_max, alpha) == pytest.approx(0.001, rel=1e-12)
+        assert typical_overlap(e_max * 1.01, alpha) > DEFAULT_FIT_OVERLAP
 
 
 def test_the_default_on_several_systems_is_one_distance_from_jamming(tmp_path):
@@ -127,8 +128,8 @@ def test_the_default_on_several_systems_is_one_distance_from_jamming(tmp_path):
         e_max, n = expect[r["variant"]]
         assert r["fit_E_max"] == pytest.approx(e_max) and r["n_cells"] == n, r
         alpha = truths[r["variant"]].alpha
-        assert R.typical_overlap(r["fit_E_max"], alpha) <= 0.001 * (1 + 1e-9)
-        assert R.typical_overlap(10 * r["fit_E_max"], alpha) > 0.001
+        assert typical_overlap(r["fit_E_max"], alpha) <= 0.001 * (1 + 1e-9)
+        assert typical_overlap(10 * r["fit_E_max"], alpha) > 0.001
     assert len(red.systems) == 3 and all(x["fit_rule"] == "typical overlap <= 0.001 (default)" for x in red.systems)
 
 

@@ -7,7 +7,10 @@ import numpy as np
 import pytest
 
 from campaign import cli
+from campaign.errors import UserError
 from campaign.results import reduce as R
+from campaign.results.tables import fmt_err
+from campaign.results.writing import table_markdown, write_reduced
 from synthetic_store import SyntheticCampaign, Truth, split_store, write_store
 
 FAST = R.Settings(n_boot=150)
@@ -168,7 +171,7 @@ def test_unconverged_and_broken_packings_are_counted_but_left_out(tmp_path, caps
     assert by_variant["loose"]["n_excluded"] == (~good[data["variant"] == "loose"]).sum()
     assert by_variant["loose"]["n_packings"] == T // 2  # finished ones, used or not
     # written out with the reduction
-    R.write_reduced(red, tmp_path / "r.h5")
+    write_reduced(red, tmp_path / "r.h5")
     with h5py.File(tmp_path / "r.h5", "r") as f:
         assert f["reduced"].attrs["n_excluded"] == 5
         np.testing.assert_array_equal(f["reduced/cells/n_excluded"][...], c["n_excluded"])
@@ -269,7 +272,7 @@ def test_cli_reduce_bad_options(full, capsys):
     (0.5, float("nan"), "0.5"), (float("nan"), 0.1, "--"),
 ])
 def test_value_error_format(value, err, text):
-    assert R.fmt_err(value, err) == text
+    assert fmt_err(value, err) == text
 
 
 def test_variants_are_separate_rows(tmp_path):
@@ -283,7 +286,7 @@ def test_variants_are_separate_rows(tmp_path):
     for n in camp.N:
         (a, ea), (b, eb) = d[("loose", n)], d[("default", n)]
         assert abs(a - b - 0.01) < 4 * np.hypot(ea, eb)
-    assert "Variant `loose`" in R.table_markdown(red)
+    assert "Variant `loose`" in table_markdown(red)
 
 
 ENGINE_SPEC = """\
@@ -351,7 +354,7 @@ def test_reduce_while_a_run_is_writing(tmp_path, capsys):
                 continue
             try:
                 red = R.reduce_campaign(out, FAST)
-            except R.UserError:  # caught mid-flush: the message says to try again
+            except UserError:  # caught mid-flush: the message says to try again
                 continue
             if red.meta["done"] >= 4:
                 break

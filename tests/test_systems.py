@@ -14,6 +14,9 @@ from synthetic_store import SyntheticCampaign, Truth, write_store
 
 from campaign.results import plots, systems
 from campaign.results import reduce as R
+from campaign.results.reading import variant_systems
+from campaign.results.tables import fmt_err
+from campaign.results.writing import write_outputs
 
 ROOT = Path(__file__).resolve().parents[1]
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -101,7 +104,7 @@ def test_markdown_table(multi):
     hertz = [ln for ln in lines if ln.startswith("| hertz | inf |")]
     assert len(hertz) == 1 and "| 2.5 | bidisperse 1.4:1 |" in hertz[0]
     r = next(r for r in red.systems if r["variant"] == "hertz")
-    assert R.fmt_err(r["beta_E"], r["beta_E_err"]) in hertz[0]
+    assert fmt_err(r["beta_E"], r["beta_E_err"]) in hertz[0]
     assert systems.table_markdown([]) == ""
 
 
@@ -128,7 +131,7 @@ variants:
 
 
 def test_variant_systems_merges_overrides():
-    s = R.variant_systems({"spec_yaml": SPEC})
+    s = variant_systems({"spec_yaml": SPEC})
     assert set(s) == {"default", "hertz", "alpha3", "poly20", "loose", "wide"}
     assert s["default"]["exponent"] == 2.0 and s["default"]["sizes"] == "bidisperse 1.4:1"
     assert s["hertz"]["exponent"] == 2.5 and s["hertz"]["sizes"] == "bidisperse 1.4:1"
@@ -138,7 +141,7 @@ def test_variant_systems_merges_overrides():
     assert s["loose"] == s["default"]  # protocol-only: the base system
     assert s["wide"]["box"] == (2.0, 1.0) and s["wide"]["exponent"] == 2.5
     # data variants the spec does not list have the base system
-    assert R.variant_systems({"spec_yaml": SPEC}, variants=["extra"])["extra"] == s["default"]
+    assert variant_systems({"spec_yaml": SPEC}, variants=["extra"])["extra"] == s["default"]
 
 
 def test_variant_systems_species_and_sizes_replace_each_other():
@@ -157,7 +160,7 @@ variants:
   - name: wider
     system: {sizes: {polydispersity: 0.25}}
 """
-    s = R.variant_systems({"spec_yaml": spec})
+    s = variant_systems({"spec_yaml": spec})
     assert s["default"]["sizes"] == "uniform 10%" and s["default"]["exponent"] == 2.5
     assert s["mix"]["sizes"] == "bidisperse 2:1, 30:70" and s["mix"]["exponent"] == 2.5
     assert s["mono"]["sizes"] == "monodisperse"
@@ -167,7 +170,7 @@ variants:
 @pytest.mark.parametrize("attrs", [{}, {"spec_yaml": ""}, {"spec_yaml": "[1, 2"},
                                    {"spec_yaml": "just a string"}, {"spec_yaml": "system: 3"}])
 def test_variant_systems_falls_back_on_foreign_specs(attrs):
-    s = R.variant_systems(attrs, variants=["default", "hertz"])
+    s = variant_systems(attrs, variants=["default", "hertz"])
     assert set(s) == {"default", "hertz"}
     for d in s.values():
         assert d["exponent"] == 2.0 and d["sizes"] == "bidisperse 1.4:1"
@@ -226,7 +229,7 @@ def test_figures_for_several_systems_only(multi, tmp_path, monkeypatch):
 
 def test_outputs_and_reduced_group(multi, tmp_path):
     path, red = multi
-    R.write_outputs(red, tmp_path / "out")
+    write_outputs(red, tmp_path / "out")
     with open(tmp_path / "out" / "systems.csv") as f:
         rows = list(csv.DictReader(f))
     assert sorted(r["variant"] for r in rows) == sorted(TRUTHS)

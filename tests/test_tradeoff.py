@@ -14,7 +14,7 @@ class _Fin(SimpleNamespace):
 
 
 def _fin(rows):
-    """A stand-in for reduce.Finished from rows of (variant, N, E, seed, {scalar: value})."""
+    """A stand-in for reading.Finished from rows of (variant, N, E, seed, {scalar: value})."""
     names = sorted({k for r in rows for k in r[4]})
     return _Fin(variant=np.array([r[0] for r in rows], dtype=object), N=np.array([r[1] for r in rows]),
                 E=np.array([r[2] for r in rows], float), seed=np.array([r[3] for r in rows]),

@@ -29,6 +29,7 @@ def configure(parser):
 def main(args) -> int:
     from campaign.results import plots
     from campaign.results import reduce as R
+    from campaign.results.writing import default_out_dir
 
     if args.boot < 0 or args.boot == 1:
         raise UserError(f"--boot must be 0 or at least 2, got {args.boot}")
@@ -38,7 +39,7 @@ def main(args) -> int:
     settings = fit_range(args, R.Settings(min_packings=args.min_packings, n_boot=args.boot,
                                           reference=args.reference))
     red = R.reduce_campaign(args.files, settings)
-    out = Path(args.out) if args.out else R.default_out_dir(args.files[0]) / "figures"
+    out = Path(args.out) if args.out else default_out_dir(args.files[0]) / "figures"
     written = plots.make_figures(red, out, dpi=args.dpi)
     gallery = _gallery(args.files, out, args.dpi)
     for n in red.notes:

@@ -75,6 +75,7 @@ def fit_range(args, settings):
 
 def main(args) -> int:
     from campaign.results import reduce as R
+    from campaign.results import writing
 
     if args.boot < 0 or args.boot == 1:
         raise UserError(f"--boot must be 0 (no errors) or at least 2, got {args.boot}")
@@ -88,8 +89,8 @@ def main(args) -> int:
     if args.seed is not None:
         settings.boot_seed = args.seed
     red = R.reduce_campaign(args.files, settings)
-    out = Path(args.out) if args.out else R.default_out_dir(args.files[0])
-    written = R.write_outputs(red, out)
+    out = Path(args.out) if args.out else writing.default_out_dir(args.files[0])
+    written = writing.write_outputs(red, out)
     text = sys.stderr if args.json else sys.stdout
     m = red.meta
     print(f"{m['name'] or Path(args.files[0]).name}: {m['done']} of {m['total']} packings used"
@@ -98,7 +99,7 @@ def main(args) -> int:
           + (f", {m['failed']} failed" if m["failed"] else "")
           + f"; {len(red.rows)} (variant, N_G) rows; bootstrap {m['n_boot']}", file=text)
     print("", file=text)
-    print(R.table_markdown(red), file=text)
+    print(writing.table_markdown(red), file=text)
     if red.systems:
         from campaign.results import systems
 
@@ -134,7 +135,7 @@ def _write_in_place(red, path):
     import fcntl
     import os
 
-    from campaign.results import reduce as R
+    from campaign.results.writing import write_reduced
 
     if red.meta["pending"]:
         raise UserError(f"{path}: {red.meta['pending']} tasks are still pending (a run may be "
@@ -151,7 +152,7 @@ def _write_in_place(red, path):
                 raise UserError(f"{path}: a run is writing it ({journal} is locked); the reduced "
                                 "group is in the output directory's reduced.h5") from None
         try:
-            R.write_reduced(red, path, mode="r+")
+            write_reduced(red, path, mode="r+")
         except OSError as exc:  # read-only, locked by HDF5, ...
             raise UserError(f"{path}: could not open for writing ({exc}); the reduced group is "
                             "in the output directory's reduced.h5") from None

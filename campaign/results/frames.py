@@ -4,7 +4,7 @@
     one row per finished packing (index ``row``: the store's task row), columns ``id``,
     ``variant``, ``N``, ``E``, ``seed``, ``status`` and every stored scalar under its store
     name (``A_G``, ``N_G``, ``psi_O``, ...). ``good=True`` keeps exactly the packings the
-    reducer uses (``campaign.results.reduce.first_done`` and ``usable_mask``: done, first row of its
+    reducer uses (``campaign.results.reading.first_done`` and ``usable_mask``: done, first row of its
     task id, ``jam_status == 0``, ``identities_ok == 1``); ``good=False`` every finished row.
 ``read_cells(path)``
     the reducer's per-(variant, N, E) table (``/reduced/cells``), computed by the reducer.
@@ -155,7 +155,7 @@ class Packings:
     # ------------------------------------------------------------------ reading
     def blocks(self):
         """Yield the selected packings block by block (see the class docstring)."""
-        from campaign.results.reduce import first_done, usable_mask
+        from campaign.results.reading import first_done, usable_mask
 
         f, t = self._f, self._f["tasks"]
         try:

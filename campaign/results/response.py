@@ -165,8 +165,8 @@ def power_fit(x, y, yerr):
 
 def reduce_response(fin, g, s, dists, exponents, notes):
     """The response records: ``{"cells": [...], "fits": [...]}`` (see the module docstring).
-    ``g``: the reducer's cell grid; ``s``: its Settings (bootstrap size and seed);
-    ``dists``: its summed histograms; ``exponents``: variant -> alpha."""
+    ``g``: the reducer's cell grid (``campaign.results.cells.Grid``); ``s``: its Settings
+    (bootstrap size and seed); ``dists``: its summed histograms; ``exponents``: variant -> alpha."""
     cols = _columns(fin)
     C = g.C
     stats = {}
@@ -188,7 +188,7 @@ def reduce_response(fin, g, s, dists, exponents, notes):
             rec[f"frac_{flag}"], rec[f"frac_{flag}_err"] = f, err
         rec["n_moduli"] = n  # packings with elastic constants (moduli_ok)
         alpha = exponents.get(v, 2.0)
-        delta = (alpha * E / 2.0) ** (1.0 / alpha)  # the typical overlap (campaign.results.reduce)
+        delta = (alpha * E / 2.0) ** (1.0 / alpha)  # the typical overlap (campaign.results.scaling)
         for name, key, lo, hi, conv in (("gap", "gamma", GAP_WINDOW[0] * delta, GAP_WINDOW[1], lambda b: 1 - b),
                                         ("force", "theta", 0.0, FORCE_WINDOW, lambda b: b - 1),
                                         ("force_extended", "theta_ext", 0.0, FORCE_WINDOW, lambda b: b - 1)):
