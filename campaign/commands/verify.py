@@ -70,7 +70,8 @@ class _Progress:
 def main(args) -> int:
     from campaign.errors import UserError
     from campaign.storage.checksums import run_is_writing
-    from campaign.storage.integrity import repair, scan
+    from campaign.storage.integrity import scan
+    from campaign.storage.repair import repair
 
     if run_is_writing(args.file):
         raise UserError(f"a run is writing {args.file}: verify reads a store no run is writing (its chunks and "

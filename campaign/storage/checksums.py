@@ -1,28 +1,22 @@
-"""The store's checksums, and the error a reader raises when a read of the store fails.
+"""The store's checksums (written by the store, checked by every reader), and the names, limits
+and messages the checks of the store share.
 
 What carries a checksum (docs/STORE.md, "Checksums, verify and repair"): every per-task block
 dataset and the bin edges (HDF5's ``fletcher32`` filter, checked by HDF5 on every read), every
 configuration (attribute ``crc32`` of its arrays' bytes, ``config_crc``, checked by
 ``check_configuration``), every failure record (``failure_crc``) and the list of the scalars'
 names. The writers (``campaign.storage.store``, ``campaign.storage.storefile``) and every reader use this module;
-finding and repairing damage (``campaign verify``) is ``campaign.storage.integrity``, which builds on it.
-
-``read_failure`` is the error a reader raises when a read of the store fails: damage found there
-is named, and "try again" is said only when a run writes the file and reading again worked.
+finding damage (``campaign verify``'s scan, and ``read_failure``, the error a reader raises when a
+read of the store fails) is ``campaign.storage.integrity``, which builds on it, and repairing it
+``campaign.storage.repair``.
 """
 
 from __future__ import annotations
 
-import contextlib
-import errno
-import fnmatch
 import json
 import os
 import re
-import time
 import zlib
-from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 

@@ -1,27 +1,24 @@
-"""Integrity of the campaign store: its checksums, finding damage, and repairing it.
+"""Finding damage in the campaign store: ``campaign verify``'s scan, and the error every reader
+raises when a read of the store fails.
 
-What carries a checksum (docs/STORE.md, "Checksums, verify and repair"):
-
-* every per-task block dataset (``tasks/*`` but ``status``, ``scalars/*``,
-  ``histograms/*/counts``) and the bin edges: HDF5's ``fletcher32`` filter, one checksum per
-  chunk (a block of rows), computed after shuffle and deflate when the chunk is written and
-  checked by HDF5 itself before every read of it, in any reader;
-* every configuration: the group attribute ``crc32``, the CRC-32 (zlib's, as the journal's) of
-  the bytes of ``positions``, ``radii``, ``box`` and ``species`` in that order
-  (``config_crc``), checked by every reader of a configuration (``check_configuration``);
-* every failure record: ``crc32`` of its message, traceback and attempts (``failure_crc``);
-* the ``scalars`` group: the list of its datasets' names and its ``crc32`` (a damaged link name
-  is then found, and a repair renames the dataset back);
-* ``tasks/status``, the commit marker (one byte a task, rewritten in place), carries none: it
-  is checked against the row it commits (``Scan._rows``).
+What carries a checksum (docs/STORE.md, "Checksums, verify and repair"; written and checked by
+``campaign.storage.checksums``): every per-task block dataset (``tasks/*`` but ``status``,
+``scalars/*``, ``histograms/*/counts``) and the bin edges (HDF5's ``fletcher32`` filter, one
+checksum per chunk, checked by HDF5 itself before every read of it, in any reader), every
+configuration (``crc32`` of its arrays' bytes), every failure record (``crc32`` of its message,
+traceback and attempts) and the ``scalars`` group's list of its datasets' names (a damaged link
+name is then found, and a repair renames the dataset back). ``tasks/status``, the commit marker
+(one byte a task, rewritten in place), carries none: it is checked against the row it commits
+(``Scan._rows``).
 
 HDF5's own metadata (object headers, chunk indices, heaps) has no checksum in the file format
 the store uses; ``Scan`` checks what can be checked of it: the filter pipelines, each chunk's
 filter mask and lookup, the names against the layout and the spec, and a walk of the file.
 
-``scan(path)`` reads everything (``campaign verify``) and returns a ``Report``; ``repair(report)``
-rebuilds the store without the rows that cannot be trusted (``campaign verify --repair``), so
-that ``campaign run`` of the same spec recomputes exactly those; ``read_failure`` is the error a
+``scan(path)`` reads everything (``campaign verify``) and returns a ``Report``
+(``campaign.storage.damage``: what is damaged, which rows a repair drops);
+``campaign.storage.repair`` rebuilds the store from it (``campaign verify --repair``), so that
+``campaign run`` of the same spec recomputes exactly those rows; ``read_failure`` is the error a
 reader raises when a read of the store fails: damage found there is named, and "try again" is
 said only when a run writes the file and reading again worked.
 
@@ -30,21 +27,21 @@ the benchmarks' and tests' switch) reads as before; ``scan`` counts what carries
 """
 
 from __future__ import annotations
-import contextlib
-import errno
+
 import fnmatch
 import json
 import os
 import time
-from dataclasses import dataclass, field
-from pathlib import Path
+
 import numpy as np
+
 from campaign.errors import StoreDamaged, UserError
-from campaign.storage.checksums import (BLOCK_FILTERS, CHECKSUM_ATTR, CONFIG_KEYS, CONFIG_WEIGHT, EDGES_NOTE, IDENTITY,
-                                ROOT_ATTRS, ROOT_MEMBERS, SLAB_BYTES, configuration_problem, failure_problem,
-                                good_scalar_name, is_filter_failure, looks_like_store, reason,
-                                scalar_names_listed, FLETCHER32, READ_ERRORS, _text, damaged_message,
-                                run_is_writing)
+from campaign.storage.checksums import (BLOCK_FILTERS, CHECKSUM_ATTR, CONFIG_KEYS, CONFIG_WEIGHT, EDGES_NOTE,
+                                        FLETCHER32, IDENTITY, READ_ERRORS, ROOT_ATTRS, ROOT_MEMBERS, SLAB_BYTES,
+                                        _text, configuration_problem, damaged_message, failure_problem,
+                                        good_scalar_name, is_filter_failure, looks_like_store, reason,
+                                        run_is_writing, scalar_names_listed)
+from campaign.storage.damage import Damage, Report
 
 
 # --------------------------------------------------------------------------- readers
@@ -106,94 +103,6 @@ def locate(path, f=None, patterns=("tasks", "scalars")):
 
 
 # --------------------------------------------------------------------------- the scan
-
-@dataclass
-class Damage:
-    """One damaged part of a store.
-
-    ``name``: the object (a dataset, a group, a root attribute ``/@name``); ``how``: what is wrong,
-    a phrase; ``rows``: the finished task rows whose results it held (the tasks a repair makes
-    pending); ``span``: the rows of a damaged block (first, last + 1); ``repair``: ``"drop"`` (its
-    rows are dropped and recomputed), ``"rewrite"`` (rewritten from the spec: nothing is lost),
-    ``"remove"`` (not carried over: nothing a task needs) or ``"none"`` (a repair cannot fix it)."""
-
-    name: str
-    how: str
-    rows: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    span: tuple | None = None
-    repair: str = "drop"
-    labels: list = field(default_factory=list)  # "id (variant N=.. E=.. seed ..)" of the first rows
-    note: str = ""  # what a repair does with it, when not the rule of ``repair``
-
-    def held_text(self, limit=3) -> str:
-        n = len(self.rows)
-        if not n:
-            return ""
-        shown = ", ".join(self.labels[:limit]) if self.labels else ", ".join(f"row {r}" for r in self.rows[:limit])
-        more = f" and {n - limit} more" if n > limit else ""
-        return f"; it holds {n} finished task(s): {shown}{more}"
-
-    def to_json(self) -> dict:
-        return {"object": self.name, "problem": self.how, "rows": [int(r) for r in self.rows],
-                "span": list(self.span) if self.span else None, "repair": self.repair, "repair_note": self.note,
-                "tasks": self.labels}
-
-
-@dataclass
-class Report:
-    path: str
-    name: str = ""
-    T: int = 0
-    B: int = 0
-    counts: dict = field(default_factory=lambda: {"done": 0, "failed": 0, "pending": 0})
-    damage: list = field(default_factory=list)
-    fatal: str | None = None          # the store cannot be opened or walked at all
-    spec: object = None               # the stored spec, parsed (None if it cannot be, or its hash differs)
-    edges: dict = field(default_factory=dict)  # readable, sound bin edges
-    checked: dict = field(default_factory=lambda: {"datasets": 0, "chunks": 0, "bytes": 0, "configurations": 0,
-                                                   "failures": 0, "seconds": 0.0})
-    unchecked: dict = field(default_factory=lambda: {"datasets": [], "configurations": 0, "failures": 0})
-    status: np.ndarray | None = None
-    renames: dict = field(default_factory=dict)  # scalar datasets under a damaged name -> their name
-
-    @property
-    def ok(self) -> bool:
-        return self.fatal is None and not self.damage
-
-    def drop_rows(self) -> np.ndarray:
-        """Rows a repair drops: the finished rows of every damaged part and the rows of every
-        damaged block (pending ones there too: they hold nothing a task needs)."""
-        parts = [np.zeros(0, np.int64)]
-        for d in self.damage:
-            if d.repair != "drop":
-                continue
-            parts.append(np.asarray(d.rows, np.int64))
-            if d.span is not None:
-                parts.append(np.arange(d.span[0], d.span[1], dtype=np.int64))
-        return np.unique(np.concatenate(parts))
-
-    def lost_rows(self) -> np.ndarray:
-        """Finished rows a repair makes pending."""
-        rows = self.drop_rows()
-        if self.status is None:
-            return rows
-        rows = rows[rows < len(self.status)]
-        return rows[self.status[rows] != 0]
-
-    def unrepairable(self) -> list:
-        out = [d for d in self.damage if d.repair == "none"]
-        if self.fatal is None and self.spec is None and self.damage:
-            out = out or [Damage("/@spec_yaml", "cannot be parsed into the spec that wrote the store", repair="none")]
-        return out
-
-    def to_json(self) -> dict:
-        return {"file": self.path, "ok": self.ok, "name": self.name, "tasks": self.T, **self.counts,
-                "fatal": self.fatal, "checked": self.checked,
-                "without_checksums": dict(self.unchecked),
-                "damage": [d.to_json() for d in self.damage],
-                "tasks_lost": int(len(self.lost_rows())),
-                "repairable": self.fatal is None and not self.unrepairable()}
-
 
 class _Found(Exception):
     """Raised inside a scan that stops at the first damage."""
@@ -356,7 +265,9 @@ class Scan:
                             repair="none"))
             return
         if spec.hash != stored_hash:
-            witness = _journal_spec_hash(self.path)
+            from campaign.storage.journal import header_spec_hash
+
+            witness = header_spec_hash(str(self.path) + ".journal")
             if witness == spec.hash:  # the journal's header agrees with spec_yaml: spec_hash is the damaged one
                 self.add(Damage("/@spec_hash", f"is {stored_hash!r}, but the stored spec and the journal's header "
                                                f"say {spec.hash!r}", repair="rewrite"))
@@ -907,19 +818,6 @@ def _config_shape_problem(a, n):
     return None
 
 
-def _journal_spec_hash(path):
-    """The spec hash in the header of the store's journal, or None."""
-    try:
-        from campaign.storage.journal import scan_journal
-
-        with open(str(path) + ".journal", "rb") as fh:
-            records, _, _ = scan_journal(fh.read(1 << 20))
-        head = records[0][0] if records else {}
-        return head.get("spec_hash") if head.get("type") == "header" else None
-    except (OSError, ValueError, IndexError, AttributeError):
-        return None
-
-
 def _filters(ds) -> tuple:
     pl = ds.id.get_create_plist()
     return tuple(int(pl.get_filter(i)[0]) for i in range(pl.get_nfilters()))
@@ -967,79 +865,3 @@ def scan(path, progress=None) -> Report:
         except Exception as exc:  # noqa: BLE001 - a structure so damaged that the walk itself fails
             s.report.fatal = f"walking it failed ({reason(exc)})"
         return s.report
-
-
-# --------------------------------------------------------------------------- repair
-
-@contextlib.contextmanager
-def run_lock(path):
-    """Hold the lock a run holds (an exclusive ``flock`` on ``<path>.journal``, created if missing):
-    no run can start meanwhile; UserError if one is writing."""
-    import fcntl
-
-    jpath = Path(str(path) + ".journal")
-    created = not jpath.exists()
-    try:
-        fd = os.open(jpath, os.O_RDWR | os.O_CREAT, 0o644)
-    except OSError as exc:
-        raise UserError(f"cannot open {str(jpath)!r} (the journal of {str(path)!r}) to lock it: "
-                        f"{exc.strerror}") from None
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                raise UserError(f"another run is writing {str(path)!r} (its journal {str(jpath)!r} is locked); "
-                                "wait for it to finish or stop it first") from None
-            # a file system without flock: carry on, unprotected (as a run does)
-        yield
-    finally:
-        os.close(fd)
-        if created:
-            try:
-                if jpath.stat().st_size == 0:
-                    jpath.unlink()
-            except OSError:
-                pass
-
-
-def repair(report: Report) -> dict:
-    """Rebuild the store of ``report`` (a ``scan`` that found damage) without what cannot be trusted.
-
-    Every readable, sound row is copied into a new file (created beside it, renamed into place
-    when complete, the space reserved first: a full disk leaves the store as it was): the rows
-    of damaged parts are dropped (their tasks pending, so that ``campaign run`` of the same spec
-    recomputes them), the task identities and the bin edges are written from the spec, and
-    whatever is not a task's (damaged provenance, stray groups, ``/reduced``) is left out.
-    Returns ``{"pending_again", "rows_before", "rows_after"}``. Raises UserError when it cannot be
-    done (the file cannot be opened, its spec attributes are damaged, a run is writing it)."""
-    from campaign.storage.storefile import create_file
-    from campaign.plan.tasks import expand
-
-    if report.fatal is not None:
-        raise UserError(f"{report.path}: cannot be repaired: {report.fatal}")
-    bad = report.unrepairable()
-    if bad:
-        raise UserError(f"{report.path}: cannot be repaired: {bad[0].name} {bad[0].how}")
-    spec = report.spec
-    tasks = expand(spec)
-    edges = dict(report.edges)
-    missing = [h for h in spec.histograms if h not in edges]
-    if missing:
-        from campaign.plan.spec import histogram_edges
-
-        edges.update(histogram_edges(missing, {h: list(e) for h, e in spec.bins}))
-    edges = {h: np.asarray(edges[h], np.float64) for h in sorted(spec.histograms)}
-    T = len(tasks)
-    B = report.B or 1
-    drop = set(report.drop_rows().tolist())
-    before = report.counts
-    state = (np.zeros(T, np.int8), np.zeros(T, np.int32), np.full(T, np.nan))
-    with run_lock(report.path):
-        create_file(report.path, spec, tasks, edges, B, salvage=True, state=state, drop=drop,
-                    renames=report.renames)
-    st = state[0]
-    after = {"done": int(np.count_nonzero(st == 1)), "failed": int(np.count_nonzero(st == 2)),
-             "pending": int(np.count_nonzero(st == 0))}
-    return {"pending_again": before["done"] + before["failed"] - after["done"] - after["failed"],
-            "rows_before": before, "rows_after": after}

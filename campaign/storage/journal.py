@@ -151,6 +151,17 @@ def task_indices(path) -> set:
     return out
 
 
+def header_spec_hash(path):
+    """The spec hash in the header of the journal at ``path``, or None (read without locking it)."""
+    try:
+        with open(path, "rb") as fh:
+            records, _, _ = scan_journal(fh.read(1 << 20))
+        head = records[0][0] if records else {}
+        return head.get("spec_hash") if head.get("type") == "header" else None
+    except (OSError, ValueError, IndexError, AttributeError):
+        return None
+
+
 class Journal:
     """The write-ahead journal, locked for the lifetime of a run (one writer per store)."""
 

@@ -34,18 +34,18 @@ name and renamed into place), the journal is replayed on top, and the rows lost
 with the damage are counted and run again: packings are pure functions of the spec.
 
 A full disk (or quota, or a file system that fails) never leaves the two files
-disagreeing: every HDF5 write step first reserves the space it may need
-(``campaign.storage.faults.reserve``) and raises ``OutOfSpace`` before writing anything when it
-is not there; a journal append that fails is cut back to the previous record. Should
-HDF5 itself still meet a failed write, its handle is *poisoned*: never flushed or closed
-normally again (``campaign.storage.faults.neutralise``), since its cache then holds blocks that
-never reached the disk; the journal holds every finished task and the next start
-salvages the store. Either way the run stops with a ``WriteFault`` (exit status 3).
+disagreeing: every HDF5 write step first reserves the space it may need and raises
+``OutOfSpace`` before writing anything when it is not there (``campaign.storage.storespace``:
+the estimate, the reservation, what finishing needs; the store hands it data and it never
+calls back); a journal append that fails is cut back to the previous record. Should HDF5
+itself still meet a failed write, its handle is *poisoned*: never flushed or closed normally
+again, since its cache then holds blocks that never reached the disk (its writes go to memory:
+``campaign.storage.faults.GuardedFile``); the journal holds every finished task and the next
+start salvages the store. Either way the run stops with a ``WriteFault`` (exit status 3).
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import sys
@@ -55,7 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import OutOfSpace, StoreDamaged, UserError
-from campaign.storage.faults import GuardedFile, release, reserve, write_fault
+from campaign.storage.faults import GuardedFile, write_fault
 from campaign.storage.storefile import BLOCK_ROWS  # rows per chunk of every per-task dataset
 from campaign.storage.checksums import (CONFIG_KEYS, check_configuration, write_configuration, write_failure,
                                 write_scalar_names)
@@ -64,8 +64,8 @@ from campaign.storage.journal import (  # noqa: F401 - part of this module's int
 from campaign.storage.storefile import (  # noqa: F401 - part of this module's interface
     CHUNK_CACHE, COMPRESSION, DONE, ERROR_LEN, FAILED, FORMAT_VERSION, HOST_LEN, OLD_FORMAT_HELP, PENDING,
     ROW_FIELDS, SCHEMA, SLACK, TASK_FIELDS, VARIANT_LEN, check_file, check_format, create_file, dataset_kwargs,
-    fill_value, fixed, format_problem, fsync_path, load_state, row_dtype)
-from campaign.storage.storespace import SpaceModel
+    fill_value, fixed, format_problem, fsync_path, load_state, row_dtype, row_values)
+from campaign.storage.storespace import StoreSpace
 
 FLUSH_SECONDS = 0.5     # staged complete blocks are written at least this often
 HOLD_SECONDS = 2.0      # a block still partly pending is written after waiting this long
@@ -91,10 +91,8 @@ class Store:
         self.edges = {k: np.asarray(v, np.float64) for k, v in sorted(edges.items())}
         self.log = log or (lambda msg: print(msg, file=sys.stderr))
         self.f = self.io = None
-        self.poisoned = False  # a write step failed: this handle writes nothing to the file any more
-        self.record_bytes = []  # sizes of this run's journal records (the space estimate of a stop)
-        self.space = SpaceModel(self.B, self.T, self.edges)  # what a write step may add to the file
-        self.space_log = []  # (bytes reserved, bytes the file grew) of the last HDF5 write steps
+        # the space accounting: what a write step may add, its reservation, what finishing needs
+        self.space = StoreSpace(self.path, self.B, self.T, self.edges)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -164,7 +162,7 @@ class Store:
                         state=(self.status, self.attempts, self.wall))
             self.n_status = [int(np.count_nonzero(self.status == k)) for k in (PENDING, DONE, FAILED)]
             rebuilt = "the damaged part of the" if salvage_from else "the missing"
-        self.written_blocks = set((np.flatnonzero(self.status != PENDING) // self.B).tolist())
+        self.space.written_blocks = set((np.flatnonzero(self.status != PENDING) // self.B).tolist())
         try:
             self.io = GuardedFile(self.path)
         except OSError as exc:
@@ -230,47 +228,14 @@ class Store:
     def _dataset_kwargs(self, shape, fill):
         return dataset_kwargs(self.B, shape, fill)
 
-    # ---- writing HDF5 safely
-    def _slack(self, new_blocks=0) -> int:
-        return self.space.slack(self.path, len(self.scalar_names), len(self.written_blocks), new_blocks)
+    @property
+    def space_log(self):
+        """(bytes reserved, bytes the file grew) of the last HDF5 write steps."""
+        return self.space.log
 
-    def _blocks_bytes(self, blocks) -> int:
-        return self.space.blocks_bytes(self.staged, blocks, self.scalar_names,
-                                       len(self.have_configs) + len(self.have_failures), self._row_values)
-
-    @contextlib.contextmanager
-    def _hdf5_writes(self, nbytes, what, new_blocks=0):
-        """One step that writes the HDF5 file: the space it may need (``nbytes`` plus room for
-        HDF5's own metadata) is reserved first, or OutOfSpace is raised before anything is
-        written; if anything fails inside, the handle is poisoned and an operating-system
-        failure is raised as a WriteFault."""
-        if self.poisoned:
-            raise RuntimeError("the store's HDF5 handle failed a write before; it must not be written again")
-        fd = self.io.fd
-        need = int(nbytes) + self._slack(new_blocks)
-        size = os.fstat(fd).st_size
-        reserved = reserve(fd, need, self.path, what)
-        try:
-            yield
-        except BaseException as exc:
-            self.poisoned = True
-            fault = write_fault(exc, self.path, what, needed=need)
-            if fault is not None and fault is not exc:
-                raise fault from None
-            raise
-        finally:
-            if self.io.failed is not None:
-                self.poisoned = True
-            if not self.poisoned:
-                release(fd, reserved)
-        if self.io.failed is not None:  # HDF5 wrote past the reservation into a full disk: the overlay took it
-            fault = write_fault(self.io.failed, self.path, what, needed=need)
-            if fault is None:
-                raise RuntimeError(f"writing {self.path} failed: {self.io.failed}") from self.io.failed
-            fault.damaged = True
-            raise fault
-        self.space_log.append((need, os.fstat(fd).st_size - size))
-        del self.space_log[:-64]
+    def _groups(self) -> int:
+        """Configuration and failure groups the file holds."""
+        return len(self.have_configs) + len(self.have_failures)
 
     # ---- recording
     def finished(self, index: int) -> bool:
@@ -309,8 +274,7 @@ class Store:
             self.journal.append(meta, arrays)
             self.log(f"campaign: {self.path.parent} was full: wrote the store and cut its journal back early, "
                      "which made room; going on")
-        if len(self.record_bytes) < 4096:
-            self.record_bytes.append(self.journal.size - size)
+        self.space.note_record(self.journal.size - size)
         self._stage(meta, arrays)
         self.maybe_flush()
 
@@ -364,7 +328,7 @@ class Store:
         """One value of a per-task dataset (``tasks/error``, ``scalars/phi``, ...), staged or stored."""
         row = self._staged_row(index)
         if row is not None:
-            return self._row_values(row[0], row[1], [column])[column]
+            return row_values(row[0], row[1], self.edges, [column])[column]
         if column not in self.f:
             return np.nan if column.startswith("scalars/") else None
         return self.f[column][index]
@@ -433,34 +397,6 @@ class Store:
         if self.journal.size > JOURNAL_BYTES:
             self.checkpoint()
 
-    def _row_values(self, meta, arrays, columns=None):
-        """The values a task's record puts into its row, per dataset name."""
-        status = int(meta["status"])
-        out = {"tasks/attempts": int(meta["attempts"]), "tasks/wall": float(meta["wall"]),
-               "tasks/rank": int(meta["rank"]), "tasks/host": fixed(meta["host"], HOST_LEN),
-               "tasks/error": fixed(meta["message"], ERROR_LEN) if status == FAILED else b""}
-        if "scalar_names" in meta:
-            names = meta["scalar_names"].split(",") if meta["scalar_names"] else []
-            sc = dict(zip(names, arrays["s"].tolist()))
-        else:
-            sc = meta.get("scalars", {})
-        for name, v in sc.items():
-            out[f"scalars/{name}"] = float(v)
-        for h, e in self.edges.items():
-            a = arrays.get("h/" + h)
-            out[f"histograms/{h}/counts"] = a if a is not None and a.shape == (len(e) - 1,) else None
-        if columns is not None:
-            res = {}
-            for c in columns:
-                if c in out:
-                    res[c] = np.zeros(len(self.edges[c.split("/")[1]]) - 1, np.int64) if out[c] is None else out[c]
-                elif c.startswith("scalars/"):
-                    res[c] = np.nan
-                else:
-                    res[c] = None
-            return res
-        return out
-
     def _dataset(self, name):
         """(dataset, fill value, dtype, row shape), looked up once (h5py lookups are slow)."""
         got = self._datasets.get(name)
@@ -488,14 +424,17 @@ class Store:
                 rejournalled = True
         if rejournalled:
             self.journal.sync()
-        fresh = [b for b in blocks if b not in self.written_blocks]
-        with self._hdf5_writes(self._blocks_bytes(blocks), "writing finished tasks into the store", len(fresh)):
-            self._write_blocks_now(blocks)
-        self.written_blocks.update(blocks)
-        self.space.learn(lambda name: self._dataset(name)[0], blocks, self.scalar_names)
+        need = self.space.blocks_bytes(self.staged, blocks, self.scalar_names, self._groups())
+        what = "writing finished tasks into the store"
+        with self.space.write_step(self.io, need, what, len(self.scalar_names), blocks):
+            written = self._write_blocks_now(blocks)
+        self.space.learn(written, blocks, self.scalar_names)
 
     def _write_blocks_now(self, blocks):
+        """Write the staged rows of ``blocks`` (data, flush, status, flush); returns the per-task
+        datasets written, by name."""
         f = self.f
+        written = {}
         for b in blocks:
             rows = self.staged[b]
             lo, hi = b * self.B, min((b + 1) * self.B, self.T)
@@ -503,7 +442,7 @@ class Store:
             kept = [int(i) for i in final if i not in rows]
             idx = np.fromiter(rows, np.int64, len(rows)) - lo
             whole = not kept  # no committed row to keep: no need to read the chunks
-            values = [self._row_values(m, a) for m, a in rows.values()]
+            values = [row_values(m, a, self.edges) for m, a in rows.values()]
             keys = set()
             for v in values:
                 keys.update(v.keys())
@@ -516,6 +455,7 @@ class Store:
             columns += [f"histograms/{h}/counts" for h in self.edges]
             for name in columns:
                 ds, fill, dtype, shape = self._dataset(name)
+                written[name] = ds
                 if whole:
                     block = np.full((hi - lo,) + shape, fill, dtype=dtype)
                 else:
@@ -555,6 +495,7 @@ class Store:
         f.flush()
         if not self.staged:
             self.staged_bytes = 0
+        return written
 
     def _rejournal(self, lo, hi, rows):
         """Append records, rebuilt from the store, for committed ``rows`` of block [lo, hi)."""
@@ -594,7 +535,7 @@ class Store:
         if self.staged:
             self.journal.sync()
             self._write_blocks(list(self.staged))
-        with self._hdf5_writes(0, "flushing the store at a checkpoint"):
+        with self.space.write_step(self.io, 0, "flushing the store at a checkpoint", len(self.scalar_names)):
             self.f.flush()
         try:
             fsync_path(self.path)
@@ -623,8 +564,8 @@ class Store:
         attrs["hosts"] = json.dumps(hosts)
         attrs["start_time"] = self.runs[0].get("start") or ""
         attrs["end_time"] = self.runs[-1].get("end") or ""
-        size = sum(len(v) if isinstance(v, str) else 8 for v in attrs.values())
-        with self._hdf5_writes(2 * size + 16384, "writing the store's attributes"):
+        with self.space.write_step(self.io, self.space.attrs_bytes(attrs), "writing the store's attributes",
+                             len(self.scalar_names)):
             for key, value in attrs.items():
                 self.f.attrs[key] = value
 
@@ -661,12 +602,12 @@ class Store:
         writes go to an in-memory overlay, so that the file on disk keeps what it had."""
         try:
             if self.f is not None:
-                if self.poisoned:
+                if self.space.poisoned:
                     self.io.discard()
                 try:
                     self.f.close()
                 except Exception:  # noqa: BLE001 - after a fault: what the file holds is what the next start sees
-                    if not self.poisoned:
+                    if not self.space.poisoned:
                         raise
         finally:
             self.f = None
@@ -683,27 +624,10 @@ class Store:
 
     def space_needed(self) -> dict:
         """What finishing the campaign would take on disk, from what this store holds:
-        ``{"per_task", "journal_per_task", "pending", "total"}`` (bytes; None when unknown).
-        A task's share of the store is measured on the rows the file holds, else estimated
-        (an upper bound) from the rows waiting to be written."""
-        pending = self.n_status[PENDING]
-        out = {"pending": pending, "per_task": None, "journal_per_task": None, "total": None}
-        staged = sum(len(rows) for rows in self.staged.values())
-        committed = self.n_final() - staged
-        try:
-            used = os.path.getsize(self.path)
-        except OSError:
-            used = 0
-        if committed > 0 and used:
-            out["per_task"] = used / committed
-        elif staged:
-            out["per_task"] = self._blocks_bytes(list(self.staged)) / staged
-        if self.record_bytes:
-            out["journal_per_task"] = sum(self.record_bytes) / len(self.record_bytes)
-        if out["per_task"] is not None:
-            journal = min(JOURNAL_BYTES, pending * (out["journal_per_task"] or out["per_task"]))
-            out["total"] = int(pending * out["per_task"] + journal + self._slack())
-        return out
+        ``{"per_task", "journal_per_task", "pending", "total"}`` (bytes; None when unknown;
+        ``StoreSpace.needed``)."""
+        return self.space.needed(pending=self.n_status[PENDING], final=self.n_final(), staged=self.staged,
+                                 scalar_names=self.scalar_names, groups=self._groups(), journal_cap=JOURNAL_BYTES)
 
 
 def _nbytes(arrays) -> int:

@@ -54,6 +54,37 @@ def fixed(text: str, n: int) -> bytes:
     return text.encode("utf-8", "replace")[:n]
 
 
+def row_values(meta, arrays, edges, columns=None):
+    """The values a task's journal record (``meta``, ``arrays``) puts into its row, per dataset
+    name (``edges``: the histograms' bin edges); with ``columns``, those datasets' values only,
+    a missing one as the dataset's fill (histogram rows as zeros, scalars as NaN, else None)."""
+    status = int(meta["status"])
+    out = {"tasks/attempts": int(meta["attempts"]), "tasks/wall": float(meta["wall"]),
+           "tasks/rank": int(meta["rank"]), "tasks/host": fixed(meta["host"], HOST_LEN),
+           "tasks/error": fixed(meta["message"], ERROR_LEN) if status == FAILED else b""}
+    if "scalar_names" in meta:
+        names = meta["scalar_names"].split(",") if meta["scalar_names"] else []
+        sc = dict(zip(names, arrays["s"].tolist()))
+    else:
+        sc = meta.get("scalars", {})
+    for name, v in sc.items():
+        out[f"scalars/{name}"] = float(v)
+    for h, e in edges.items():
+        a = arrays.get("h/" + h)
+        out[f"histograms/{h}/counts"] = a if a is not None and a.shape == (len(e) - 1,) else None
+    if columns is not None:
+        res = {}
+        for c in columns:
+            if c in out:
+                res[c] = np.zeros(len(edges[c.split("/")[1]]) - 1, np.int64) if out[c] is None else out[c]
+            elif c.startswith("scalars/"):
+                res[c] = np.nan
+            else:
+                res[c] = None
+        return res
+    return out
+
+
 def fsync_path(path):
     fd = os.open(path, os.O_RDONLY)
     try:
