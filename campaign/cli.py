@@ -20,7 +20,8 @@ import traceback
 from campaign.version import __version__
 from campaign.errors import UserError, WriteFault
 
-SUBCOMMANDS = ("validate", "run", "status", "reduce", "plot", "analyze", "draw", "slurm", "export", "verify")
+SUBCOMMANDS = ("validate", "run", "status", "reduce", "plot", "analyze", "draw", "slurm", "export", "verify",
+               "calibrate")
 
 
 class _Parser(argparse.ArgumentParser):

@@ -20,21 +20,26 @@ def _grid(reps=4):
 
 
 def _median(model, N, E, protocols=None):
-    return model.seconds(N, E, protocols) / math.exp(0.5 * model.sigma ** 2)
+    return model.seconds(N, E, protocols) / math.exp(0.5 * model.scatter ** 2)
 
 
-def test_prior_is_the_static_model():
+def test_prior_is_the_calibrated_model():
+    """Before any data the learning model's expected seconds are the calibrated means."""
     model = CostModel.prior()
     for N in (16, 256, 4096):
         for E in (1e-2, 1e-3, 1e-9, 1e-15):
-            for proto in ({"force_tolerance": 1e-6}, {"force_tolerance": 1e-3}):
-                assert _median(model, N, E, [proto])[0] == pytest.approx(tasks.cost(N, E, proto), rel=1e-12)
+            for proto in ({"force_tolerance": 1e-6}, {"force_tolerance": 1e-3}, {"endgame": "newton"},
+                          {"endgame": "auto"}):
+                assert model.seconds(N, E, [proto])[0] == pytest.approx(tasks.cost(N, E, proto), rel=1e-12)
+                assert model.seconds(N, E, [dict(proto, start="ladder")], [E * 10])[0] == pytest.approx(
+                    tasks.cost(N, E, dict(proto, start="ladder"), parent_E=E * 10), rel=1e-12)
 
 
 def test_no_usable_data_gives_the_prior():
     fitted = CostModel.fit([64, 128], [1e-4, 1e-6], [0.0, float("nan")])
     assert fitted.n_points == 0
     np.testing.assert_array_equal(fitted.theta, CostModel.prior().theta)
+    assert fitted.sigma is None and fitted.scatter == CostModel.prior().scatter
 
 
 def test_recovers_a_known_law_from_noisy_timings():

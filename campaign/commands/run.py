@@ -87,6 +87,9 @@ def main(args) -> int:
     args.deadline = deadline(time.time(), args.time_limit)
     if args.margin < 0:
         raise UserError(f"--margin must be >= 0 seconds; got {args.margin:g}")
+    from campaign.plan import calibration
+
+    calibration.active()  # the dispatch order and --time-limit price tasks: a bad calibration file stops here
     _set_numba_cache(args)
     if args.task_function is None:
         args.task_function = os.environ.get("CAMPAIGN_TASK_FUNCTION") or "kernels"

@@ -33,10 +33,43 @@ def configure(p):
     p.add_argument("--chain", type=int, metavar="M",
                    help="also print (or with --submit, submit) M jobs chained with --dependency=afterany")
     p.add_argument("--submit", action="store_true", help="submit the chain with sbatch instead of printing it")
+    p.add_argument("--calibration", metavar="FILE",
+                   help="the cost model's calibration for the estimate (written by campaign calibrate; default: "
+                        "$CAMPAIGN_COST_CALIBRATION, else the packaged one)")
+    p.add_argument("--no-estimate", action="store_true",
+                   help="do not print the estimated cost and the advice on --time and --chain")
 
 
 def main(args) -> int:
-    from campaign.run.slurm import SlurmOptions, chain_commands, render_script
+    from campaign.plan import calibration
+
+    with calibration.using(getattr(args, "calibration", None)) as cal:
+        return _main(args, cal)
+
+
+def _estimate(spec, results, cal):
+    """The estimated core-seconds of the tasks not done yet in ``results`` (all, when it does not
+    exist or another spec wrote it) and of the longest of them."""
+    from campaign.errors import UserError
+    from campaign.plan.tasks import estimate, expand, task_cost
+    from campaign.storage.store import DONE, read_summary
+
+    tasks = expand(spec)
+    left = tasks
+    if results.exists():
+        try:
+            s = read_summary(str(results), fields=("status",))
+            if s["attrs"].get("spec_hash") == spec.hash and len(s["status"]) == len(tasks):
+                left = [t for t in tasks if s["status"][t.index] != DONE]
+        except UserError:
+            pass
+    if not left:
+        return None, 0.0, 0
+    return estimate(left, cal), max(task_cost(t) for t in left), len(left)
+
+
+def _main(args, cal) -> int:
+    from campaign.run.slurm import SlurmOptions, advice_text, advise, chain_commands, render_script
     from campaign.plan.spec import load_spec
 
     spec = load_spec(args.spec)
@@ -47,6 +80,13 @@ def main(args) -> int:
     text = render_script(name=spec.name, spec=Path(args.spec), out=results, tasks=spec.n_tasks, options=options)
     if (args.chain or args.submit) and not args.out:
         raise UserError("--chain and --submit need --out FILE: the jobs submit the script file")
+    if not args.no_estimate:
+        total, longest, n_left = _estimate(spec, results, cal)
+        if total is None:
+            print(f"{results}: every task is done; nothing left to run", file=sys.stderr)
+        else:
+            head = "" if n_left == spec.n_tasks else f"{n_left} of {spec.n_tasks} tasks left in {results}; "
+            sys.stderr.write(head + advice_text(advise(total, longest, options), total, options, args.chain))
     if args.out:
         Path(args.out).write_text(text)
         Path(args.out).chmod(0o755)

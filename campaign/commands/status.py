@@ -183,16 +183,27 @@ def _remaining_core_hours(attrs, s):
         return None, 0
     if spec.n_tasks != s["totals"]["tasks"]:
         return None, 0
+    variants = {v.name: v for v in spec.variants}
     protocols = {v.name: dict(v.protocol) for v in spec.variants}
     smp = s["sample"]
     vnames = [x.decode(errors="replace") for x in smp["variant"]]
     if any(v not in protocols for v in vnames):
         return None, 0
-    model = (CostModel.fit(smp["N"], smp["E"], smp["wall"], [protocols[v] for v in vnames]) if vnames
+
+    def parent(v, e):  # a ladder step starts from the next energy up of its variant
+        if protocols[v].get("start") != "ladder":
+            return None
+        higher = [x for x in variants[v].E if x > e]
+        return min(higher) if higher else None
+
+    model = (CostModel.fit(smp["N"], smp["E"], smp["wall"], [protocols[v] for v in vnames],
+                           [parent(v, float(e)) for v, e in zip(vnames, smp["E"])],
+                           [variants[v].system.exponent for v in vnames]) if vnames
              else CostModel.prior())
     total = 0.0
     for (v, n, e), (done, failed, pending) in s["cells"].items():
         left = failed + pending
         if left and v in protocols:
-            total += left * float(model.seconds(n, e, [protocols[v]])[0])
+            total += left * float(model.seconds(n, e, [protocols[v]], [parent(v, float(e))],
+                                                [variants[v].system.exponent])[0])
     return total / 3600.0, model.n_points

@@ -4,23 +4,36 @@ from __future__ import annotations
 
 HELP = "check a campaign spec; print its task count and estimated cost"
 
+#: `endgame: auto` is advised when it saves at least this share of a variant's estimate
+AUTO_ADVICE = 0.05
+
 
 def configure(parser):
     parser.add_argument("spec", nargs="?", default=None, help="campaign spec (YAML); default: the packaged quickstart")
+    parser.add_argument("--calibration", metavar="FILE",
+                        help="the cost model's calibration (written by campaign calibrate; default: "
+                             "$CAMPAIGN_COST_CALIBRATION, else the packaged one)")
 
 
 def main(args) -> int:
+    from campaign.plan import calibration
+
+    with calibration.using(getattr(args, "calibration", None)) as cal:
+        return _main(args, cal)
+
+
+def _main(args, cal) -> int:
     from campaign.storage.progress import fmt_duration
     from campaign.plan.spec import load_spec
     from campaign.errors import UserError
-    from campaign.plan.tasks import energy_floor_problems, estimate_seconds, expand, task_cost
+    from campaign.plan.tasks import energy_floor_problems, estimate, expand, task_cost
 
     spec = load_spec(args.spec)
     problems = energy_floor_problems(spec)
     if problems:
         raise UserError(f"{len(problems)} problem(s) in the spec:\n  " + "\n  ".join(problems))
     tasks = expand(spec)
-    seconds = estimate_seconds(tasks)
+    est = estimate(tasks, cal)
     longest = max(task_cost(t) for t in tasks)
     print(f"{spec.source}: valid")
     print(f"  name        {spec.name}")
@@ -43,12 +56,69 @@ def main(args) -> int:
     print(f"  E_G         {', '.join(f'{e:g}' for e in spec.E)}")
     print(f"  observables {', '.join(spec.observables)}")
     print(f"  output      {spec.output}")
-    print(f"  estimated cost {seconds / 3600:.3g} core-hours ({fmt_duration(seconds)} on one core; "
-          f"longest task ~{fmt_duration(longest)}; a rough model, see campaign/plan/tasks.py)")
+    for line in _endgames(spec, tasks):
+        print(line)
+    print(f"  estimated cost {est.hours()}: {fmt_duration(est.seconds)} on one core; longest task "
+          f"~{fmt_duration(longest)}; model calibrated by {cal.source} (campaign/plan/calibration.py)")
+    if len(spec.variants) > 1:
+        parts = [f"{v.name} {estimate([t for t in tasks if t.variant == v.name], cal).seconds / 3600:.3g}"
+                 for v in spec.variants]
+        print(f"  per variant (core-hours): {', '.join(parts)}")
+    for line in _auto_advice(spec, tasks, cal):
+        print(line)
     learnt = _learnt_remaining(spec, tasks)
     if learnt:
         print(f"  {spec.output}: {learnt}")
     return 0
+
+
+def _endgames(spec, tasks):
+    """What `endgame: auto` resolved to, per variant that asks for it."""
+    out = []
+    for v in spec.variants:
+        if dict(v.protocol).get("endgame") != "auto":
+            continue
+        mine = [t for t in tasks if t.variant == v.name]
+        newton = sorted({(t.N, t.E) for t in mine if dict(t.protocol).get("endgame") == "newton"})
+        where = ", ".join(f"{n}/{e:g}" for n, e in newton[:8]) + (", ..." if len(newton) > 8 else "")
+        out.append(f"  endgame: auto in {v.name!r}: Newton for {sum(dict(t.protocol).get('endgame') == 'newton' for t in mine)} "
+                   f"of {len(mine)} packings" + (f" (N_G/E_G {where})" if newton else "") + ", FIRE alone elsewhere")
+    return out
+
+
+def _auto_advice(spec, tasks, cal):
+    """Where `endgame: auto` would save time by the calibrated model: FIRE's (or Newton's)
+    estimate against auto's, per variant that could take it."""
+    from campaign.plan.spec import resolve_protocol
+
+    out = []
+    for v in spec.variants:
+        proto = dict(v.protocol)
+        if proto.get("endgame") == "auto" or proto.get("minimizer", "fire") != "fire" or "stop" in proto \
+                or "route" in proto:
+            continue
+        bare = {k: x for k, x in proto.items() if k != "endgame"}
+        if any(w is not v and w.system == v.system and {k: x for k, x in dict(w.protocol).items()
+                                                        if k != "endgame"} == bare for w in spec.variants):
+            continue  # a variant that differs from this one by its endgame only: auto would repeat its packings
+        mine = [t for t in tasks if t.variant == v.name]
+        alt = {}
+        for t in mine:
+            p = resolve_protocol(dict(t.protocol, endgame="auto"), t.N, t.E, t.exponent)
+            key = (t.N, t.E, p, t.exponent, t.parent_E)
+            alt[key] = alt.get(key, 0) + 1
+        now = sum(cal.seconds(t.N, t.E, t.protocol, t.exponent, t.parent_E) for t in mine)
+        auto = cal.estimate((n, *k) for k, n in alt.items())
+        if now <= 0 or auto.seconds > (1.0 - AUTO_ADVICE) * now:
+            continue
+        n_newton = sum(n for k, n in alt.items() if dict(k[2]).get("endgame") == "newton")
+        current = "the Newton endgame everywhere" if proto.get("endgame") == "newton" else "FIRE alone"
+        where = f"{v.name!r}" if len(spec.variants) > 1 else "this campaign"
+        out.append(f"  advice: {where} would cost {auto.seconds / 3600:.3g} core-hours with `endgame: auto` "
+                   f"instead of {now / 3600:.3g} with {current} ({1 - auto.seconds / now:.0%} less; Newton "
+                   f"for {n_newton} of {len(mine)} packings, FIRE for the rest). Its packings differ slightly "
+                   "from FIRE's and get new task ids: docs/NEWTON.md")
+    return out
 
 
 def _learnt_remaining(spec, tasks):

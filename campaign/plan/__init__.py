@@ -1,3 +1,4 @@
 """The plan: a campaign spec parsed and checked (``spec``), the tasks it names with their
-identities (``tasks``), and what they cost (``costmodel``). Imports nothing else of the package
-but ``campaign.errors``."""
+identities (``tasks``), and what they cost (``calibration``: the calibrated model and its file;
+``costmodel``: its correction learnt from a store's finished tasks). Imports nothing else of the
+package but ``campaign.errors``."""

@@ -44,7 +44,7 @@ PROTOCOL_KEYS = ("window", "force_tolerance", "search_tolerance", "phi_start", "
 MINIMIZERS = ("fire", "cg")
 #: how each minimisation of the O'Hern search ends (``kernels.protocol.ENDGAME_NAMES``): FIRE
 #: alone ("none", the default) or FIRE handing over to sparse Newton steps (``kernels.newton``)
-ENDGAMES = ("none", "newton")
+ENDGAMES = ("none", "newton", "auto")
 SEARCH_RULES = ("secant", "halving", "paper")
 #: what ends a minimisation: the force residual, or (cg only) the paper's energy-change rule
 STOPS = ("force", "energy")
@@ -117,7 +117,18 @@ class Variant:
 
     @property
     def protocol_dict(self) -> dict:
-        return dict(self.protocol)
+        """The protocol as ``kernels.jam`` keywords. ``endgame: auto`` reads as ``newton``, the
+        endgame it may resolve to (what a warm-up must compile); a task's own protocol is
+        ``task_protocol(N, E)``."""
+        out = dict(self.protocol)
+        if out.get("endgame") == "auto":
+            out["endgame"] = "newton"
+        return out
+
+    def task_protocol(self, N: int, E: float) -> tuple[tuple[str, Any], ...]:
+        """The protocol of this variant's packing of N disks at E: ``endgame: auto`` resolved
+        (``resolve_protocol``), every other protocol as it is."""
+        return resolve_protocol(self.protocol, N, E, self.system.exponent)
 
 
 @dataclass(frozen=True)
@@ -160,6 +171,75 @@ class Spec:
     @property
     def hash(self) -> str:
         return hashlib.blake2b(canonical_json(self.canonical()).encode(), digest_size=16).hexdigest()
+
+
+# --------------------------------------------------------------------------- endgame: auto
+
+#: ``endgame: auto``: the Newton endgame at (N, E_G) where the measured map says it saves time,
+#: FIRE alone elsewhere. Pairs (smallest N, largest harmonic-equivalent energy): a packing of N
+#: disks at E_G takes the endgame when, for one pair, N >= n_min and harmonic_energy(E_G) <= e_max:
+#: N_G >= 1024 at E2 <= 1e-13, N_G >= 4096 at E2 <= 1e-12. There the endgame's mean time is 0.2-0.8
+#: of FIRE's (measured: 0.77 at N = 1024 and 1e-13, 0.54-0.56 at 1e-15..1e-16, 0.62 at 2048 and
+#: 1e-13, 0.80 at 4096 and 1e-12, 0.25-0.39 at 4096 and 1e-13..1e-15); above those energies it
+#: costs 1.0-1.5 times FIRE's, and below N = 1024 it saves little (0.9 at N = 256, 1e-16):
+#: docs/NEWTON.md, campaign/plan/calibration.py. A fixed rule, part of what a spec means: changing
+#: it changes the ids of `auto` campaigns (a new minor version).
+AUTO_NEWTON = ((1024, 1e-13), (4096, 1e-12))
+
+
+def harmonic_energy(E: float, exponent: float = 2.0) -> float:
+    """The energy per grain of a harmonic (alpha = 2) packing with the typical overlap of a packing
+    at E_G of potential exponent alpha: the overlap is ``(alpha E_G / 2)^(1/alpha)``, so
+    ``(alpha E_G / 2)^(2/alpha)``; E_G itself for alpha = 2. Closeness to jamming, which sets the
+    cost of a packing and where the endgame pays, is a matter of overlaps, not of energies."""
+    return (exponent * E / 2.0) ** (2.0 / exponent)
+
+
+def auto_endgame(N: int, E: float, exponent: float = 2.0) -> str:
+    """What ``endgame: auto`` resolves to for a packing of N disks at E_G: ``"newton"`` or ``"none"``
+    (``AUTO_NEWTON``)."""
+    e2 = harmonic_energy(E, exponent)
+    for n_min, e_max in AUTO_NEWTON:
+        if N >= n_min and e2 <= e_max * (1.0 + 1e-9):
+            return "newton"
+    return "none"
+
+
+def resolve_protocol(protocol, N: int, E: float, exponent: float = 2.0) -> tuple[tuple[str, Any], ...]:
+    """A protocol (sorted key-value pairs) with ``endgame: auto`` made concrete for (N, E):
+    ``endgame: newton``, or no endgame key (FIRE alone, the default). The task is then the explicit
+    one: the same id and the same packing."""
+    proto = dict(protocol)
+    if proto.get("endgame") != "auto":
+        return tuple(sorted(proto.items()))
+    if auto_endgame(N, E, exponent) == "newton":
+        proto["endgame"] = "newton"
+    else:
+        del proto["endgame"]
+    return tuple(sorted(proto.items()))
+
+
+def _auto_repeats(c, variants, N):
+    """Variants whose packings coincide at some (N, E) once ``endgame: auto`` is resolved (an auto
+    variant beside a FIRE or a Newton one): a store holds each packing once, so they are refused."""
+    if not any(dict(v.protocol).get("endgame") == "auto" for v in variants):
+        return
+    owner = {}
+    for i, v in enumerate(variants):
+        clash = {}
+        for n in N:
+            for e in v.E:
+                key = (v.system, n, e, v.task_protocol(n, e))
+                other = owner.setdefault(key, v.name)
+                if other != v.name:
+                    clash.setdefault(other, []).append((n, e))
+        for other, cells in clash.items():
+            n, e = cells[0]
+            c.err(("variants", i - 1), f"variant {v.name!r} repeats packings of {other!r} at {len(cells)} "
+                                       f"(N_G, E_G), e.g. N_G = {n}, E_G = {e:g}, where endgame 'auto' "
+                                       f"resolves to {auto_endgame(n, e, v.system.exponent)!r}; a store "
+                                       "holds each packing once: drop one of the two, or compare "
+                                       "'newton' with FIRE explicitly")
 
 
 def canonical_json(obj) -> str:
@@ -376,6 +456,8 @@ def parse_spec(text: str, source: str = "<spec>") -> Spec:
     base = _protocol(c, top.get("protocol", {}), ("protocol",), allow=PROTOCOL_KEYS)
     variants = _variants(c, top.get("variants", []), ("variants",), base, system, E)
     observables = _observables(c, top.get("observables", list(DEFAULT_OBSERVABLES)), ("observables",))
+    if not c.errors:
+        _auto_repeats(c, variants, N)
     bins = _bins(c, top.get("bins", {}), ("bins",), observables)
     configurations = False
     if "store" in top:
@@ -612,9 +694,9 @@ def _protocol(c, value, path, allow, base=None):
         del out["route"]  # the default route: its packings keep their ids
     if out.get("endgame") == "none":
         del out["endgame"]  # the default: packings keep their ids
-    if out.get("endgame") == "newton" and (out.get("minimizer", "fire") != "fire" or "stop" in out
-                                           or "route" in out):
-        c.err(path + ("endgame",), "endgame 'newton' finishes the FIRE minimisations of the O'Hern "
+    if out.get("endgame") in ("newton", "auto") and (out.get("minimizer", "fire") != "fire" or "stop" in out
+                                                     or "route" in out):
+        c.err(path + ("endgame",), f"endgame {out['endgame']!r} finishes the FIRE minimisations of the O'Hern "
                                    "search: it needs minimizer 'fire', stop 'force' and route 'ohern', "
                                    f"got minimizer {out.get('minimizer', 'fire')!r}, stop "
                                    f"{out.get('stop', 'force')!r}, route {out.get('route', 'ohern')!r}")

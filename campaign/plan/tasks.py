@@ -15,6 +15,10 @@ feeds it to ``numpy.random.SeedSequence``. The protocol is left out on purpose:
 every variant of one (N, E, seed) starts from the same initial positions, so
 variants are compared packing by packing.
 
+A variant with ``endgame: auto`` has each task's protocol resolved for its (N, E) before the id is
+computed (``campaign.plan.spec.resolve_protocol``: ``endgame: newton`` or FIRE alone), so that the
+task is the explicit one it resolves to: the same id, the same seed, the same packing.
+
 A variant with ``start: ladder`` chains its tasks: the task at each energy but the highest
 of the grid has a **parent**, the task of the same variant, N and seed at the next higher
 energy, and starts from the parent's packing (``kernels.jam(..., start=...)``). The master
@@ -27,6 +31,7 @@ import hashlib
 import math
 from dataclasses import dataclass
 
+from campaign.plan import calibration
 from campaign.plan.spec import Spec, canonical_json
 
 
@@ -43,6 +48,7 @@ class Task:
     protocol: tuple[tuple[str, object], ...]
     parent: int | None = None  # index of the task whose packing this one starts from (ladder)
     parent_E: float | None = None
+    exponent: float = 2.0   # the variant's potential exponent (what its packings cost depends on it)
 
     @property
     def entropy(self) -> tuple[int, ...]:
@@ -101,10 +107,15 @@ def expand(spec: Spec) -> list[Task]:
         hash_of = _hash_json('{"E":', tail)  # the id and the seed words share the key order
         proto = dict(v.protocol)
         ladder = proto.get("start") == "ladder"
+        auto = proto.get("endgame") == "auto"
         proto_json = canonical_json(proto)
+        protocol = v.protocol
         for N in spec.N:
             for k, E in enumerate(v.E):
                 upper = k + 1 < len(v.E) and ladder
+                if auto:  # resolved per (N, E) before the id: the explicit task it stands for
+                    protocol = v.task_protocol(N, E)
+                    proto_json = canonical_json(dict(protocol))
                 head = f'{canonical_json(E)},"N":{canonical_json(N)},'
                 id_head = f'{head}"campaign_seed":{cseed},"protocol":{proto_json},"seed":'
                 for s in spec.seeds:
@@ -115,37 +126,41 @@ def expand(spec: Spec) -> list[Task]:
                         if shared:
                             words[(sys_json, N, E, s)] = w
                     out.append(Task(index=i, id=hash_of(id_head + canonical_json(s)).hex(), variant=v.name, N=N,
-                                    E=E, seed=s, words=w, campaign_seed=cseed, protocol=v.protocol,
+                                    E=E, seed=s, words=w, campaign_seed=cseed, protocol=protocol,
                                     parent=i + n_seeds if upper else None,
-                                    parent_E=v.E[k + 1] if upper else None))
+                                    parent_E=v.E[k + 1] if upper else None, exponent=v.system.exponent))
     return out
 
 
-# Cost model: seconds of one packing ~ C * N^2 * (1 + decades of E below E_REF) * (1e-6 / tol)^0.1.
-# N^2: FIRE needs more steps as N grows, each step costs O(N); every decade of lower energy
-# adds grow/shrink steps to the O'Hern search and slower convergence near jamming. C was
-# fitted to packings of N = 64..512, E = 1e-4..1e-12 on one core of a 2020s laptop. Only the
-# dispatch order (most expensive first) and `campaign validate`'s estimate rely on it.
-COST_C = 4.4e-7
-E_REF = 1e-3
+# Cost: the calibrated model of campaign.plan.calibration (its form, constants and their file).
+# The master's dispatch order (most expensive first), `campaign validate`'s and `campaign slurm`'s
+# estimates and the prior of the learning cost model (campaign.plan.costmodel) rely on it.
+E_REF = calibration.E_REF
 
 
-def cost(N: int, E: float, protocol=None) -> float:
-    tol = dict(protocol or {}).get("force_tolerance", 1e-6)
-    return COST_C * N ** 2 * (1.0 + max(0.0, math.log10(E_REF / E))) * (1e-6 / tol) ** 0.1
+def cost(N: int, E: float, protocol=None, exponent: float = 2.0, parent_E: float | None = None) -> float:
+    """Mean seconds of one packing on one core, by the calibration in force."""
+    return calibration.active().seconds(N, E, protocol, exponent, parent_E)
 
 
 def task_cost(t: Task) -> float:
-    if t.parent_E is not None:
-        # a ladder step: the decades between the parent's energy and this one
-        return max(0.0, cost(t.N, t.E, t.protocol) - cost(t.N, t.parent_E, t.protocol)) + 0.1 * cost(
-            t.N, E_REF, t.protocol)
-    return cost(t.N, t.E, t.protocol)
+    # a ladder step starts from its parent's packing (parent_E): the ladder's own factor
+    return calibration.active().seconds(t.N, t.E, t.protocol, t.exponent, t.parent_E)
 
 
 def estimate_seconds(tasks) -> float:
     """Estimated CPU seconds for the given tasks (one core per task)."""
     return math.fsum(task_cost(t) for t in tasks)
+
+
+def estimate(tasks, cal=None) -> "calibration.Estimate":
+    """The tasks' total seconds on one core with its 68% interval (``calibration.Estimate``)."""
+    cal = calibration.active() if cal is None else cal
+    counts = {}
+    for t in tasks:
+        key = (t.N, t.E, t.protocol, t.exponent, t.parent_E)
+        counts[key] = counts.get(key, 0) + 1
+    return cal.estimate((n, *key) for key, n in counts.items())
 
 
 def dispatch_order(tasks) -> list[Task]:

@@ -7,6 +7,7 @@ each resuming the same file after the previous one ends (``--dependency=afterany
 
 from __future__ import annotations
 
+import math
 import re
 import shlex
 from dataclasses import dataclass
@@ -127,4 +128,81 @@ def chain_commands(script: Path, length: int) -> str:
     for _ in range(length - 1):
         lines += [f'job=$(sbatch --parsable --dependency=afterany:"${{job%%;*}}" {script_q})',
                   'echo "submitted $job"']
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------- sizing the jobs
+
+#: seconds of every job before its tasks run: srun starting the ranks, imports, the kernels
+#: compiled or loaded from the numba cache (about 25 s of CPU per node, twice that with the
+#: Newton endgame: README, docs/CLUSTERS.md)
+STARTUP_SECONDS = 60
+
+
+@dataclass(frozen=True)
+class JobAdvice:
+    """How many jobs of ``options.time`` a campaign of ``total`` core-seconds needs on
+    ``workers`` ranks (the master's rank does not compute)."""
+    workers: int
+    usable: float       # seconds of one job its tasks can use (limit - margin - start-up)
+    per_job: float      # core-seconds one job gets done: a job's last tasks must end before its limit
+    jobs: int           # at the central estimate
+    jobs_high: int      # at the upper end of its 68% interval
+    wall: float         # wall seconds of the whole campaign (central), start-ups aside
+    wall_high: float
+    longest_high: float  # the longest task at the upper end
+    one_job_time: int    # a --time (seconds) that does it in one job at the upper estimate
+
+    @property
+    def fits(self) -> bool:
+        return self.longest_high <= self.usable
+
+
+def advise(total, longest: float, options: SlurmOptions) -> JobAdvice:
+    """``total``: a ``campaign.plan.calibration.Estimate`` of the core-seconds left; ``longest``: the
+    central estimate of the longest task."""
+    options = options.checked()
+    workers = max(1, options.nodes * options.ntasks_per_node - 1)
+    ratio = total.high / total.seconds if total.seconds > 0 else 1.0
+    longest_high = longest * ratio
+    usable = max(0.0, options.seconds - options.margin - STARTUP_SECONDS)
+    per_job = workers * max(usable - longest_high, usable / 2)
+    jobs = max(1, math.ceil(total.seconds / per_job)) if per_job > 0 else 0
+    jobs_high = max(1, math.ceil(total.high / per_job)) if per_job > 0 else 0
+    wall = max(total.seconds / workers, longest)
+    wall_high = max(total.high / workers, longest_high)
+    need = wall_high + longest_high + STARTUP_SECONDS + 330  # 330: the largest default margin
+    one_job = int(math.ceil(need / 300.0) * 300)
+    return JobAdvice(workers, usable, per_job, jobs, jobs_high, wall, wall_high, longest_high, one_job)
+
+
+def fmt_time(seconds: float) -> str:
+    """Seconds as SLURM's ``[D-]HH:MM:SS``."""
+    s = int(math.ceil(seconds))
+    d, s = divmod(s, 86400)
+    h, s = divmod(s, 3600)
+    m, s = divmod(s, 60)
+    return f"{d}-{h:02d}:{m:02d}:{s:02d}" if d else f"{h:02d}:{m:02d}:{s:02d}"
+
+
+def advice_text(advice: JobAdvice, total, options: SlurmOptions, chain: int | None) -> str:
+    lines = [f"estimated {total.hours()} for {advice.workers} worker(s) ({options.nodes} node(s) x "
+             f"{options.ntasks_per_node} ranks, one of them the master): about {fmt_time(advice.wall)} of wall "
+             f"time (up to {fmt_time(advice.wall_high)}); longest task up to {fmt_time(advice.longest_high)}"]
+    if not advice.fits:
+        lines.append(f"warning: the longest task (up to {fmt_time(advice.longest_high)}) does not fit in a job of "
+                     f"--time {options.time} ({fmt_time(advice.usable)} usable after the margin and start-up): "
+                     f"it would never be started; raise --time")
+        return "\n".join(lines) + "\n"
+    jobs = (f"{advice.jobs} job(s)" if advice.jobs == advice.jobs_high
+            else f"{advice.jobs} job(s), {advice.jobs_high} at the upper estimate")
+    lines.append(f"with --time {options.time} ({fmt_time(advice.usable)} usable per job): {jobs}")
+    if advice.jobs_high > 1 and (chain or 1) < advice.jobs_high:
+        lines.append(f"advice: --chain {advice.jobs_high}" + (f" (--chain {chain} may stop short; a chain "
+                                                             "can be lengthened later: the next job resumes)"
+                                                             if chain else ""))
+    if advice.one_job_time < options.seconds and advice.jobs_high == 1:
+        lines.append(f"advice: --time {fmt_time(advice.one_job_time)} is enough for one job at the upper estimate")
+    elif advice.jobs_high > 1 and advice.one_job_time <= 2 * 86400:
+        lines.append(f"or one job of --time {fmt_time(advice.one_job_time)}")
     return "\n".join(lines) + "\n"

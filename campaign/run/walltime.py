@@ -68,7 +68,8 @@ def fit_rows(tasks, status, wall) -> CostModel:
         return CostModel.prior()
     chosen = [tasks[i] for i in done]
     return CostModel.fit([t.N for t in chosen], [t.E for t in chosen], np.asarray(wall)[done],
-                         [dict(t.protocol) for t in chosen])
+                         [dict(t.protocol) for t in chosen], [t.parent_E for t in chosen],
+                         [t.exponent for t in chosen])
 
 
 def fit_from_store(store, tasks) -> CostModel:
