@@ -5,6 +5,8 @@ Public API (each a checked Python wrapper around private jitted cores):
 * ``jam(n, energy, seed, **settings) -> Packing``: O'Hern protocol (kernels.jamming)
 * ``analyze(positions, radii, box, observables=None, bins=None, ...) -> Analysis``:
   contact-network analysis (kernels.analysis)
+* ``compile_report() -> CompileReport``: the kernels numba compiled in this process and
+  those it loaded from its cache (kernels.compiled)
 
 No I/O, no logging, no configuration files and no MPI in this package.
 """
@@ -14,6 +16,8 @@ _LAZY = {
     "Packing": "kernels.jamming",
     "analyze": "kernels.analysis",
     "Analysis": "kernels.analysis",
+    "compile_report": "kernels.compiled",
+    "CompileReport": "kernels.compiled",
 }
 
 

@@ -20,12 +20,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from kernels.cells import _candidate_pairs_core
 from kernels.network import (
     _bond_order_core,
     _checked_config,
-    _contact_bonds_core,
     _faces_core,
     _grain_pass_core,
+    _overlapping_core,
     _pair_energy_core,
     _rattlers_core,
     _rotation_core,
@@ -227,7 +228,8 @@ def analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0,
     box_area = Lx * Ly
 
     # --- contacts, energy, rattlers, rotation system, grain polygons, faces
-    bi, bj, dx, dy = _contact_bonds_core(pos, rad, b)
+    # network._contact_bonds_core written out: the kernels jam() has loaded already (one compilation)
+    bi, bj, dx, dy = _overlapping_core(pos, rad, b, *_candidate_pairs_core(pos, rad, b, 0.0))
     energy, virial = _pair_energy_core(rad, bi, bj, dx, dy, alpha)
     rattler = _rattlers_core(n, bi, bj, dx, dy, tol * np.pi)
     offsets, src, dst, hdx, hdy, ang, twin, frac = _rotation_core(n, bi, bj, dx, dy, rattler, rad)

@@ -87,7 +87,11 @@ def _dt_for(radii, alpha, e_per_disk):
     return DT_FACTOR / np.sqrt(k)
 
 
-@njit(cache=True)
+# The two thin wrappers below are inlined (numba IR) into their jitted callers: a separately
+# compiled layer optimises and generates the machine code of everything it calls once more.
+
+
+@njit(cache=True, inline="always")
 def _nonrattler_mask_core(n, ci, cj, dx, dy):
     """Iteratively remove disks with fewer than 3 contacts or all contacts in a closed
     half-plane; True for the rest.
@@ -97,7 +101,7 @@ def _nonrattler_mask_core(n, ci, cj, dx, dy):
     return ~_rattlers_core(n, ci, cj, dx, dy, HALF_PLANE_TOL)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _contacts_core(positions, radii, box, pi, pj):
     """The candidate pairs that overlap: centre distance < r_i + r_j (minimum image),
     with their displacements ``r_j - r_i``."""

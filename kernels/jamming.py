@@ -18,8 +18,8 @@ import numpy as np
 
 from kernels.barostat import BARO_SCALE, STAGE_STEP, _pressure_core
 from kernels.cells import _candidate_pairs_core
-from kernels.fire import _contacts_core, _nonrattler_mask_core
 from kernels.names import MAX_POLYDISPERSITY, SIZE_DISTRIBUTIONS
+from kernels.network import HALF_PLANE_TOL, _overlapping_core, _rattlers_core
 from kernels.potential import ALPHA_RANGE, check_exponent
 from kernels.protocol import (ENDGAME_NAMES, MINIMIZER_NAMES, SEARCH_NAMES, STATUS_NAMES,
                               _ohern_core)
@@ -426,8 +426,10 @@ def jam(n, energy, seed, start=None, **settings):
     radii = radii0 * scale
     area = float(box[0] * box[1])
     pi, pj = _candidate_pairs_core(positions, radii, box, 0.0)
-    ci, cj, cdx, cdy = _contacts_core(positions, radii, box, pi, pj)
-    n_g = int(np.count_nonzero(_nonrattler_mask_core(n, ci, cj, cdx, cdy)))
+    # kernels.fire._nonrattler_mask_core written out: its kernels are loaded already (the search
+    # calls them), while its wrappers, inlined into their jitted callers, would be compiled anew
+    ci, cj, cdx, cdy = _overlapping_core(positions, radii, box, pi, pj)
+    n_g = int(np.count_nonzero(~_rattlers_core(n, ci, cj, cdx, cdy, HALF_PLANE_TOL)))
     for arr in (positions, radii, box, species_idx):
         arr.flags.writeable = False
     return Packing(

@@ -424,7 +424,13 @@ def _checked_config(positions, radii, box):
     if not (np.all(np.isfinite(rad)) and np.all(rad > 0)):
         raise ValueError("radii: expected finite positive values, got zero, negative, NaN or inf")
     b = _as_box(box)
-    return pos, np.ascontiguousarray(rad), b
+    return _writable(pos), _writable(np.ascontiguousarray(rad)), _writable(b)
+
+
+def _writable(arr):
+    """``arr``, or a copy when it is read-only: numba compiles a kernel once per argument
+    type, and read-only arrays (a ``Packing``'s) are a type of their own."""
+    return arr if arr.flags.writeable else arr.copy()
 
 
 def contact_bonds(positions, radii, box):

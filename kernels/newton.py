@@ -321,7 +321,7 @@ def _newton_core(positions, radii, box, alpha, tol, max_iter, pskin, e_abort):
     return status, it, nforce, energy, virial, residual, nc, nfact, nsym
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _fire_newton(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort, pskin):
     """FIRE, interrupted every ``PROBE_STEPS`` steps (and before it starts) to try Newton,
     which takes over wherever the network is ready and finishes at a certified minimum (see

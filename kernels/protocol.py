@@ -53,7 +53,9 @@ Bounds: at most ``max_search`` minimisations, each of at most ``max_steps`` FIRE
 steps. The status says which bound stopped the search (``STATUS_NAMES``); it is
 ``converged`` only for a force-balanced packing inside the window.
 
-Jitted core usable from other numba code: ``_ohern_core`` (see its docstring).
+Jitted cores usable from other numba code: ``OHERN_CORES[(minimizer, endgame)]``, one
+per minimiser (each compiles only its own minimiser); ``_ohern_core`` (Python) picks one
+by the integer codes (see their docstrings).
 """
 
 import numpy as np
@@ -94,30 +96,52 @@ ST_TOO_DENSE = 4
 STATUS_NAMES = ("converged", "max_search", "max_steps", "stalled", "too_dense")
 
 
-@njit(cache=True)
-def _minimize(minimizer, positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort, e_tol,
-              endgame, pskin):
-    """One minimisation at fixed radii with FIRE 2.0 (``MIN_FIRE``) or conjugate
-    gradients (``MIN_CG``; ``e_tol > 0``: the paper's energy-change rule); with ``endgame ==
-    ENDGAME_NEWTON`` (FIRE only) FIRE hands over to Newton's method on the contact network
-    (``kernels.newton``, pattern skin ``pskin``). The CG line search starts at ``1 / k``, the
-    step matching FIRE's ``dt0 = DT_FACTOR / sqrt(k)``. Returns the minimiser's tuple
-    (``kernels.fire._fire_core``) and the number of factorisations."""
-    if endgame == ENDGAME_NEWTON:
-        r = _fire_newton(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort, pskin)
-        return r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7]
-    if minimizer == MIN_CG:
-        r = _cg_core(positions, radii, box, alpha, tol, max_steps, skin, (dt0 / DT_FACTOR) ** 2,
-                     e_abort, e_tol)
-    else:
-        r = _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort)
+# One minimisation at fixed radii, one jitted function per minimiser: the O'Hern search is
+# compiled once per minimiser (``OHERN_CORES``), each entry calling only its own, so that a
+# campaign compiles only the minimiser it uses (numba compiles every callee of a function,
+# also those of branches it never takes). Same arguments and returns for all three: the
+# minimiser's tuple (``kernels.fire._fire_core``) and the number of factorisations. Inlined
+# (numba IR) into their entry: a separately compiled layer would optimise and generate the
+# machine code of everything it calls once more. Which layers are inlined (here, in
+# kernels.fire and kernels.newton) also moves the force loop (``_energy_forces_rows_scaled``)
+# within each entry's machine code, and on the 2-core Xeon of the measurements its speed
+# depends on that placement by 8-10 % (fast at 16 mod 32 bytes, slow at 0 mod 32): the
+# present choice keeps every entry at the original speed; time a change to it.
+
+
+@njit(cache=True, inline="always")
+def _minimize_fire(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort, e_tol, pskin):
+    """One minimisation with FIRE 2.0 (``e_tol`` and ``pskin`` unused)."""
+    r = _fire_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort)
     return r[0], r[1], r[2], r[3], r[4], r[5], r[6], 0
+
+
+@njit(cache=True, inline="always")
+def _minimize_cg(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort, e_tol, pskin):
+    """One minimisation with conjugate gradients (``e_tol > 0``: the paper's energy-change
+    rule). The line search starts at ``1 / k``, the step matching FIRE's ``dt0 = DT_FACTOR /
+    sqrt(k)``. ``pskin`` unused."""
+    r = _cg_core(positions, radii, box, alpha, tol, max_steps, skin, (dt0 / DT_FACTOR) ** 2,
+                 e_abort, e_tol)
+    return r[0], r[1], r[2], r[3], r[4], r[5], r[6], 0
+
+
+@njit(cache=True, inline="always")
+def _minimize_newton(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort, e_tol,
+                     pskin):
+    """One minimisation with FIRE handing over to Newton's method on the contact network
+    (``kernels.newton``, pattern skin ``pskin``; ``e_tol`` unused)."""
+    r = _fire_newton(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort, pskin)
+    return r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7]
 
 
 @njit(cache=True)
 def _spatial_order(positions, box, cell):
     """Permutation sorting disks by cell (row-major cells about ``cell`` wide, then
-    index): neighbours in space become neighbours in memory. Deterministic."""
+    index): neighbours in space become neighbours in memory. Deterministic.
+
+    A counting sort by cell, stable in the index: the permutation ``np.argsort`` gives for
+    the (distinct) keys ``cell * n + index``, without compiling a sort."""
     n = positions.shape[0]
     nx = max(1, int(box[0] / cell))
     ny = max(1, int(box[1] / cell))
@@ -130,15 +154,26 @@ def _spatial_order(positions, box, cell):
         # serpentine rows keep consecutive cells adjacent
         if cy % 2 == 1:
             cx = nx - 1 - cx
-        key[i] = (cy * nx + cx) * n + i
-    return np.argsort(key)
+        key[i] = cy * nx + cx
+    start = np.zeros(nx * ny + 1, dtype=np.int64)
+    for i in range(n):
+        start[key[i] + 1] += 1
+    for c in range(nx * ny):
+        start[c + 1] += start[c]
+    order = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        order[start[key[i]]] = i
+        start[key[i]] += 1
+    return order
 
 
-@njit(cache=True)
-def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search,
-                max_steps, skin_factor, delta0, rule, max_radius, energy_step, minimizer, e_tol,
-                endgame):
-    """Run the O'Hern search in place.
+@njit(inline="always")
+def _ohern_search(minimize, positions, radii0, box, alpha, e_min, window, tol, search_tol,
+                  max_search, max_steps, skin_factor, delta0, rule, max_radius, energy_step, e_tol):
+    """Run the O'Hern search in place with the minimiser ``minimize`` (one of
+    ``_minimize_fire``, ``_minimize_cg``, ``_minimize_newton``). Inlined (numba IR) into
+    each entry of ``OHERN_CORES``, which fixes ``minimize``: only that entry and its
+    minimiser are compiled, and each entry is cached on its own.
 
     ``positions`` (n, 2): initial positions, overwritten by the final ones (wrapped).
     ``radii0``: radii at scale factor 1. ``e_min``: target E_G (per disk, window lower
@@ -147,10 +182,9 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
     relative radius step (and the largest step of the secant rule). ``rule``:
     ``SEARCH_HALVING`` or ``SEARCH_SECANT``. ``max_radius``: the largest radius
     allowed (stops with ``too_dense`` beyond it). ``energy_step``: the secant rule
-    lowers the energy by at most this factor per minimisation. ``minimizer``:
-    ``MIN_FIRE`` or ``MIN_CG``; ``e_tol`` > 0 (CG only): every minimisation stops on
-    the energy-change rule instead of the force tolerances (no polish). ``endgame``:
-    ``ENDGAME_NONE`` or ``ENDGAME_NEWTON`` (FIRE hands over to Newton, ``kernels.newton``).
+    lowers the energy by at most this factor per minimisation. ``e_tol`` > 0 (CG only):
+    every minimisation stops on the energy-change rule instead of the force tolerances (no
+    polish).
 
     Returns ``(status, scale, energy_total, virial, residual, iterations,
     force_evaluations, factorisations)``; the final radii are ``scale * radii0``. Internally the disks
@@ -203,9 +237,8 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
         skin = skin_factor * mean_d * scale
         pskin = PATTERN_SKIN * mean_d * scale
         dt0 = _dt_for(radii, alpha, e_guess)
-        st, steps, nf, e, w, res, nc, fa = _minimize(minimizer, pos, radii, box, alpha, search_tol,
-                                                     max_steps, skin, dt0, abort, e_tol, endgame,
-                                                     pskin)
+        st, steps, nf, e, w, res, nc, fa = minimize(pos, radii, box, alpha, search_tol, max_steps,
+                                                    skin, dt0, abort, e_tol, pskin)
         nforce += nf
         nfact += fa
         if it == 1:
@@ -217,9 +250,8 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
             order = order[perm].copy()
         if st == CONVERGED and e_min <= e / n <= e_max and search_tol > tol and e_tol == 0.0:
             # polish to the final tolerance at the same radii
-            st, steps, nf, e, w, res, nc, fa = _minimize(minimizer, pos, radii, box, alpha, tol,
-                                                         max_steps, skin, dt0, abort, 0.0, endgame,
-                                                         pskin)
+            st, steps, nf, e, w, res, nc, fa = minimize(pos, radii, box, alpha, tol, max_steps,
+                                                        skin, dt0, abort, 0.0, pskin)
             nforce += nf
             nfact += fa
         e_last = e
@@ -298,3 +330,55 @@ def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, m
         positions[order[i], 0] = wrapped[i, 0]
         positions[order[i], 1] = wrapped[i, 1]
     return status, scale, e_last, w_last, res_last, it, nforce, nfact
+
+
+@njit(cache=True)
+def _ohern_fire(positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search,
+                max_steps, skin_factor, delta0, rule, max_radius, energy_step, e_tol):
+    """``_ohern_search`` with FIRE 2.0."""
+    return _ohern_search(_minimize_fire, positions, radii0, box, alpha, e_min, window, tol,
+                         search_tol, max_search, max_steps, skin_factor, delta0, rule, max_radius,
+                         energy_step, e_tol)
+
+
+@njit(cache=True)
+def _ohern_cg(positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search,
+              max_steps, skin_factor, delta0, rule, max_radius, energy_step, e_tol):
+    """``_ohern_search`` with conjugate gradients."""
+    return _ohern_search(_minimize_cg, positions, radii0, box, alpha, e_min, window, tol,
+                         search_tol, max_search, max_steps, skin_factor, delta0, rule, max_radius,
+                         energy_step, e_tol)
+
+
+@njit(cache=True)
+def _ohern_newton(positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search,
+                  max_steps, skin_factor, delta0, rule, max_radius, energy_step, e_tol):
+    """``_ohern_search`` with FIRE and the Newton endgame."""
+    return _ohern_search(_minimize_newton, positions, radii0, box, alpha, e_min, window, tol,
+                         search_tol, max_search, max_steps, skin_factor, delta0, rule, max_radius,
+                         energy_step, e_tol)
+
+
+#: The jitted O'Hern search per ``(minimizer, endgame)`` code pair (``MIN_*``, ``ENDGAME_*``);
+#: arguments those of ``_ohern_core`` without ``minimizer`` and ``endgame``.
+OHERN_CORES = {
+    (MIN_FIRE, ENDGAME_NONE): _ohern_fire,
+    (MIN_CG, ENDGAME_NONE): _ohern_cg,
+    (MIN_FIRE, ENDGAME_NEWTON): _ohern_newton,
+}
+
+
+def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search,
+                max_steps, skin_factor, delta0, rule, max_radius, energy_step, minimizer, e_tol,
+                endgame):
+    """The O'Hern search (``_ohern_search``) with ``minimizer`` (``MIN_FIRE`` or ``MIN_CG``)
+    and ``endgame`` (``ENDGAME_NONE`` or ``ENDGAME_NEWTON``, FIRE only): calls the jitted
+    entry of ``OHERN_CORES`` for that pair, which compiles (or loads from the numba cache)
+    only that minimiser. Arguments and returned tuple as ``_ohern_search``."""
+    try:
+        core = OHERN_CORES[(int(minimizer), int(endgame))]
+    except KeyError:
+        raise ValueError(f"minimizer {minimizer!r} with endgame {endgame!r}: expected one of "
+                         f"{sorted(OHERN_CORES)}") from None
+    return core(positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search,
+                max_steps, skin_factor, delta0, rule, max_radius, energy_step, e_tol)

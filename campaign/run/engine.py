@@ -24,6 +24,16 @@ def _log(msg):
     print(msg, file=sys.stderr, flush=True)
 
 
+def _compiled() -> str:
+    """What the warm-up compiled and what it loaded from the numba cache (``kernels.compiled``):
+    a campaign compiles only the kernels its protocol and observables use."""
+    if "kernels" not in sys.modules:  # a task function without the kernels
+        return "no kernels"
+    from kernels.compiled import compile_report
+
+    return compile_report().summary()
+
+
 def _git_commit() -> str:
     here = Path(__file__).resolve().parent
     try:
@@ -214,8 +224,8 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
             fn.warm_up(context)
             if not args.quiet:  # the per-node start-up cost a job of a chain pays (docs: slurm/README.md)
                 _log(f"campaign: kernels ready in {time.monotonic() - t_warm:.1f} s, "
-                     f"{time.process_time() - cpu_warm:.1f} s of CPU (compiled, or loaded from the numba "
-                     f"cache {os.environ.get('NUMBA_CACHE_DIR')})")
+                     f"{time.process_time() - cpu_warm:.1f} s of CPU: {_compiled()} "
+                     f"(numba cache {os.environ.get('NUMBA_CACHE_DIR')})")
         if mpi_comm is not None:
             mpi_comm.bcast(context, root=0)
             state["sent"] = True

@@ -1,0 +1,152 @@
+"""A task compiles only the kernels its settings call (kernels.protocol.OHERN_CORES, one jitted
+O'Hern search per minimiser; kernels.analyze by observable), the result does not depend on what
+else a process compiled, the numba cache still serves a second process, and
+``kernels.compile_report()`` says what was compiled and what loaded.
+
+The real checks run the kernels in subprocesses with a fresh NUMBA_CACHE_DIR (compilation from
+a cold cache: about 50 s on two cores, most of it the Newton endgame's)."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: One subprocess: the jams named on the command line in that order (then ``analyze`` with
+#: scalars only), their arrays into OUT.npz, and what it compiled and loaded into OUT.json.
+SCRIPT = r"""
+import json, sys
+import numpy as np
+import kernels
+
+out, names = sys.argv[1], sys.argv[2:]
+SETTINGS = {"fire": {}, "cg": {"minimizer": "cg"}, "newton": {"endgame": "newton"}}
+arrays = {}
+for name in names:
+    p = kernels.jam(32, 1e-5, 3, **SETTINGS[name])
+    a = kernels.analyze(p.positions, p.radii, p.box, observables=["scalars"])
+    arrays[name + ".positions"] = p.positions
+    arrays[name + ".radii"] = p.radii
+    arrays[name + ".jam"] = np.array([p.energy, p.pressure, p.force_residual, p.iterations,
+                                      p.force_evaluations, p.factorizations])
+    arrays[name + ".scalars"] = np.array([float(a.scalars[k]) for k in sorted(a.scalars)])
+np.savez(out + ".npz", **arrays)
+r = kernels.compile_report()
+json.dump({"compiled": r.compiled, "loaded": r.loaded, "modules": r.modules,
+           "summary": r.summary()}, open(out + ".json", "w"))
+"""
+
+#: Kernel modules a FIRE jam and a scalars-only analysis must not compile.
+NOT_FOR_FIRE = ("cg", "linesearch", "newton", "sparse", "hessian", "barostat", "triangulate",
+                "observables", "response")
+
+
+def _run(tmp_path, cache, tag, *names):
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONPATH": str(ROOT)}
+    out = tmp_path / tag
+    proc = subprocess.run([sys.executable, "-c", SCRIPT, str(out), *names], env=env, cwd=ROOT,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = json.loads(Path(str(out) + ".json").read_text())
+    with np.load(str(out) + ".npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    return report, arrays
+
+
+def _cached_modules(cache):
+    """Kernel modules with an index file in a numba cache directory (``fire._fire_run-288.py311.nbi``)."""
+    return {p.name.split(".")[0] for p in Path(cache).rglob("*.nbi")}
+
+
+def test_a_fire_task_compiles_only_fire_and_gets_the_same_bits(tmp_path):
+    # everything first (Newton, CG, then FIRE) in one process, from a cold cache
+    everything, arrays_all = _run(tmp_path, tmp_path / "cache-all", "all", "newton", "cg", "fire")
+    assert {"newton", "sparse", "hessian", "cg", "linesearch", "fire"} <= set(everything["modules"])
+    assert {"protocol._ohern_newton", "protocol._ohern_cg", "protocol._ohern_fire",
+            "newton._newton_core", "sparse._numeric_core", "cg._cg_core"} <= set(everything["compiled"])
+    assert {"newton", "sparse", "cg"} <= _cached_modules(tmp_path / "cache-all")
+
+    # FIRE alone, from another cold cache: nothing of the other minimisers, the endgame or the
+    # histogram and response observables is compiled, nor written to the cache
+    cold = tmp_path / "cache-fire"
+    fire, arrays_fire = _run(tmp_path, cold, "fire", "fire")
+    assert not set(fire["modules"]) & set(NOT_FOR_FIRE), fire["modules"]
+    assert {"cells", "fire", "network", "potential", "protocol"} <= set(fire["modules"])
+    assert "protocol._ohern_fire" in fire["compiled"] and not fire["loaded"]
+    assert fire["summary"].startswith(f"compiled {len(fire['compiled'])} kernels (")
+    assert not _cached_modules(cold) & set(NOT_FOR_FIRE), sorted(_cached_modules(cold))
+
+    # the same bits whatever else the process compiled
+    for key, value in arrays_fire.items():
+        assert np.array_equal(value, arrays_all[key], equal_nan=True), key
+
+    # a second process loads everything from the cache and compiles nothing
+    warm, arrays_warm = _run(tmp_path, cold, "warm", "fire")
+    assert warm["compiled"] == [] and "protocol._ohern_fire" in warm["loaded"], warm
+    for key, value in arrays_fire.items():
+        assert np.array_equal(value, arrays_warm[key], equal_nan=True), key
+
+
+# ------------------------------------------------------------------ cheap checks, in this process
+
+def test_spatial_order_is_the_argsort_of_the_cell_keys():
+    """The counting sort of ``_spatial_order`` gives the permutation of the former
+    ``np.argsort((cell * n) + index)``, also for coordinates outside the box or on its edges."""
+    from kernels.protocol import _spatial_order
+
+    def reference(positions, box, cell):
+        n = positions.shape[0]
+        nx = max(1, int(box[0] / cell))
+        ny = max(1, int(box[1] / cell))
+        key = np.empty(n, dtype=np.int64)
+        for i in range(n):
+            x = positions[i, 0] - box[0] * np.floor(positions[i, 0] / box[0])
+            y = positions[i, 1] - box[1] * np.floor(positions[i, 1] / box[1])
+            cx = min(int(x / box[0] * nx), nx - 1)
+            cy = min(int(y / box[1] * ny), ny - 1)
+            if cy % 2 == 1:
+                cx = nx - 1 - cx
+            key[i] = (cy * nx + cx) * n + i
+        return np.argsort(key)
+
+    rng = np.random.default_rng(5)
+    for n, box, cell in ((1, (1.0, 1.0), 0.3), (7, (1.0, 2.0), 5.0), (300, (1.0, 1.0), 0.05),
+                         (1000, (2.0, 0.7), 0.011)):
+        b = np.array(box)
+        pos = rng.random((n, 2)) * b * 3.0 - b  # outside the box too
+        pos[: n // 4] = np.round(pos[: n // 4] * 4.0) / 4.0  # on cell and box edges
+        got = _spatial_order(pos, b, cell)
+        assert got.dtype == np.int64
+        assert np.array_equal(got, reference(pos, b, cell)), (n, box, cell)
+
+
+def test_ohern_cores_one_per_minimiser():
+    from kernels import protocol
+
+    assert set(protocol.OHERN_CORES) == {(protocol.MIN_FIRE, protocol.ENDGAME_NONE),
+                                         (protocol.MIN_CG, protocol.ENDGAME_NONE),
+                                         (protocol.MIN_FIRE, protocol.ENDGAME_NEWTON)}
+    with pytest.raises(ValueError, match="endgame"):
+        protocol._ohern_core(*([None] * 15), protocol.MIN_CG, 0.0, protocol.ENDGAME_NEWTON)
+
+
+def test_compile_report_names_kernels_and_summarises():
+    import kernels
+    from kernels.compiled import CompileReport, _dispatchers
+
+    import kernels.protocol  # noqa: F401 - its dispatchers (and those it imports) are listed
+
+    names = {name for name, _ in _dispatchers()}
+    assert {"protocol._ohern_fire", "fire._fire_run", "cells._candidate_pairs_core"} <= names
+    assert not any(n.startswith("compiled.") for n in names)
+    r = kernels.compile_report()
+    assert isinstance(r, CompileReport) and list(r.compiled) == sorted(r.compiled)
+    assert CompileReport().summary() == "compiled nothing, 0 loaded from the cache"
+    r = CompileReport(compiled=("fire._fire_run", "protocol._ohern_fire"), loaded=("network._faces_core",))
+    assert r.modules == ("fire", "protocol")
+    assert r.summary() == "compiled 2 kernels (fire, protocol), 1 loaded from the cache"
