@@ -150,3 +150,31 @@ def test_compile_report_names_kernels_and_summarises():
     r = CompileReport(compiled=("fire._fire_run", "protocol._ohern_fire"), loaded=("network._faces_core",))
     assert r.modules == ("fire", "protocol")
     assert r.summary() == "compiled 2 kernels (fire, protocol), 1 loaded from the cache"
+
+
+def test_the_warm_up_covers_every_minimiser_the_tasks_use():
+    """A spec whose variants (or ``endgame: auto``) use several minimisers warms each once, so no
+    task's time includes a compilation; one variant, one warm-up."""
+    from campaign.plan.spec import parse_spec
+    from campaign.plan.tasks import expand
+    from campaign.run.engine import _warm_ups
+
+    base = """name: w
+seed: 1
+system:
+  box: [1.0, 1.0]
+  species: [{name: A, fraction: 0.5, radius: 1.4}, {name: B, fraction: 0.5, radius: 1.0}]
+  potential: {exponent: 2.0}
+grid: {N_G: [64, 4096], E_G: [1.0e-3, 1.0e-14], seeds: 2}
+protocol: {window: 0.1, force_tolerance: 1.0e-6}
+observables: [scalars]
+"""
+    one = _warm_ups(expand(parse_spec(base)))
+    assert len(one) == 1 and one[0].get("endgame", "none") == "none"
+    several = base + "variants:\n  - {name: cg, minimizer: cg}\n  - {name: pressure, route: pressure}\n"
+    keys = {(p.get("minimizer", "fire"), p.get("endgame", "none"), p.get("route", "ohern"))
+            for p in _warm_ups(expand(parse_spec(several)))}
+    assert keys == {("fire", "none", "ohern"), ("cg", "none", "ohern"), ("fire", "none", "pressure")}
+    auto = base.replace("force_tolerance: 1.0e-6}", "force_tolerance: 1.0e-6, endgame: auto}")
+    endgames = sorted(p.get("endgame", "none") for p in _warm_ups(expand(parse_spec(auto))))
+    assert endgames == ["newton", "none"]  # N_G 4096 at 1e-14: Newton; N_G 64: FIRE

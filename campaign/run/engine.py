@@ -24,6 +24,17 @@ def _log(msg):
     print(msg, file=sys.stderr, flush=True)
 
 
+def _warm_ups(tasks) -> list:
+    """One protocol per distinct choice of compiled kernels among the tasks (minimiser, endgame,
+    route): the warm-up compiles each once, before any task is timed (variants, and
+    ``endgame: auto``, may use several)."""
+    out = {}
+    for proto in sorted(set(t.protocol for t in tasks), key=repr):
+        p = dict(proto)
+        out.setdefault(tuple(str(p.get(k)) for k in ("minimizer", "endgame", "route")), p)
+    return list(out.values())
+
+
 def _compiled() -> str:
     """What the warm-up compiled and what it loaded from the numba cache (``kernels.compiled``):
     a campaign compiles only the kernels its protocol and observables use."""
@@ -195,7 +206,7 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
                "systems": {v.name: v.system.canonical() for v in spec.variants},
                "observables": list(spec.observables), "histograms": list(spec.histograms),
                "bins": {h: list(e) for h, e in spec.bins}, "configurations": spec.configurations,
-               "protocol_warmup": spec.variants[0].protocol_dict}
+               "protocol_warmups": _warm_ups(tasks)}
     edges = fn.histogram_edges(context)
     context["edges"] = {h: [float(x) for x in e] for h, e in edges.items()}
 

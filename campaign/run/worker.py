@@ -44,9 +44,10 @@ class KernelTask:
         return histogram_edges(context["histograms"], context.get("bins"))
 
     def warm_up(self, context) -> None:
-        """Compile (or load from the numba cache) every kernel a task will use."""
-        payload = {"N": 16, "E": 1e-3, "entropy": [0], "protocol": context.get("protocol_warmup", {})}
-        self.run(payload, context)
+        """Compile (or load from the numba cache) every kernel a task will use: one small packing
+        per protocol of ``context["protocol_warmups"]`` (the engine's list of distinct choices)."""
+        for protocol in context.get("protocol_warmups") or [{}]:
+            self.run({"N": 16, "E": 1e-3, "entropy": [0], "protocol": protocol}, context)
 
     def run(self, payload, context):
         import kernels
