@@ -120,10 +120,7 @@ def _store_records(path, seeds):
         if proto.get("minimizer", "fire") != "fire" or "route" in proto or "stop" in proto:
             skipped += 1  # not in the model: priced as FIRE, not learnt from
             continue
-        parent = None
-        if proto.get("start") == "ladder":
-            higher = [e for e in v.E if e > E]
-            parent = min(higher) if higher else None
+        parent = v.parent_E(E)
         t = float(cols["jam_seconds"][i]) + float(np.nan_to_num(analyze[i]))
         out["N"].append(N)
         out["E"].append(E)

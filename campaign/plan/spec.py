@@ -130,6 +130,14 @@ class Variant:
         (``resolve_protocol``), every other protocol as it is."""
         return resolve_protocol(self.protocol, N, E, self.system.exponent)
 
+    def parent_E(self, E: float) -> float | None:
+        """The energy a ``start: ladder`` step at E starts from: the variant's next higher energy
+        (its energies are sorted and distinct); None at the top, or without the ladder."""
+        if dict(self.protocol).get("start") != "ladder":
+            return None
+        higher = [e for e in self.E if e > E]
+        return min(higher) if higher else None
+
 
 @dataclass(frozen=True)
 class Spec:

@@ -106,13 +106,13 @@ def expand(spec: Spec) -> list[Task]:
         tail = ',"system":' + sys_json + "}"
         hash_of = _hash_json('{"E":', tail)  # the id and the seed words share the key order
         proto = dict(v.protocol)
-        ladder = proto.get("start") == "ladder"
         auto = proto.get("endgame") == "auto"
         proto_json = canonical_json(proto)
         protocol = v.protocol
         for N in spec.N:
-            for k, E in enumerate(v.E):
-                upper = k + 1 < len(v.E) and ladder
+            for E in v.E:
+                parent_E = v.parent_E(E)
+                upper = parent_E is not None  # its parent is the same seed's packing at parent_E
                 if auto:  # resolved per (N, E) before the id: the explicit task it stands for
                     protocol = v.task_protocol(N, E)
                     proto_json = canonical_json(dict(protocol))
@@ -128,7 +128,7 @@ def expand(spec: Spec) -> list[Task]:
                     out.append(Task(index=i, id=hash_of(id_head + canonical_json(s)).hex(), variant=v.name, N=N,
                                     E=E, seed=s, words=w, campaign_seed=cseed, protocol=protocol,
                                     parent=i + n_seeds if upper else None,
-                                    parent_E=v.E[k + 1] if upper else None, exponent=v.system.exponent))
+                                    parent_E=parent_E, exponent=v.system.exponent))
     return out
 
 
