@@ -21,7 +21,9 @@ For each N (default 256, 1024, 4096):
   minimisation (``MINIMIZERS``). ``newton`` is FIRE with the sparse Newton endgame
   (``endgame="newton"``, ``kernels.newton``): its rows add the factorisations and where
   the time goes (the force evaluations at the per-evaluation cost FIRE paid on the same
-  seed, the rest being Hessian assembly, ordering, factorisation and solves).
+  seed, the rest being Hessian assembly, ordering, factorisation and solves). ``shear``
+  relaxes the cell's tilt and aspect ratio with the disks (``cell="shear"``,
+  ``kernels.cellrelax``).
 
 With ``--routes ohern pressure`` the time to jam is measured for each route of
 ``kernels.jam`` (``route=...``, see ``kernels.barostat``) side by side, seed by seed, and
@@ -40,6 +42,8 @@ one thread, numba kernels are serial anyway).
         --seeds 5 --minimizers fire cg paper                                    # docs/MINIMIZERS.md
     python benchmarks/bench_jam.py --no-steps --sizes 256 1024 4096 --energies 1e-6 1e-12 1e-16 \
         --seeds 5 --minimizers fire newton --json newton.json                   # docs/NEWTON.md
+    python benchmarks/bench_jam.py --no-steps --no-jax --sizes 1024 --energies 1e-12 --seeds 8 \
+        --minimizers fire shear                                                 # docs/SHEAR.md
     python benchmarks/bench_jam.py --no-jax --sizes 1024 --energies 1e-16 --steps 10 \
         --routes ohern pressure --seeds 20 --json routes.json                   # docs/PRESSURE_ROUTE.md
 """
@@ -66,9 +70,10 @@ def _our_step_cost(n, seed, steps, exponent=2.0):
     from kernels.fire import _fire_core
     from kernels.jamming import DEFAULTS
     from kernels.protocol import _dt_for, _spatial_order
+    from kernels.space import _as_box
 
     p = kernels.jam(n, 1e-4, seed)
-    box = np.array(p.box)
+    box = _as_box(p.box)  # the kernels' cell [Lx, Ly, xy]
     # the order jam() works in (disks sorted by cell), used for both codes
     perm = _spatial_order(np.array(p.positions), box, 2.0 * float(np.mean(p.radii)))
     rad = np.array(p.radii)[perm] * (1.0 - 0.25 * np.sqrt(2e-4))
@@ -172,6 +177,7 @@ MINIMIZERS = {
     "cg": {"minimizer": "cg"},
     "paper": {"minimizer": "cg", "stop": "energy", "search": "paper"},
     "newton": {"endgame": "newton"},
+    "shear": {"cell": "shear"},
 }
 
 

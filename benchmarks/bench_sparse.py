@@ -50,9 +50,10 @@ def _matrix(n, seed):
     from kernels.fire import _verlet_rows
     from kernels.hessian import _hessian_rows
     from kernels.newton import PATTERN_SKIN
+    from kernels.space import _as_box
 
     p = kernels.jam(n, 1e-10, seed, force_tolerance=1e-5)
-    pos, rad, box = np.array(p.positions), np.asarray(p.radii), np.asarray(p.box)
+    pos, rad, box = np.array(p.positions), np.asarray(p.radii), _as_box(p.box)
     pi, pj, start, nbr, inv_s = _verlet_rows(pos, rad, box, PATTERN_SKIN * 2 * rad.mean(), rad,
                                              np.empty_like(pos))
     diag = np.zeros((n, 3))

@@ -32,6 +32,7 @@ from kernels.network import (
     _rotation_core,
 )
 from kernels.names import DEFAULT_OBSERVABLES
+from kernels.potential import stress_from_bonds
 from kernels.observables import (
     HISTOGRAMS,
     OBSERVABLES,
@@ -101,6 +102,11 @@ ORDER_THRESHOLD = 0.9
 #: (contact tests, areas) then stay normal float64 numbers with room for overlaps of 1e-8
 #: of a radius (at 1e-160 contacts vanish by underflow, at 1e-170 the box area is 0).
 LENGTH_RANGE = (1e-100, 1e100)
+
+#: Free cell parameters per ensemble (``cell``): each adds one contact to the isostatic count
+#: ``N_C = 2 N_G - 1 + free`` (``PHYSICS.md``): none in a fixed cell, tilt and aspect ratio in a
+#: shear-stabilised one (``kernels.cellrelax``).
+CELL_CONSTRAINTS = {"fixed": 0, "shear": 2}
 
 #: Rounding allowance for the area identity A_G + A_V = 1 (fractions of the box area).
 AREA_RTOL = 1e-9
@@ -173,16 +179,17 @@ def _check_inputs(positions, radii, box, exponent, species):
     if n < 2:
         raise ValueError(f"positions: expected at least 2 disks, got {n}")
     lo, hi = LENGTH_RANGE
-    if not (rad.min() >= lo and b.min() >= lo and b.max() <= hi and np.abs(pos).max() <= hi):
+    sides = b[:2]
+    if not (rad.min() >= lo and sides.min() >= lo and sides.max() <= hi and np.abs(pos).max() <= hi):
         raise ValueError(
             f"lengths: expected radii and box sides in [{lo:g}, {hi:g}] and coordinates of magnitude "
             f"at most {hi:g} (squared lengths must stay normal float64 numbers), got radii from "
             f"{rad.min():g}, box {b.tolist()}, largest |coordinate| {np.abs(pos).max():g}; rescale "
             "all lengths by one factor (the analysis is scale invariant)")
-    if 4.0 * rad.max() >= b.min():
+    if 4.0 * rad.max() >= sides.min():
         raise ValueError(
             f"radii: the largest diameter ({2 * rad.max():g}) must be below half the smaller box side "
-            f"({b.min() / 2:g}) for contacts to be unique under the minimum image"
+            f"({sides.min() / 2:g}) for contacts to be unique under the minimum image"
         )
     a = float(exponent)
     if not (np.isfinite(a) and a > 1.0):
@@ -195,14 +202,14 @@ def _check_inputs(positions, radii, box, exponent, species):
 
 
 def analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0, species=None,
-            angle_tolerance=1e-9, max_void_sides=4096) -> Analysis:
+            angle_tolerance=1e-9, max_void_sides=4096, cell="fixed") -> Analysis:
     """Analyse the contact network of one configuration.
 
     Parameters
     ----------
     positions : (n, 2) centres (need not be wrapped into the box)
     radii : (n,) positive radii
-    box : (Lx, Ly) periodic box sides
+    box : (Lx, Ly) periodic box sides, or a tilted cell (Lx, Ly, xy) (``kernels.space``)
     observables : names from ``OBSERVABLES`` (None: every contact-network observable,
         ``DEFAULT_OBSERVABLES``; the linear-response ones, ``moduli``, ``modes`` and ``gaps``,
         only when named); scalars are always computed
@@ -212,8 +219,13 @@ def analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0,
     angle_tolerance : relative angles within ``angle_tolerance * pi`` of 0 or pi are
         flagged as collinear contacts
     max_void_sides : voids with more sides are not triangulated (and flagged)
+    cell : the packing's ensemble, which sets its isostatic count: "fixed" (a fixed cell,
+        ``N_C = 2 N_G - 1``) or "shear" (tilt and aspect ratio relaxed, ``N_C = 2 N_G + 1``;
+        ``PHYSICS.md``); ``z_iso`` and ``delta_Z`` use it
     """
     pos, rad, b, alpha = _check_inputs(positions, radii, box, exponent, species)
+    if cell not in CELL_CONSTRAINTS:
+        raise ValueError(f"cell: expected one of {list(CELL_CONSTRAINTS)}, got {cell!r}")
     names = _check_observables(observables)
     wanted = [h for name in names for h in OBSERVABLES[name]]
     edges = _check_bins(bins, wanted)
@@ -267,7 +279,8 @@ def analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0,
     nan = float("nan")
     z_mean = N_C / N_G if N_G else nan
     z_v_mean = N_C / N_V if N_V else nan
-    z_iso = 4.0 - 2.0 / N_G if N_G else nan
+    # isostatic: N_C = 2 N_G - 1 contacts, plus one per free cell parameter
+    z_iso = 4.0 + 2.0 * (CELL_CONSTRAINTS[cell] - 1) / N_G if N_G else nan
     two_pi = 2.0 * np.pi
     angle_eps = tol * np.pi
     near_zero = (theta <= angle_eps) | (theta >= two_pi - angle_eps)
@@ -317,6 +330,8 @@ def analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0,
         "ordered_fraction": (int(np.count_nonzero(psi6[~rattler] > ORDER_THRESHOLD)) / N_G
                              if N_G else nan),
         "sigma_max": sigma_max,
+        "gamma": float(b[2]),
+        "sigma_xy": stress_from_bonds(rad, bi, bj, dx, dy, alpha)[2] / box_area,
         "contacts_total": int(bi.shape[0]),
         "identities_ok": bool(identities_ok),
     }

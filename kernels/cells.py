@@ -24,12 +24,13 @@ Checked wrapper: ``candidate_pairs(positions, radii, box, skin)``.
 import numpy as np
 from numba import njit
 
-from kernels.space import _as_box, _as_positions
+from kernels.space import _as_box, _as_positions, widths
 
 
 @njit(cache=True)
 def _cell_grid(box, cutoff, n):
-    """Number of cells along x and y for cells at least ``cutoff`` wide.
+    """Number of cells along x and y for cells at least ``cutoff`` wide (between opposite
+    sides: the cells of a tilted cell are parallelograms, see ``kernels.space.widths``).
 
     Fewer than 3 cells along a side collapse to 1 (so the 3 neighbouring cells along
     that side are never the same cell twice). The count is capped near ``2 sqrt(n)``
@@ -38,9 +39,10 @@ def _cell_grid(box, cutoff, n):
     """
     cap = 2 * int(np.sqrt(n)) + 3
     out = np.empty(2, dtype=np.int64)
+    wx, wy = widths(box)
     for k in range(2):
         if cutoff > 0.0:
-            m = box[k] / cutoff
+            m = (wx if k == 0 else wy) / cutoff
             nk = cap if m >= cap else int(m)
         else:
             nk = cap
@@ -59,6 +61,8 @@ def _candidate_pairs_core(positions, radii, box, skin):
     n = positions.shape[0]
     Lx = box[0]
     Ly = box[1]
+    xy = box[2]
+    tilt = xy * Ly
     iLx = 1.0 / Lx
     iLy = 1.0 / Ly
     rmax = 0.0
@@ -72,8 +76,10 @@ def _candidate_pairs_core(positions, radii, box, skin):
     # counting sort of disks into cells (stable: ascending index within a cell)
     cell_of = np.empty(n, dtype=np.int64)
     for i in range(n):
-        x = positions[i, 0] - Lx * np.floor(positions[i, 0] / Lx)
+        # the cell's own (sheared) coordinates: x - xy y along a, y along b
         y = positions[i, 1] - Ly * np.floor(positions[i, 1] / Ly)
+        x = positions[i, 0] - xy * y
+        x = x - Lx * np.floor(x / Lx)
         cx = int(x / Lx * nx)
         cy = int(y / Ly * ny)
         if cx >= nx:
@@ -124,8 +130,10 @@ def _candidate_pairs_core(positions, radii, box, skin):
                         continue
                     dx = positions[j, 0] - xi
                     dy = positions[j, 1] - yi
+                    k = np.floor(dy * iLy + 0.5)
+                    dy -= Ly * k
+                    dx -= tilt * k
                     dx -= Lx * np.floor(dx * iLx + 0.5)
-                    dy -= Ly * np.floor(dy * iLy + 0.5)
                     rc = ri + radii[j] + skin
                     if dx * dx + dy * dy < rc * rc:
                         row[m] = j

@@ -45,7 +45,7 @@ from kernels.cells import _as_radii, _candidate_pairs_core
 from kernels.network import HALF_PLANE_TOL, _overlapping_core, _rattlers_core
 from kernels.potential import (_energy_forces_core, _energy_forces_rows, _pair_inv_sigma,
                                _rows_from_pairs, check_exponent, pair_energy_force)
-from kernels.space import _as_box, _as_positions, _wrap_core, minimum_image
+from kernels.space import _as_box, _as_positions, _wrap_core, separation
 
 N_DELAY = 20
 F_INC = 1.1
@@ -140,8 +140,7 @@ def _residual_alive(positions, radii, box, pi, pj, alpha, forces):
         i = ci[k]
         j = cj[k]
         if use_all or (alive[i] and alive[j]):
-            dx = minimum_image(positions[j, 0] - positions[i, 0], box[0])
-            dy = minimum_image(positions[j, 1] - positions[i, 1], box[1])
+            dx, dy = separation(positions[j, 0] - positions[i, 0], positions[j, 1] - positions[i, 1], box)
             r = np.sqrt(dx * dx + dy * dy)
             fsum += pair_energy_force(r, radii[i] + radii[j], alpha)[1]
             nc += 1

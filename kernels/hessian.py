@@ -74,6 +74,7 @@ def _hessian_rows(positions, box, start, nbr, inv_s, alpha, keep, diag, offdiag,
     n = positions.shape[0]
     Lx = box[0]
     Ly = box[1]
+    tilt = box[2] * Ly
     hx = 0.5 * Lx
     hy = 0.5 * Ly
     for i in range(n):
@@ -90,14 +91,16 @@ def _hessian_rows(positions, box, start, nbr, inv_s, alpha, keep, diag, offdiag,
             j = nbr[k]
             dx = positions[j, 0] - xi
             dy = positions[j, 1] - yi
-            if dx > hx:
-                dx -= Lx
-            elif dx < -hx:
-                dx += Lx
             if dy > hy:
                 dy -= Ly
+                dx -= tilt
             elif dy < -hy:
                 dy += Ly
+                dx += tilt
+            while dx > hx:
+                dx -= Lx
+            while dx < -hx:
+                dx += Lx
             d2 = dx * dx + dy * dy
             q = inv_s[k]
             if d2 * q * q >= 1.0 or not (keep[i] and keep[j]):

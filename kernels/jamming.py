@@ -20,9 +20,10 @@ from kernels.barostat import BARO_SCALE, STAGE_STEP, _pressure_core
 from kernels.cells import _candidate_pairs_core
 from kernels.names import MAX_POLYDISPERSITY, SIZE_DISTRIBUTIONS
 from kernels.network import HALF_PLANE_TOL, _overlapping_core, _rattlers_core
-from kernels.potential import ALPHA_RANGE, check_exponent
-from kernels.protocol import (ENDGAME_NAMES, MINIMIZER_NAMES, SEARCH_NAMES, STATUS_NAMES,
-                              _ohern_core)
+from kernels.potential import ALPHA_RANGE, check_exponent, stress_from_bonds
+from kernels.space import _as_box
+from kernels.protocol import (CELL_NAMES, ENDGAME_NAMES, MINIMIZER_NAMES, SEARCH_NAMES,
+                              STATUS_NAMES, _ohern_core)
 
 DEFAULT_SPECIES = ((0.5, 1.4), (0.5, 1.0))
 
@@ -46,6 +47,7 @@ DEFAULTS = dict(
     route="ohern",
     sizes=None,
     endgame="none",
+    cell="fixed",
 )
 
 
@@ -68,9 +70,9 @@ class Packing:
 
     Compared by identity (``eq=False``): compare arrays with ``tobytes()``."""
 
-    positions: np.ndarray  # (n, 2), wrapped into [0, Lx) x [0, Ly)
+    positions: np.ndarray  # (n, 2), wrapped into [0, Lx) x [0, Ly) (kernels.space)
     radii: np.ndarray  # (n,)
-    box: np.ndarray  # (2,)
+    box: np.ndarray  # (2,) [Lx, Ly]; (3,) [Lx, Ly, xy] with cell "shear" (kernels.space)
     species: np.ndarray  # (n,) int32, species index (0 = first entry = A)
     energy: float  # E_G: total pair energy / n
     energy_nonrattler: float  # total pair energy / N_G (nan when N_G = 0)
@@ -84,6 +86,8 @@ class Packing:
     n_nonrattlers: int
     settings: dict = field(default_factory=dict, compare=False)
     factorizations: int = 0  # sparse Cholesky factorisations of the Newton endgame
+    gamma: float = 0.0  # the cell's tilt factor xy (0 in a fixed, rectangular box)
+    sigma_xy: float = 0.0  # residual shear stress (1/A) sum f r_x r_y / r, units of pressure
 
     @property
     def converged(self):
@@ -217,27 +221,38 @@ def initial_state(n, seed, box, species, phi_start, sizes=None):
     return positions, radii, species_idx
 
 
-def _check_start(start, n, box):
-    """Copies of a starting configuration's positions, radii and species, checked."""
+def _check_start(start, n, box, cell):
+    """Copies of a starting configuration's positions, radii and species, checked, and the cell
+    ``[Lx, Ly, xy]`` the search starts in: the start's own when it brings a tilted one (a
+    shear-stabilised packing, ``cell`` shear only; its area must be the box's), else ``box``."""
     if isinstance(start, Packing):
-        if not np.array_equal(start.box, box):
-            raise ValueError(f"start: expected a packing in the box {box.tolist()}, got one in "
-                             f"{start.box.tolist()}")
-        start = (start.positions, start.radii, start.species)
+        start = (start.positions, start.radii, start.species, start.box)
     try:
-        pos, rad, spc = start
+        pos, rad, spc, *own = start
         pos = np.array(pos, dtype=np.float64)
         rad = np.array(rad, dtype=np.float64)
         spc = np.array(spc, dtype=np.int32)
+        own = np.array(own[0], dtype=np.float64) if len(own) == 1 else None
     except (TypeError, ValueError):
-        raise ValueError("start: expected None, a Packing or (positions, radii, species) arrays, "
+        raise ValueError("start: expected None, a Packing or (positions, radii, species[, box]) arrays, "
                          f"got {type(start).__name__}") from None
     if pos.shape != (n, 2) or rad.shape != (n,) or spc.shape != (n,):
         raise ValueError(f"start: expected positions ({n}, 2), radii ({n},) and species ({n},) for "
                          f"n={n}, got {pos.shape}, {rad.shape} and {spc.shape}")
     if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(rad)) and np.all(rad > 0)):
         raise ValueError("start: expected finite positions and positive finite radii")
-    return pos, rad, spc
+    cell_box = np.array([box[0], box[1], 0.0])
+    if own is not None and own.shape == (3,) and cell:
+        area = box[0] * box[1]
+        if not (np.all(np.isfinite(own)) and abs(own[0] * own[1] - area) <= 1e-12 * area):
+            raise ValueError(f"start: expected a cell of area {area!r} (box {box.tolist()}), got "
+                             f"{own.tolist()}")
+        cell_box = _as_box(own)
+    elif own is not None and not (own.shape in ((2,), (3,)) and np.array_equal(own[:2], box)
+                                  and (own.shape == (2,) or own[2] == 0.0)):
+        raise ValueError(f"start: expected a packing in the box {box.tolist()}, got one in "
+                         f"{own.tolist()}")
+    return pos, rad, spc, cell_box
 
 
 def energy_floor(radii, box, exponent, force_tolerance):
@@ -279,13 +294,14 @@ def jam(n, energy, seed, start=None, **settings):
         interaction scale.
     seed : int, sequence of ints or numpy.random.SeedSequence
         the initial positions come from ``Generator(PCG64(SeedSequence(seed)))``.
-    start : None, a ``Packing`` or ``(positions, radii, species)``
+    start : None, a ``Packing`` or ``(positions, radii, species[, box])``
         None (default): random positions at ``phi_start``. Otherwise the search starts
         from these positions and radii (scale factor 1) instead: the *energy ladder*
         protocol, which reaches a lower energy by decompressing a packing made at a
         higher one. ``seed``, ``phi_start`` and ``species`` are then not used; the
         result's ``species`` are the starting ones. ``force_evaluations`` counts this
-        search only.
+        search only. With ``cell`` "shear" a start in a tilted cell (a shear-stabilised
+        packing, or a ``box`` ``[Lx, Ly, xy]`` of the same area) goes on in that cell.
 
     Settings (keyword; defaults in ``DEFAULTS``)
     --------------------------------------------
@@ -337,6 +353,12 @@ def jam(n, energy, seed, start=None, **settings):
         below 1e-2, and ends at a minimum whose rattler-free Hessian is positive
         definite (``kernels.newton``); ``Packing.factorizations`` counts the sparse
         Cholesky factorisations.
+    cell : "fixed" (default: the rectangular ``box``) or "shear": every minimisation also
+        relaxes the cell's tilt and aspect ratio at fixed area (``kernels.cellrelax``), so the
+        packing ends force-balanced and with residual shear stresses below
+        ``force_tolerance`` times its pressure: stable to every deformation of the cell (the
+        shear-stabilised ensemble). FIRE on the O'Hern route only. ``Packing.box`` is then
+        ``[Lx, Ly, xy]``; a ``start`` packing made so keeps its cell.
 
     Returns a ``Packing``; its ``status`` is "converged" or the bound that stopped
     the search ("max_search", "max_steps", "stalled", "too_dense").
@@ -387,26 +409,37 @@ def jam(n, energy, seed, start=None, **settings):
     if opt["endgame"] not in ENDGAME_NAMES:
         raise ValueError(f"endgame: expected one of {list(ENDGAME_NAMES)}, got {opt['endgame']!r}")
     endgame = ENDGAME_NAMES.index(opt["endgame"])
+    if opt["cell"] not in CELL_NAMES:
+        raise ValueError(f"cell: expected one of {list(CELL_NAMES)}, got {opt['cell']!r}")
+    cell = CELL_NAMES.index(opt["cell"])
+    if cell and (opt["minimizer"] != "fire" or opt["stop"] != "force" or opt["route"] != "ohern"
+                 or endgame):
+        raise ValueError("cell: 'shear' relaxes the cell with FIRE in the O'Hern search; expected "
+                         "minimizer 'fire', stop 'force', route 'ohern' and endgame 'none', got "
+                         f"{opt['minimizer']!r}, {opt['stop']!r}, {opt['route']!r} and "
+                         f"{opt['endgame']!r}")
     if endgame and (opt["minimizer"] != "fire" or opt["stop"] != "force" or opt["route"] != "ohern"):
         raise ValueError("endgame: 'newton' takes over FIRE's minimisations of the O'Hern route; expected "
                          "minimizer 'fire', stop 'force' and route 'ohern', got "
                          f"{opt['minimizer']!r}, {opt['stop']!r} and {opt['route']!r}")
     delta = _positive_float("delta", opt["delta"], upper=1.0)
     skin = _positive_float("skin", opt["skin"], upper=1.0)
+    # the kernels' cell [Lx, Ly, xy] (kernels.space): a shear-stabilised start keeps its own
     if start is None:
         positions, radii0, species_idx = initial_state(n, _seed_sequence(seed), box, opt["species"],
                                                        phi_start, opt["sizes"])
+        cell_box = np.array([box[0], box[1], 0.0])
     else:
-        positions, radii0, species_idx = _check_start(start, n, box)
+        positions, radii0, species_idx, cell_box = _check_start(start, n, box, cell)
     # the nearest image must be the only one in range: 2 r_max (1 + skin) < L/2
-    max_radius = float(box.min()) / (4.0 * (1.0 + skin))
+    max_radius = float(cell_box[:2].min()) / (4.0 * (1.0 + skin))
     if radii0.max() * (1.0 + delta) ** 2 > max_radius:
         raise ValueError(
             f"box: expected a box large enough for {n} disks at phi_start={phi_start:g} "
             f"(largest radius below {max_radius:.4g} = min(Lx, Ly) / (4 (1 + skin)) with room to "
             f"grow), got box {box.tolist()} with largest radius {radii0.max():.4g}")
 
-    e_floor = energy_floor(radii0, box, alpha, tol)
+    e_floor = energy_floor(radii0, cell_box[:2], alpha, tol)
     if e_min < e_floor:
         raise ValueError(
             f"energy: expected at least {e_floor:.3g} for n={n}, exponent={alpha:g}, "
@@ -416,24 +449,28 @@ def jam(n, energy, seed, start=None, **settings):
 
     if opt["route"] == "pressure":
         status, scale, e_tot, virial, residual, iterations, nforce = _pressure_core(
-            positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search, max_steps,
+            positions, radii0, cell_box, alpha, e_min, window, tol, search_tol, max_search, max_steps,
             skin, max_radius, STAGE_STEP, BARO_SCALE, False)
         nfact = 0
     else:
         status, scale, e_tot, virial, residual, iterations, nforce, nfact = _ohern_core(
-            positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search, max_steps,
-            skin, delta, rule, max_radius, ENERGY_STEP, minimizer, e_tol, endgame)
+            positions, radii0, cell_box, alpha, e_min, window, tol, search_tol, max_search,
+            max_steps, skin, delta, rule, max_radius, ENERGY_STEP, minimizer, e_tol, endgame, cell)
+    if cell:
+        box = cell_box
     radii = radii0 * scale
-    area = float(box[0] * box[1])
-    pi, pj = _candidate_pairs_core(positions, radii, box, 0.0)
+    area = float(cell_box[0] * cell_box[1])
+    pi, pj = _candidate_pairs_core(positions, radii, cell_box, 0.0)
     # kernels.fire._nonrattler_mask_core written out: its kernels are loaded already (the search
     # calls them), while its wrappers, inlined into their jitted callers, would be compiled anew
-    ci, cj, cdx, cdy = _overlapping_core(positions, radii, box, pi, pj)
+    ci, cj, cdx, cdy = _overlapping_core(positions, radii, cell_box, pi, pj)
     n_g = int(np.count_nonzero(~_rattlers_core(n, ci, cj, cdx, cdy, HALF_PLANE_TOL)))
+    sxy = stress_from_bonds(radii, ci, cj, cdx, cdy, alpha)[2] / area
     for arr in (positions, radii, box, species_idx):
         arr.flags.writeable = False
     return Packing(
         positions=positions, radii=radii, box=box, species=species_idx,
+        gamma=float(cell_box[2]), sigma_xy=float(sxy),
         energy=e_tot / n, energy_nonrattler=e_tot / n_g if n_g else math.nan,
         phi=float(math.pi * np.sum(radii ** 2) / area), pressure=virial / (2.0 * area),
         force_residual=float(residual), iterations=int(iterations),

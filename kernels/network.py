@@ -36,7 +36,7 @@ from numba import njit
 
 from kernels.cells import _candidate_pairs_core
 from kernels.potential import pair_energy_force
-from kernels.space import _as_box, _as_positions, minimum_image
+from kernels.space import _as_box, _as_positions, separation
 
 
 @njit(cache=True)
@@ -51,8 +51,7 @@ def _overlapping_core(positions, radii, box, pi, pj):
     for k in range(m):
         i = pi[k]
         j = pj[k]
-        ddx = minimum_image(positions[j, 0] - positions[i, 0], box[0])
-        ddy = minimum_image(positions[j, 1] - positions[i, 1], box[1])
+        ddx, ddy = separation(positions[j, 0] - positions[i, 0], positions[j, 1] - positions[i, 1], box)
         s = radii[i] + radii[j]
         if ddx * ddx + ddy * ddy < s * s:
             keep[k] = True

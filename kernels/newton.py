@@ -94,6 +94,7 @@ def _ratio_step(positions, box, start, nbr, inv_s, p, budget):
     n = positions.shape[0]
     Lx = box[0]
     Ly = box[1]
+    tilt = box[2] * Ly
     hx = 0.5 * Lx
     hy = 0.5 * Ly
     t = 1.0
@@ -102,14 +103,16 @@ def _ratio_step(positions, box, start, nbr, inv_s, p, budget):
             j = nbr[k]
             dx = positions[j, 0] - positions[i, 0]
             dy = positions[j, 1] - positions[i, 1]
-            if dx > hx:
-                dx -= Lx
-            elif dx < -hx:
-                dx += Lx
             if dy > hy:
                 dy -= Ly
+                dx -= tilt
             elif dy < -hy:
                 dy += Ly
+                dx += tilt
+            while dx > hx:
+                dx -= Lx
+            while dx < -hx:
+                dx += Lx
             r = np.sqrt(dx * dx + dy * dy)
             s = 1.0 / inv_s[k]
             gap = r - s

@@ -19,7 +19,8 @@ import numpy as np
 from numba import njit
 
 from kernels.names import HISTOGRAMS, OBSERVABLES  # noqa: F401 - re-exported
-from kernels.space import minimum_image
+from kernels.cells import _candidate_pairs_core
+from kernels.space import minimum_image, separation
 
 
 @njit(cache=True, inline="always")
@@ -122,6 +123,32 @@ def _histogram_core(values, edges, uniform, counts):
 
 
 @njit(cache=True)
+def _radial_pairs(points, cls1, cls2, scales, box, edges, uniform, counts, guide, inv_w):
+    """``_radial_core`` in any cell, tilted ones included: the pairs within reach from the
+    cell list of ``kernels.cells`` (nearest images, ``kernels.space``), each binned once per
+    centre. Same counts as ``_radial_core``'s grid, at a few times its cost."""
+    nb = edges.shape[0] - 1
+    npt = points.shape[0]
+    smax = 0.0
+    for p in range(npt):
+        smax = max(smax, scales[cls1[p]])
+        if cls2[p] >= 0:
+            smax = max(smax, scales[cls2[p]])
+    half = np.full(npt, 0.5 * edges[nb] * smax)
+    pi, pj = _candidate_pairs_core(points, half, box, 0.0)
+    for k in range(pi.shape[0]):
+        p = pi[k]
+        q = pj[k]
+        dx, dy = separation(points[q, 0] - points[p, 0], points[q, 1] - points[p, 1], box)
+        d = np.sqrt(dx * dx + dy * dy)
+        for c in (cls1[p], cls2[p], cls1[q], cls2[q]):
+            if c >= 0:
+                b = _bin_index(d / scales[c], edges, nb, uniform, inv_w, guide)
+                if b >= 0:
+                    counts[b] += 1
+
+
+@njit(cache=True)
 def _radial_core(points, cls1, cls2, scales, box, edges, uniform, counts):
     """Ordered-pair counts of normalised distances between distinct points.
 
@@ -151,6 +178,8 @@ def _radial_core(points, cls1, cls2, scales, box, edges, uniform, counts):
     centre is binned on its own. Each distance is computed with the same operations
     as in a plain pair-by-pair loop over the same cells, so the counts are exact and
     do not depend on the method.
+
+    A tilted cell (``box[2] != 0``) takes the plain pair loop of ``_radial_pairs``.
     """
     nb = edges.shape[0] - 1
     inv_w = nb / (edges[nb] - edges[0])
@@ -158,6 +187,9 @@ def _radial_core(points, cls1, cls2, scales, box, edges, uniform, counts):
     rmax = edges[nb]
     npt = points.shape[0]
     if npt < 2 or rmax <= 0.0:
+        return
+    if box[2] != 0.0:
+        _radial_pairs(points, cls1, cls2, scales, box, edges, uniform, counts, guide, inv_w)
         return
     Lx = box[0]
     Ly = box[1]

@@ -82,12 +82,14 @@ def _energy_forces_core(positions, box, pi, pj, inv_s, alpha, forces):
     """Net forces (written into ``forces``), total energy, virial and contact stats.
 
     ``inv_s[k] = 1 / (r_i + r_j)`` for pair ``k`` (see ``_pair_inv_sigma``).
-    Precondition: every coordinate lies in ``[-L/4, 5L/4)`` (wrapped positions that
-    have since moved less than a quarter box), so one shift gives the minimum image.
+    Precondition: ``y`` lies in ``[-Ly/4, 5Ly/4)`` (wrapped positions, ``kernels.space``, that
+    have since moved less than a quarter box), so one shift by ``b`` reduces ``dy``; ``dx`` is
+    then reduced by as many shifts ``a`` as it takes (one in a rectangular box).
     """
     n = positions.shape[0]
     Lx = box[0]
     Ly = box[1]
+    tilt = box[2] * Ly
     hx = 0.5 * Lx
     hy = 0.5 * Ly
     for i in range(n):
@@ -102,15 +104,17 @@ def _energy_forces_core(positions, box, pi, pj, inv_s, alpha, forces):
         j = pj[k]
         dx = positions[j, 0] - positions[i, 0]
         dy = positions[j, 1] - positions[i, 1]
-        # one-shift minimum image: valid for |dx| < 3 Lx / 2 (see docstring)
-        if dx > hx:
-            dx -= Lx
-        elif dx < -hx:
-            dx += Lx
+        # minimum image by single shifts (see docstring): dy first, its period moves dx by the tilt
         if dy > hy:
             dy -= Ly
+            dx -= tilt
         elif dy < -hy:
             dy += Ly
+            dx += tilt
+        while dx > hx:
+            dx -= Lx
+        while dx < -hx:
+            dx += Lx
         d2 = dx * dx + dy * dy
         q = inv_s[k]
         if d2 * q * q >= 1.0:
@@ -153,6 +157,7 @@ def _energy_forces_rows_scaled(positions, box, start, nbr, inv_s, scale, alpha, 
     n = positions.shape[0]
     Lx = box[0]
     Ly = box[1]
+    tilt = box[2] * Ly
     hx = 0.5 * Lx
     hy = 0.5 * Ly
     for i in range(n):
@@ -171,14 +176,16 @@ def _energy_forces_rows_scaled(positions, box, start, nbr, inv_s, scale, alpha, 
             j = nbr[k]
             dx = positions[j, 0] - xi
             dy = positions[j, 1] - yi
-            if dx > hx:
-                dx -= Lx
-            elif dx < -hx:
-                dx += Lx
             if dy > hy:
                 dy -= Ly
+                dx -= tilt
             elif dy < -hy:
                 dy += Ly
+                dx += tilt
+            while dx > hx:
+                dx -= Lx
+            while dx < -hx:
+                dx += Lx
             d2 = dx * dx + dy * dy
             q = inv_s[k] * scale
             if d2 * q * q >= 1.0:
@@ -221,6 +228,18 @@ def _pair_array_core(r, s, alpha):
     for k in range(r.shape[0]):
         v[k], f[k] = pair_energy_force(r[k], s[k], alpha)
     return v, f
+
+
+def stress_from_bonds(radii, bi, bj, dx, dy, exponent):
+    """The stress tensor times the area, ``(S_xx, S_yy, S_xy)`` with ``S_ab = sum f r_a r_b / r``
+    over the bonds ``(bi, bj)`` of separations ``(dx, dy)`` (``f > 0`` repulsive): ``sigma =
+    S / A``, the pressure is ``(S_xx + S_yy) / (2 A)`` (``PHYSICS.md``)."""
+    dx = np.asarray(dx, dtype=np.float64)
+    dy = np.asarray(dy, dtype=np.float64)
+    r = np.hypot(dx, dy)
+    f = _pair_array_core(r, np.ascontiguousarray(radii[bi] + radii[bj]), float(exponent))[1]
+    fr = np.divide(f, r, out=np.zeros_like(f), where=r > 0)
+    return float(np.sum(fr * dx * dx)), float(np.sum(fr * dy * dy)), float(np.sum(fr * dx * dy))
 
 
 def check_exponent(exponent):

@@ -39,7 +39,9 @@ positions from the previous minimum, so they produce the same kind of packing:
   with ``max_search`` (or earlier at the ``max_search`` bound).
 
 Minimiser (``minimizer``): FIRE 2.0 (``kernels.fire``) or Polak-Ribiere+ conjugate
-gradients (``kernels.cg``). With CG, ``e_tol > 0`` replaces the force tolerances of
+gradients (``kernels.cg``). With ``cell`` shear, FIRE also relaxes the cell's tilt and aspect
+ratio at fixed area in every minimisation (``kernels.cellrelax``): the search's radius steps
+then act on a cell that follows the packing. With CG, ``e_tol > 0`` replaces the force tolerances of
 every minimisation by the paper's energy-change rule (no polish step); the final force
 residual is still returned.
 
@@ -53,7 +55,7 @@ Bounds: at most ``max_search`` minimisations, each of at most ``max_steps`` FIRE
 steps. The status says which bound stopped the search (``STATUS_NAMES``); it is
 ``converged`` only for a force-balanced packing inside the window.
 
-Jitted cores usable from other numba code: ``OHERN_CORES[(minimizer, endgame)]``, one
+Jitted cores usable from other numba code: ``OHERN_CORES[(minimizer, endgame, cell)]``, one
 per minimiser (each compiles only its own minimiser); ``_ohern_core`` (Python) picks one
 by the integer codes (see their docstrings).
 """
@@ -61,6 +63,7 @@ by the integer codes (see their docstrings).
 import numpy as np
 from numba import njit
 
+from kernels.cellrelax import _fire_cell_core
 from kernels.cg import _cg_core
 from kernels.newton import PATTERN_SKIN, _fire_newton
 from kernels.fire import BELOW, CONVERGED, DT_FACTOR, MAX_STEPS, _dt_for, _fire_core
@@ -86,6 +89,10 @@ MINIMIZER_NAMES = ("fire", "cg")
 ENDGAME_NONE = 0
 ENDGAME_NEWTON = 1
 ENDGAME_NAMES = ("none", "newton")
+
+CELL_FIXED = 0
+CELL_SHEAR = 1
+CELL_NAMES = ("fixed", "shear")
 
 # status codes of _ohern_core
 ST_CONVERGED = 0
@@ -133,6 +140,15 @@ def _minimize_newton(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_
     (``kernels.newton``, pattern skin ``pskin``; ``e_tol`` unused)."""
     r = _fire_newton(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort, pskin)
     return r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7]
+
+
+@njit(cache=True, inline="always")
+def _minimize_fire_cell(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort, e_tol,
+                        pskin):
+    """One minimisation with FIRE 2.0 on the disks and the cell's shape at fixed area
+    (``kernels.cellrelax``; ``box`` updated in place; ``e_tol`` and ``pskin`` unused)."""
+    r = _fire_cell_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abort)
+    return r[0], r[1], r[2], r[3], r[4], r[5], r[6], 0
 
 
 @njit(cache=True)
@@ -359,26 +375,38 @@ def _ohern_newton(positions, radii0, box, alpha, e_min, window, tol, search_tol,
                          energy_step, e_tol)
 
 
-#: The jitted O'Hern search per ``(minimizer, endgame)`` code pair (``MIN_*``, ``ENDGAME_*``);
-#: arguments those of ``_ohern_core`` without ``minimizer`` and ``endgame``.
+@njit(cache=True)
+def _ohern_fire_cell(positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search,
+                     max_steps, skin_factor, delta0, rule, max_radius, energy_step, e_tol):
+    """``_ohern_search`` with FIRE 2.0 on the disks and the cell's shape (``box`` is updated)."""
+    return _ohern_search(_minimize_fire_cell, positions, radii0, box, alpha, e_min, window, tol,
+                         search_tol, max_search, max_steps, skin_factor, delta0, rule, max_radius,
+                         energy_step, e_tol)
+
+
+#: The jitted O'Hern search per ``(minimizer, endgame, cell)`` code triple (``MIN_*``,
+#: ``ENDGAME_*``, ``CELL_*``); arguments those of ``_ohern_core`` without the three codes.
 OHERN_CORES = {
-    (MIN_FIRE, ENDGAME_NONE): _ohern_fire,
-    (MIN_CG, ENDGAME_NONE): _ohern_cg,
-    (MIN_FIRE, ENDGAME_NEWTON): _ohern_newton,
+    (MIN_FIRE, ENDGAME_NONE, CELL_FIXED): _ohern_fire,
+    (MIN_CG, ENDGAME_NONE, CELL_FIXED): _ohern_cg,
+    (MIN_FIRE, ENDGAME_NEWTON, CELL_FIXED): _ohern_newton,
+    (MIN_FIRE, ENDGAME_NONE, CELL_SHEAR): _ohern_fire_cell,
 }
 
 
 def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search,
                 max_steps, skin_factor, delta0, rule, max_radius, energy_step, minimizer, e_tol,
-                endgame):
-    """The O'Hern search (``_ohern_search``) with ``minimizer`` (``MIN_FIRE`` or ``MIN_CG``)
-    and ``endgame`` (``ENDGAME_NONE`` or ``ENDGAME_NEWTON``, FIRE only): calls the jitted
-    entry of ``OHERN_CORES`` for that pair, which compiles (or loads from the numba cache)
-    only that minimiser. Arguments and returned tuple as ``_ohern_search``."""
+                endgame, cell=CELL_FIXED):
+    """The O'Hern search (``_ohern_search``) with ``minimizer`` (``MIN_FIRE`` or ``MIN_CG``),
+    ``endgame`` (``ENDGAME_NONE`` or ``ENDGAME_NEWTON``, FIRE only) and ``cell``
+    (``CELL_FIXED``, or ``CELL_SHEAR`` with FIRE alone: ``box`` = [Lx, Ly, xy] is relaxed and
+    updated): calls the jitted entry of ``OHERN_CORES`` for that triple, which compiles (or
+    loads from the numba cache) only that minimiser. Arguments and returned tuple as
+    ``_ohern_search``."""
     try:
-        core = OHERN_CORES[(int(minimizer), int(endgame))]
+        core = OHERN_CORES[(int(minimizer), int(endgame), int(cell))]
     except KeyError:
-        raise ValueError(f"minimizer {minimizer!r} with endgame {endgame!r}: expected one of "
-                         f"{sorted(OHERN_CORES)}") from None
+        raise ValueError(f"minimizer {minimizer!r} with endgame {endgame!r} and cell {cell!r}: "
+                         f"expected one of {sorted(OHERN_CORES)}") from None
     return core(positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search,
                 max_steps, skin_factor, delta0, rule, max_radius, energy_step, e_tol)

@@ -87,7 +87,7 @@ from kernels.sparse import (
     _solve_core,
     _symbolic_core,
 )
-from kernels.space import _wrap_core, minimum_image
+from kernels.space import _wrap_core, separation
 
 #: Backward error ``|H u - Xi| / (|H|_F |u| + |Xi|)`` of a non-affine solve above which it is
 #: not trusted (a stable Cholesky solve gives about 1e-16).
@@ -629,8 +629,7 @@ def _gaps_core(positions, radii, box, rattler, hmax):
         j = pj[k]
         if rattler[i] or rattler[j]:
             continue
-        ddx = minimum_image(positions[j, 0] - positions[i, 0], box[0])
-        ddy = minimum_image(positions[j, 1] - positions[i, 1], box[1])
+        ddx, ddy = separation(positions[j, 0] - positions[i, 0], positions[j, 1] - positions[i, 1], box)
         s = radii[i] + radii[j]
         d2 = ddx * ddx + ddy * ddy
         if d2 < s * s:

@@ -1,19 +1,38 @@
-"""Periodic rectangular box: minimum image and wrapping (numba).
+"""Periodic cell: minimum image and wrapping (numba).
 
-The box is ``[0, Lx) x [0, Ly)`` with periodic boundaries in both directions.
-Only the nearest periodic image of a pair is ever considered, so callers must keep
-every interaction range below half the box side (``kernels.jamming`` checks it).
+The cell is spanned by the lattice vectors ``a = (Lx, 0)`` and ``b = (xy Ly, Ly)``
+(HOOMD's tilt factor ``xy``); ``xy = 0`` is the rectangular box ``[0, Lx) x [0, Ly)``.
+Inside numba every kernel takes the cell as ``box = [Lx, Ly, xy]`` (float64, length 3);
+the checked wrappers also accept ``(Lx, Ly)`` and read it as ``xy = 0``
+(``_as_box``), which gives bit for bit the results of the rectangular code: every
+tilt term is a product with ``xy = 0`` added to or subtracted from a coordinate.
+
+Positions are kept in the fundamental domain ``[0, Lx) x [0, Ly)`` (a rectangle is a
+fundamental domain of the tilted lattice too: fold ``y`` with ``b`` first, then ``x``
+with ``a``). A separation is reduced the same way: ``dy`` to ``[-Ly/2, Ly/2]`` with
+``b`` (which moves ``dx`` by ``xy Ly`` per period), then ``dx`` to ``[-Lx/2, Lx/2]``.
+Any nonzero lattice vector is at least ``min(Lx, Ly)`` long, so for interaction
+ranges below ``min(Lx, Ly) / 2`` this finds the only image in range, whatever the
+tilt (``kernels.jamming`` checks the range). Cell lists need the widths between
+opposite sides: ``Ly`` and ``Lx / sqrt(1 + xy^2)`` (``widths``).
 
 Jitted functions usable from other numba code:
 
-* ``minimum_image(dx, L)``: the component ``dx`` reduced to ``[-L/2, L/2]``.
-* ``_wrap_core(positions, box)``: positions folded into ``[0, L)`` (new array).
+* ``minimum_image(dx, L)``: one component reduced to ``[-L/2, L/2]``.
+* ``separation(dx, dy, box) -> (dx, dy)``: the nearest-image separation in the cell.
+* ``widths(box) -> (wx, wy)``: distances between opposite sides of the cell.
+* ``_wrap_core(positions, box)``: positions folded into ``[0, Lx) x [0, Ly)`` (new array).
 
-Checked wrapper: ``wrap(positions, box)``.
+Checked wrappers: ``wrap(positions, box)``, ``_as_box(box)``.
 """
 
 import numpy as np
 from numba import njit
+
+#: Largest |xy| accepted: a cell is reduced to |xy Ly| <= Lx / 2 by a lattice change (b -> b - a,
+#: xy -> xy - Lx / Ly, describes the same lattice); beyond 1 the cell's sides meet at angles that
+#: only waste cell-list work.
+MAX_TILT = 1.0
 
 
 @njit(cache=True, inline="always")
@@ -26,21 +45,50 @@ def minimum_image(dx, L):
     return dx - L * np.floor(dx / L + 0.5)
 
 
+@njit(cache=True, inline="always")
+def separation(dx, dy, box):
+    """Nearest-image separation ``(dx, dy)`` in the cell ``box = [Lx, Ly, xy]``: ``dy`` reduced
+    by whole periods ``b`` (each moves ``dx`` by ``xy Ly``), then ``dx`` by periods ``a``."""
+    Ly = box[1]
+    k = np.floor(dy / Ly + 0.5)
+    dy = dy - Ly * k
+    dx = dx - box[2] * Ly * k
+    return dx - box[0] * np.floor(dx / box[0] + 0.5), dy
+
+
+@njit(cache=True, inline="always")
+def widths(box):
+    """Distances between opposite sides of the cell: across ``b`` (``Lx / sqrt(1 + xy^2)``)
+    and across ``a`` (``Ly``)."""
+    return box[0] / np.sqrt(1.0 + box[2] * box[2]), box[1]
+
+
 @njit(cache=True)
 def _wrap_core(positions, box):
-    """Return a copy of ``positions`` (n, 2) folded into ``[0, box[k])``."""
+    """Return a copy of ``positions`` (n, 2) folded into ``[0, Lx) x [0, Ly)`` by lattice
+    vectors of the cell ``box = [Lx, Ly, xy]``."""
     n = positions.shape[0]
     out = np.empty((n, 2))
+    Lx = box[0]
+    Ly = box[1]
+    tilt = box[2] * Ly
     for i in range(n):
-        for k in range(2):
-            L = box[k]
-            x = positions[i, k] - L * np.floor(positions[i, k] / L)
-            # floor can return x == L for tiny negative inputs: fold it back
-            if x >= L:
-                x -= L
-            if x < 0.0:
-                x = 0.0
-            out[i, k] = x
+        k = np.floor(positions[i, 1] / Ly)
+        y = positions[i, 1] - Ly * k
+        x = positions[i, 0] - tilt * k
+        # floor can return y == L for tiny negative inputs: fold it back
+        if y >= Ly:
+            y -= Ly
+            x -= tilt
+        if y < 0.0:
+            y = 0.0
+        x = x - Lx * np.floor(x / Lx)
+        if x >= Lx:
+            x -= Lx
+        if x < 0.0:
+            x = 0.0
+        out[i, 0] = x
+        out[i, 1] = y
     return out
 
 
@@ -54,14 +102,25 @@ def _as_positions(positions, name="positions"):
 
 
 def _as_box(box):
+    """The cell as the kernels take it, ``[Lx, Ly, xy]`` (float64, contiguous), from
+    ``(Lx, Ly)`` (xy = 0) or ``(Lx, Ly, xy)``; ValueError on anything else."""
     arr = np.asarray(box, dtype=np.float64)
-    if arr.shape != (2,):
-        raise ValueError(f"box: expected two side lengths (Lx, Ly), got shape {arr.shape}")
-    if not (np.all(np.isfinite(arr)) and np.all(arr > 0)):
-        raise ValueError(f"box: expected two finite positive lengths, got {arr.tolist()}")
-    return np.ascontiguousarray(arr)
+    if arr.shape not in ((2,), (3,)):
+        raise ValueError(f"box: expected the sides (Lx, Ly) or a tilted cell (Lx, Ly, xy), "
+                         f"got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"box: expected finite values, got {arr.tolist()}")
+    if not np.all(arr[:2] > 0):
+        raise ValueError(f"box: expected two positive lengths, got {arr.tolist()}")
+    if arr.shape == (3,) and abs(arr[2]) > MAX_TILT:
+        raise ValueError(f"box: expected a tilt factor |xy| <= {MAX_TILT:g} (xy and xy - Lx/Ly "
+                         f"describe the same lattice: reduce it), got xy = {arr[2]!r}")
+    out = np.zeros(3)
+    out[:arr.shape[0]] = arr
+    return out
 
 
 def wrap(positions, box):
-    """Fold ``positions`` (n, 2) into the periodic box ``[0, Lx) x [0, Ly)``."""
+    """Fold ``positions`` (n, 2) into ``[0, Lx) x [0, Ly)`` by lattice vectors of the cell
+    ``box`` (``(Lx, Ly)`` or ``(Lx, Ly, xy)``)."""
     return _wrap_core(_as_positions(positions), _as_box(box))

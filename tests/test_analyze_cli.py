@@ -145,7 +145,7 @@ def test_too_many_columns(tmp_path, capsys):
 
 
 def test_bad_box_line(tmp_path, capsys):
-    p = _write(tmp_path, "1 1 1\n0.1 0.1 0.05\n0.5 0.5 0.05\n")
+    p = _write(tmp_path, "1 1 0.1 1\n0.1 0.1 0.05\n0.5 0.5 0.05\n")  # 'Lx Ly xy' is a tilted cell
     _user_error(capsys, p, expect=["line 1", "box line"])
 
 

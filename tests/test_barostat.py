@@ -19,7 +19,7 @@ from test_jam import ref_check
 
 def _state(n, seed, phi=0.86):
     pos, rad, _ = initial_state(n, seed, (1.0, 1.0), DEFAULTS["species"], phi)
-    return pos, rad, np.array([1.0, 1.0])
+    return pos, rad, np.array([1.0, 1.0, 0.0])  # the kernels' cell [Lx, Ly, xy]
 
 
 def test_barostat_force_is_the_virial():

@@ -130,4 +130,4 @@ def test_core_callable_from_numba():
 
     rng = np.random.default_rng(2)
     pos, rad, box = random_system(rng, 50, (1.0, 1.0), 0.5)
-    assert count(pos, rad, box, 0.01) == len(brute_pairs(pos, rad, box, 0.01))
+    assert count(pos, rad, np.append(box, 0.0), 0.01) == len(brute_pairs(pos, rad, box, 0.01))

@@ -42,7 +42,7 @@ json.dump({"compiled": r.compiled, "loaded": r.loaded, "modules": r.modules,
 """
 
 #: Kernel modules a FIRE jam and a scalars-only analysis must not compile.
-NOT_FOR_FIRE = ("cg", "linesearch", "newton", "sparse", "hessian", "barostat", "triangulate",
+NOT_FOR_FIRE = ("cg", "linesearch", "newton", "sparse", "hessian", "barostat", "triangulate", "cellrelax",
                 "observables", "response")
 
 
@@ -128,11 +128,15 @@ def test_spatial_order_is_the_argsort_of_the_cell_keys():
 def test_ohern_cores_one_per_minimiser():
     from kernels import protocol
 
-    assert set(protocol.OHERN_CORES) == {(protocol.MIN_FIRE, protocol.ENDGAME_NONE),
-                                         (protocol.MIN_CG, protocol.ENDGAME_NONE),
-                                         (protocol.MIN_FIRE, protocol.ENDGAME_NEWTON)}
+    fixed, shear = protocol.CELL_FIXED, protocol.CELL_SHEAR
+    assert set(protocol.OHERN_CORES) == {(protocol.MIN_FIRE, protocol.ENDGAME_NONE, fixed),
+                                         (protocol.MIN_CG, protocol.ENDGAME_NONE, fixed),
+                                         (protocol.MIN_FIRE, protocol.ENDGAME_NEWTON, fixed),
+                                         (protocol.MIN_FIRE, protocol.ENDGAME_NONE, shear)}
     with pytest.raises(ValueError, match="endgame"):
         protocol._ohern_core(*([None] * 15), protocol.MIN_CG, 0.0, protocol.ENDGAME_NEWTON)
+    with pytest.raises(ValueError, match="cell"):
+        protocol._ohern_core(*([None] * 15), protocol.MIN_CG, 0.0, protocol.ENDGAME_NONE, shear)
 
 
 def test_compile_report_names_kernels_and_summarises():

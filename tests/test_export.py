@@ -553,11 +553,11 @@ def test_malformed_gsd_exits_2(tmp_path, capsys):
         t.append(fr)
     _user_error(capsys, ["analyze", tmp_path / "d3.gsd"], ["3-dimensional frame"])
     fr.configuration.dimensions = 2
-    fr.configuration.box = [2.0, 2.0, 1.0, 0.3, 0, 0]
+    fr.configuration.box = [2.0, 2.0, 1.0, 0.0, 0.3, 0]  # xz: tilted out of the plane (xy is read)
     fr.particles.position = np.array([[0, 0, 0], [0.5, 0.5, 0]], np.float32)
     with gsd.hoomd.open(str(tmp_path / "tilt.gsd"), "w") as t:
         t.append(fr)
-    _user_error(capsys, ["analyze", tmp_path / "tilt.gsd"], ["tilted"])
+    _user_error(capsys, ["analyze", tmp_path / "tilt.gsd"], ["tilted out of the plane"])
     with gsd.hoomd.open(str(tmp_path / "empty.gsd"), "w"):
         pass
     _user_error(capsys, ["analyze", tmp_path / "empty.gsd"], ["holds no frames"])

@@ -141,8 +141,9 @@ def test_row_form_equals_pair_form(alpha):
     q = _pair_inv_sigma(rad, i, j)
     f1 = np.empty_like(pos)
     f2 = np.empty_like(pos)
-    a = _energy_forces_core(pos, box, i, j, q, alpha, f1)
+    cell = np.append(box, 0.0)  # the kernels' cell [Lx, Ly, xy]
+    a = _energy_forces_core(pos, cell, i, j, q, alpha, f1)
     start, nbr = _rows_from_pairs(len(pos), i, j)
-    b = _energy_forces_rows(pos, box, start, nbr, q, alpha, f2)
+    b = _energy_forces_rows(pos, cell, start, nbr, q, alpha, f2)
     assert a[2] == b[2] and np.allclose(a, b, rtol=1e-13)
     assert np.allclose(f1, f2, rtol=0, atol=1e-13 * np.abs(f1).max())

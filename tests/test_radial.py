@@ -13,6 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from kernels.observables import _radial_core, is_uniform
+from kernels.space import _as_box
 
 H = 1.0 / 16.0
 
@@ -50,7 +51,7 @@ def test_lattice_points_match_brute_force(seed, sides, npt, width, nbins, unifor
     else:
         edges = np.unique(np.r_[0.0, rng.integers(1, nbins + 1, nbins) * w, nbins * w])
     counts = np.zeros(len(edges) - 1, dtype=np.int64)
-    _radial_core(points, cls1, cls2, scales, box, edges, is_uniform(edges), counts)
+    _radial_core(points, cls1, cls2, scales, _as_box(box), edges, is_uniform(edges), counts)
     assert np.array_equal(counts, brute_force(points, cls1, cls2, scales, box, edges))
 
 
@@ -75,7 +76,7 @@ def test_distances_one_ulp_from_every_edge(top, nbins, seed):
     points = np.concatenate([a, b])
     c1 = np.r_[cls1, cls1]
     c2 = np.full(len(points), -1)
-    box = np.array([gap, gap * len(x)])
+    box = _as_box([gap, gap * len(x)])
     counts = np.zeros(nbins, dtype=np.int64)
     _radial_core(points, c1, c2, scales, box, edges, True, counts)
     expected = 2 * np.histogram(x, edges)[0]

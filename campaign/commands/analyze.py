@@ -9,13 +9,14 @@ import sys
 HELP = "analyse one configuration (text, .npz, HDF5, GSD or extended XYZ): scalars and identity checks"
 
 EPILOG = """\
-CONFIG formats (docs/CONFIG_FORMAT.md): plain text with a box line 'Lx Ly' then one
-'x y radius' row per disk ('#' starts a comment); .npz with arrays positions (n, 2),
-radii (n,), box (2,); HDF5 with datasets positions, radii, box (in --group); .gsd
-(HOOMD-blue's schema; the gsd package, the export extra) and .xyz/.extxyz (extended
-XYZ: Lattice, Properties with pos and radius or diameter), one frame chosen with
---frame K. Frames written by 'campaign export' carry the float64 positions and radii,
-which are used: the analysis gives the store's scalars exactly.
+CONFIG formats (docs/CONFIG_FORMAT.md): plain text with a box line 'Lx Ly' (or
+'Lx Ly xy', a tilted cell) then one 'x y radius' row per disk ('#' starts a comment);
+.npz with arrays positions (n, 2), radii (n,), box (2,) or (3,) [Lx, Ly, xy]; HDF5 with
+datasets positions, radii, box (in --group); .gsd (HOOMD-blue's schema, tilt xy included;
+the gsd package, the export extra) and .xyz/.extxyz (extended XYZ: Lattice, Properties
+with pos and radius or diameter), one frame chosen with --frame K. Frames written by
+'campaign export' carry the float64 positions, radii and box, and a shear-stabilised
+packing's frame its cell, which are used: the analysis gives the store's scalars exactly.
 Exit status: 0 analysed (identity failures are reported in the output, not as an
 error), 2 unreadable or malformed input, a frame out of range, a missing extra,
 1 internal fault.
@@ -43,6 +44,11 @@ def configure(parser):
                         help="alpha of the pair potential (1/alpha)(1 - r/s)^alpha for E_G and "
                              "pressure (default: the frame's, in files written by 'campaign export', "
                              "else 2, harmonic)")
+    parser.add_argument("--cell", choices=("fixed", "shear"), default=None,
+                        help="the ensemble the packing was made in, for the isostatic count of z_iso and "
+                             "delta_Z: fixed (2 N_G - 1 contacts) or shear (a shear-stabilised cell, "
+                             "2 N_G + 1); default: the frame's, in files written by 'campaign export', "
+                             "else fixed")
     parser.add_argument("--observables", default="scalars",
                         help="comma-separated observable names (the contact network's, and moduli, "
                              "modes, gaps: the linear response), or 'all' (default: scalars); "
@@ -63,7 +69,7 @@ def _clean(value):
 
 
 def main(args) -> int:
-    from campaign.storage.configio import read_configuration
+    from campaign.storage.configio import describe_box, read_configuration
     from campaign.errors import UserError
     from kernels.analysis import analyze
     from kernels.observables import OBSERVABLES
@@ -86,9 +92,10 @@ def main(args) -> int:
                         "give --exponent")
     for note in conf.notes:
         print(f"note: {note}", file=sys.stderr)
+    cell = args.cell or conf.cell or "fixed"
     try:
-        result = analyze(conf.positions, conf.radii, conf.box, names,
-                         exponent=exponent, species=conf.species)
+        result = analyze(conf.positions, conf.radii, conf.box, names, exponent=exponent, species=conf.species,
+                         **({"cell": cell} if cell != "fixed" else {}))
     except ValueError as exc:  # input the reader let through but the analysis cannot use
         raise UserError(f"{conf.source}: {exc}") from None
 
@@ -104,7 +111,8 @@ def main(args) -> int:
         return 0
 
     frame = f", frame {conf.frame}" if conf.frame is not None else ""
-    print(f"{conf.source}{frame}: {result.scalars['N']} disks, box {conf.box[0]:g} x {conf.box[1]:g}")
+    shear = ", shear-stabilised cell" if cell != "fixed" else ""
+    print(f"{conf.source}{frame}: {result.scalars['N']} disks, box {describe_box(conf.box)}{shear}")
     for key, value in result.scalars.items():
         if isinstance(value, float):
             print(f"  {key:16s} {value:.10g}")

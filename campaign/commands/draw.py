@@ -19,7 +19,9 @@ Layers: disks (by species; rattlers yellow), contacts (contact points, red), net
 white), fictitious (fictitious contacts, dashed red), forces (the network with line
 widths proportional to the pair force). Default: all but forces. Periodic images are
 drawn across the box edges (dashed); --region X Y W H shows a window, which may reach
-up to one box length beyond the box.
+up to one box length beyond the box. A tilted cell (box [Lx, Ly, xy], a shear-stabilised
+packing) is drawn as its parallelogram with images by its lattice vectors (Lx, 0) and
+(xy Ly, Ly); the window and --region then refer to the parallelogram's bounding box.
 
 Exit status: 0 drawn, 2 bad input (missing or malformed file, no configurations in
 the store, unknown task, region outside the box, unknown layer), 1 internal fault.

@@ -12,14 +12,16 @@ Formats (docs/STORE.md, "Export formats"):
                 scalar (A_G, N_G, psi_O, ...), numbers at full precision; parquet needs
                 pyarrow (the export extra)
   gsd           one frame per packing (HOOMD-blue's schema, for OVITO, freud, HOOMD):
-                box, positions, diameters, species as types; the schema's positions are
-                float32, so each frame also keeps the float64 positions, radii and box
-                sides in its log (particles/campaign/position64, particles/campaign/radius64,
-                campaign/box64) and the packing's columns as campaign/<column>; needs gsd
-                (the export extra)
+                box (tilt xy included), positions, diameters, species as types; the
+                schema's positions are float32, so each frame also keeps the float64
+                positions, radii and box ([Lx, Ly], or [Lx, Ly, xy] for a tilted cell) in its
+                log (particles/campaign/position64, particles/campaign/radius64,
+                campaign/box64), the variant's cell (campaign/cell) and the packing's
+                columns as campaign/<column>; needs gsd (the export extra)
   xyz           extended XYZ text (OVITO, ASE), full float64 precision, one frame per
-                packing: Lattice, Properties=type:S:1:pos:R:3:radius:R:1, pbc and the
-                packing's columns as key=value in the comment line
+                packing: Lattice (tilted for a tilted cell), Properties=type:S:1:pos:R:3:
+                radius:R:1, pbc, the packing's columns and its cell as key=value in the
+                comment line
 gsd and xyz write the packings whose configuration the store kept ('store:
 {configurations: true}' in the spec); a store without configurations is refused.
 

@@ -95,7 +95,7 @@ def _auto_advice(spec, tasks, cal):
     for v in spec.variants:
         proto = dict(v.protocol)
         if proto.get("endgame") == "auto" or proto.get("minimizer", "fire") != "fire" or "stop" in proto \
-                or "route" in proto:
+                or "route" in proto or "cell" in proto:  # the Newton endgame: FIRE, O'Hern, fixed cell
             continue
         bare = {k: x for k, x in proto.items() if k != "endgame"}
         if any(w is not v and w.system == v.system and {k: x for k, x in dict(w.protocol).items()

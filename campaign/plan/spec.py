@@ -40,7 +40,7 @@ from kernels.names import (DEFAULT_OBSERVABLES, HISTOGRAMS, MAX_POLYDISPERSITY, 
 PROTOCOL_DEFAULTS = {"window": 0.1, "force_tolerance": 1e-6}
 PROTOCOL_KEYS = ("window", "force_tolerance", "search_tolerance", "phi_start", "max_search", "max_steps",
                  "minimizer", "search", "delta", "skin", "start", "stop", "energy_tolerance", "route",
-                 "endgame")
+                 "endgame", "cell")
 MINIMIZERS = ("fire", "cg")
 #: how each minimisation of the O'Hern search ends (``kernels.protocol.ENDGAME_NAMES``): FIRE
 #: alone ("none", the default) or FIRE handing over to sparse Newton steps (``kernels.newton``)
@@ -53,6 +53,9 @@ ROUTES = ("ohern", "pressure")
 #: where each packing's search starts: "random" (independent packings, the paper's protocol) or
 #: "ladder" (the same seed's packing at the next higher energy of the grid, decompressed)
 STARTS = ("random", "ladder")
+#: the periodic cell (``kernels.jamming.CELL_NAMES``): "fixed" (default, the spec's box) or "shear" (its
+#: tilt and aspect ratio relaxed with the disks at fixed area: the shear-stabilised ensemble)
+CELLS = ("fixed", "shear")
 
 TOP_KEYS = ("name", "seed", "system", "grid", "protocol", "variants", "observables", "bins",
             "store", "run", "output")
@@ -673,7 +676,7 @@ def _protocol(c, value, path, allow, base=None):
     }
     choices = {"search": ("search rule", SEARCH_RULES), "start": ("start", STARTS),
                "minimizer": ("minimizer", MINIMIZERS), "stop": ("stop rule", STOPS),
-               "route": ("route", ROUTES), "endgame": ("endgame", ENDGAMES)}
+               "route": ("route", ROUTES), "endgame": ("endgame", ENDGAMES), "cell": ("cell", CELLS)}
     for k, v in m.items():
         if k in checks:
             x = c.number(v, path + (k,), **checks[k])
@@ -708,6 +711,14 @@ def _protocol(c, value, path, allow, base=None):
                                    "search: it needs minimizer 'fire', stop 'force' and route 'ohern', "
                                    f"got minimizer {out.get('minimizer', 'fire')!r}, stop "
                                    f"{out.get('stop', 'force')!r}, route {out.get('route', 'ohern')!r}")
+    if out.get("cell") == "fixed":
+        del out["cell"]  # the default: packings keep their ids
+    if out.get("cell") == "shear" and (out.get("minimizer", "fire") != "fire" or "stop" in out or "route" in out
+                                       or "endgame" in out):
+        c.err(path + ("cell",), "cell 'shear' relaxes the cell with the FIRE minimisations of the O'Hern search: "
+                                "it needs minimizer 'fire', stop 'force', route 'ohern' and endgame 'none', got "
+                                f"minimizer {out.get('minimizer', 'fire')!r}, stop {out.get('stop', 'force')!r}, "
+                                f"route {out.get('route', 'ohern')!r}, endgame {out.get('endgame', 'none')!r}")
     if out.get("route") == "pressure" and (out.get("minimizer", "fire") != "fire" or "stop" in out):
         c.err(path + ("route",), "route 'pressure' relaxes with FIRE and stops on the force residual: it "
                                  f"needs minimizer 'fire' and stop 'force', got minimizer "

@@ -23,6 +23,11 @@ per-void Delaunay triangulation of ``kernels.triangulate``:
 
 Only contractible faces are drawn as voids (a face winding around the torus exists
 only in a packing that fails its identities).
+
+A tilted cell (box ``[Lx, Ly, xy]``, ``cell: shear``) is drawn as its parallelogram, spanned by
+``(Lx, 0)`` and ``(xy Ly, Ly)``: the disks' centres are brought into it, periodic images are its
+translates by those lattice vectors, and the default window (and what ``--region`` is checked
+against) is the parallelogram's bounding box. A rectangular box is the case ``xy = 0``.
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import UserError
+from campaign.storage.configio import describe_box, tilt
 
 LAYERS = ("disks", "contacts", "network", "grains", "voids", "fictitious", "forces")
 DEFAULT_LAYERS = ("disks", "contacts", "network", "grains", "voids", "fictitious")
@@ -86,24 +92,38 @@ class Scene:
 # ----------------------------------------------------------------------------- geometry
 
 
-def check_window(region, box):
-    """The drawing window ``(x0, y0, x1, y1)`` from ``--region X Y W H`` (None: the box)."""
+def cell_bounds(box):
+    """The cell's bounding box ``(x0, y0, x1, y1)``: ``(0, 0, Lx, Ly)`` for a rectangle, else the
+    parallelogram's, with corners 0, ``(Lx, 0)``, ``(xy Ly, Ly)`` and their sum."""
     Lx, Ly = float(box[0]), float(box[1])
-    if region is None:
+    if len(box) < 3:
         return (0.0, 0.0, Lx, Ly)
+    t = tilt(box) * Ly
+    return (min(0.0, t), 0.0, Lx + max(0.0, t), Ly)
+
+
+def check_window(region, box):
+    """The drawing window ``(x0, y0, x1, y1)`` from ``--region X Y W H`` (None: the cell's bounding
+    box, ``cell_bounds``), which it must overlap and reach at most ``REGION_LIMIT`` of its sides
+    beyond."""
+    bx0, by0, bx1, by1 = cell_bounds(box)
+    if region is None:
+        return (bx0, by0, bx1, by1)
     x, y, w, h = (float(v) for v in region)
     if not all(math.isfinite(v) for v in (x, y, w, h)):
         raise UserError(f"--region: expected four finite numbers X Y W H, got {region}")
     if w <= 0 or h <= 0:
         raise UserError(f"--region: expected a positive width and height, got W = {w:g}, H = {h:g}")
     x1, y1 = x + w, y + h
-    if x >= Lx or y >= Ly or x1 <= 0 or y1 <= 0:
-        raise UserError(f"--region {x:g} {y:g} {w:g} {h:g} lies outside the box [0, {Lx:g}] x [0, {Ly:g}] "
-                        "(expected a window that overlaps it)")
-    lim = REGION_LIMIT
-    if x < -lim * Lx or y < -lim * Ly or x1 > (1 + lim) * Lx or y1 > (1 + lim) * Ly:
-        raise UserError(f"--region {x:g} {y:g} {w:g} {h:g} reaches more than one box length beyond the box "
-                        f"[0, {Lx:g}] x [0, {Ly:g}] (periodic images fill at most one box around it)")
+    what = "the box" if len(box) < 3 else f"the tilted cell's bounding box (xy = {tilt(box):g})"
+    if x >= bx1 or y >= by1 or x1 <= bx0 or y1 <= by0:
+        raise UserError(f"--region {x:g} {y:g} {w:g} {h:g} lies outside {what} [{bx0:g}, {bx1:g}] x "
+                        f"[{by0:g}, {by1:g}] (expected a window that overlaps it)")
+    lim, W, H = REGION_LIMIT, bx1 - bx0, by1 - by0
+    if x < bx0 - lim * W or y < by0 - lim * H or x1 > bx1 + lim * W or y1 > by1 + lim * H:
+        raise UserError(f"--region {x:g} {y:g} {w:g} {h:g} reaches more than one box length beyond {what} "
+                        f"[{bx0:g}, {bx1:g}] x [{by0:g}, {by1:g}] (periodic images fill at most one box "
+                        "around it)")
     return (x, y, x1, y1)
 
 
@@ -152,7 +172,10 @@ def _concat(kind, parts):
 
 
 def _with_images(kind, primary, box, window):
-    """Primary copies plus every translate by whole box lengths that meets the window."""
+    """Primary copies plus every translate by whole box lengths that meets the window (by lattice
+    vectors ``i (Lx, 0) + j (xy Ly, Ly)`` in a tilted cell ``box = (Lx, Ly, xy)``)."""
+    if len(box) > 2:
+        return _tilted_images(kind, primary, box, window)
     lo, hi = _bbox(kind, primary)
     Lx, Ly = box
     x0, y0, x1, y1 = window
@@ -173,6 +196,41 @@ def _with_images(kind, primary, box, window):
     return Primitives(primary, _concat(kind, parts) or {})
 
 
+def _tilted_images(kind, primary, box, window):
+    lo, hi = _bbox(kind, primary)
+    Lx, Ly = box[0], box[1]
+    t = box[2] * Ly  # the x shift of one period along b
+    x0, y0, x1, y1 = window
+    parts = []
+    if not lo.size:
+        return Primitives(primary, {})
+    jmin = np.ceil((y0 - hi[:, 1]) / Ly).astype(np.int64)
+    jmax = np.floor((y1 - lo[:, 1]) / Ly).astype(np.int64)
+    for j in range(int(jmin.min()), int(jmax.max()) + 1):
+        # shifts i Lx + j t with x0 < hi + i Lx + j t and lo + i Lx + j t < x1
+        imin = np.ceil((x0 - hi[:, 0] - j * t) / Lx).astype(np.int64)
+        imax = np.floor((x1 - lo[:, 0] - j * t) / Lx).astype(np.int64)
+        for i in range(int(imin.min()), int(imax.max()) + 1):
+            if i == 0 and j == 0:
+                continue
+            keep = (imin <= i) & (i <= imax) & (jmin <= j) & (j <= jmax)
+            if keep.any():
+                parts.append(_select(kind, primary, keep, np.array([i * Lx + j * t, j * Ly])))
+    return Primitives(primary, _concat(kind, parts) or {})
+
+
+def _into_cell(positions, box):
+    """Centres moved by whole lattice vectors into the parallelogram of the cell ``[Lx, Ly, xy]``
+    (fractional coordinates in [0, 1) up to rounding)."""
+    Lx, Ly, xy = (float(v) for v in box)
+    p = np.array(positions, dtype=np.float64)
+    k = np.floor(p[:, 1] / Ly)
+    p[:, 1] -= k * Ly
+    p[:, 0] -= k * xy * Ly
+    p[:, 0] -= np.floor((p[:, 0] - xy * p[:, 1]) / Lx) * Lx
+    return p
+
+
 def scene(positions, radii, box, species=None, *, exponent=2.0, region=None, layers=DEFAULT_LAYERS) -> Scene:
     """Everything a picture of this configuration shows (see the module docstring)."""
     from kernels.network import network
@@ -183,8 +241,11 @@ def scene(positions, radii, box, species=None, *, exponent=2.0, region=None, lay
     window = check_window(region, box)
     pos = np.asarray(positions, dtype=np.float64)
     rad = np.asarray(radii, dtype=np.float64)
-    pos = pos - np.floor(pos / box) * box  # centres into [0, L); everything else is unwrapped from them
-    pos[pos >= box] -= np.broadcast_to(box, pos.shape)[pos >= box]
+    if box.shape == (3,):  # a tilted cell: centres into its parallelogram
+        pos = _into_cell(pos, box)
+    else:
+        pos = pos - np.floor(pos / box) * box  # centres into [0, L); everything else is unwrapped from them
+        pos[pos >= box] -= np.broadcast_to(box, pos.shape)[pos >= box]
     net = network(pos, rad, box)
     rattler = net["rattler"]
     offsets, src, dst = net["offsets"], net["src"], net["dst"]
@@ -225,7 +286,7 @@ def scene(positions, radii, box, species=None, *, exponent=2.0, region=None, lay
     # voids: walk each face from its first grain, unwrapping with the displacements
     fptr, fhe = net["face_ptr"], net["face_he"]
     nf = fptr.shape[0] - 1
-    Lmin = float(box.min())
+    Lmin = float(box[:2].min())
     contractible = np.hypot(net["sum_dx"], net["sum_dy"]) < 0.25 * Lmin
     d = hd[fhe]
     face = np.repeat(np.arange(nf), np.diff(fptr))
@@ -245,7 +306,7 @@ def scene(positions, radii, box, species=None, *, exponent=2.0, region=None, lay
         chords.append(np.stack([c[ci], c[cj]], axis=1))
     fict = {"segments": np.concatenate(chords) if chords else np.empty((0, 2, 2))}
 
-    b = (float(box[0]), float(box[1]))
+    b = tuple(float(x) for x in box)
     n_g = int(np.count_nonzero(~rattler))
     counts = {"N": int(rad.shape[0]), "N_G": n_g, "N_R": int(rattler.sum()), "contacts": int(one.size),
               "N_V": int(contractible.sum()), "N_F": int(fict["segments"].shape[0]),
@@ -297,7 +358,7 @@ def render(sc: Scene, *, title=None, ax=None, legend=True, scale=True, size=None
     plt = _plt()
     x0, y0, x1, y1 = sc.window
     ww, wh = x1 - x0, y1 - y0
-    Lx, Ly = sc.box
+    Lx, Ly = float(sc.box[0]), float(sc.box[1])
     n_win = sc.counts["N"] * (ww * wh) / (Lx * Ly)
     if ax is None:
         width = size or float(np.clip(3.0 + 0.11 * math.sqrt(n_win), 5.0, 20.0))
@@ -390,9 +451,15 @@ def render(sc: Scene, *, title=None, ax=None, legend=True, scale=True, size=None
         handles.append(Line2D([], [], color=CONTACT_COLOUR, marker="o", ls="", ms=4, label="contact point"))
 
     # the box's edges, where images begin
-    ax.add_patch(plt.Rectangle((0, 0), Lx, Ly, fill=False, ec=BOX_COLOUR, lw=1.4, ls=(0, (6, 3)), zorder=7,
-                               gid="box"))
-    handles.append(Line2D([], [], color=BOX_COLOUR, lw=1.4, ls="--", label="box edge (images beyond)"))
+    if len(sc.box) > 2:  # a tilted cell: its parallelogram
+        t = tilt(sc.box) * Ly
+        ax.add_patch(plt.Polygon([(0, 0), (Lx, 0), (Lx + t, Ly), (t, Ly)], closed=True, fill=False, ec=BOX_COLOUR,
+                                 lw=1.4, ls=(0, (6, 3)), zorder=7, gid="box"))
+    else:
+        ax.add_patch(plt.Rectangle((0, 0), Lx, Ly, fill=False, ec=BOX_COLOUR, lw=1.4, ls=(0, (6, 3)), zorder=7,
+                                   gid="box"))
+    edge = "cell edge (images beyond)" if len(sc.box) > 2 else "box edge (images beyond)"
+    handles.append(Line2D([], [], color=BOX_COLOUR, lw=1.4, ls="--", label=edge))
     ax.set_xticks([])
     ax.set_yticks([])
     if title:
@@ -542,8 +609,8 @@ def read_source(path, *, task=None, index=None, fmt="auto", group="/", exponent=
 def title_of(src: Source, sc: Scene) -> str:
     c = sc.counts
     x0, y0, x1, y1 = sc.window
-    whole = sc.window == (0.0, 0.0, float(sc.box[0]), float(sc.box[1]))
-    w = "" if whole else f"; window [{x0:.3g}, {x1:.3g}] x [{y0:.3g}, {y1:.3g}] of the box {sc.box[0]:g} x {sc.box[1]:g}"
+    whole = sc.window == cell_bounds(sc.box)
+    w = "" if whole else f"; window [{x0:.3g}, {x1:.3g}] x [{y0:.3g}, {y1:.3g}] of the box {describe_box(sc.box)}"
     return f"{src.label}\nN = {c['N']} disks, N_G = {c['N_G']} grains{w}"
 
 

@@ -11,6 +11,11 @@ blocks, histograms never read), in store order:
   types, and the packing's columns with the frame. GSD holds positions as float32, too coarse
   near jamming, so every frame also carries the float64 positions, radii and box sides in its
   log (``campaign.storage.configio.GSD_POSITIONS64`` ...); extended XYZ is text at full precision.
+  A tilted cell (a stored box ``[Lx, Ly, xy]``, ``cell: shear``) is HOOMD's tilted box
+  ``[Lx, Ly, 1, xy, 0, 0]`` and the extended XYZ ``Lattice="Lx 0 0 xy*Ly Ly 0 0 0 1"``; the float64
+  box ``campaign/box64`` is the stored box as it is (``[Lx, Ly]`` or ``[Lx, Ly, xy]``), and every
+  frame names its variant's cell (``campaign/cell``, ``cell="fixed"`` or ``"shear"``) for
+  ``campaign analyze``.
 
 The layout of each format is documented in docs/STORE.md ("Export formats"). The file is
 written under a temporary name beside ``out`` and renamed into place when complete.
@@ -24,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from campaign.storage.configio import GSD_BOX64, GSD_POSITIONS64, GSD_PREFIX, GSD_RADII64
+from campaign.storage.configio import GSD_BOX64, GSD_POSITIONS64, GSD_PREFIX, GSD_RADII64, fractional, tilt
 from campaign.errors import UserError, require
 
 FORMATS = ("csv", "parquet", "gsd", "xyz")
@@ -140,17 +145,18 @@ def _write_parquet(pk, tmp, pa):
 
 
 def variant_types(attrs) -> dict:
-    """``{variant: (species names, exponent)}`` from the spec stored in the file; a spec this
-    version cannot read gives the paper's system (A, B; exponent 2)."""
+    """``{variant: (species names, exponent, cell)}`` from the spec stored in the file (``cell``:
+    the protocol's, "fixed" or "shear"); a spec this version cannot read gives the paper's system
+    (A, B; exponent 2) in a fixed cell."""
     from campaign.plan.spec import System, parse_spec
 
-    def describe(system):
+    def describe(system, protocol=()):
         names = ("A",) if system.sizes is not None else tuple(s.name for s in system.species)
-        return names, float(system.exponent)
+        return names, float(system.exponent), dict(protocol).get("cell", "fixed")
 
     try:
         spec = parse_spec(str(attrs.get("spec_yaml", "")), "the stored spec")
-        out = {v.name: describe(v.system) for v in spec.variants}
+        out = {v.name: describe(v.system, v.protocol) for v in spec.variants}
     except UserError:
         out = {}
     out.setdefault("default", describe(System()))
@@ -164,8 +170,8 @@ def _types(names, species):
 
 
 def _frames(pk):
-    """``(k, columns of the packing, configuration, type names, exponent)`` per frame, and the
-    count of selected packings without a configuration (the last item yielded: an int)."""
+    """``(k, columns of the packing, configuration, type names, exponent, cell)`` per frame, and
+    the count of selected packings without a configuration (the last item yielded: an int)."""
     systems = variant_types(pk.attrs)
     names = [n for n, _ in pk.columns]
     k = missing = 0
@@ -176,16 +182,20 @@ def _frames(pk):
             if conf is None:
                 missing += 1
                 continue
-            types, alpha = systems.get(str(cols["variant"]), systems["default"])
-            yield k, cols, conf, _types(types, conf["species"]), alpha
+            types, alpha, cell = systems.get(str(cols["variant"]), systems["default"])
+            yield k, cols, conf, _types(types, conf["species"]), alpha, cell
             k += 1
     yield missing
 
 
 def hoomd_positions(positions, box) -> np.ndarray:
     """(n, 3) float32 positions in HOOMD's convention: the box centred on the origin, every
-    coordinate in [-L/2, L/2) after rounding to float32, z = 0."""
+    coordinate in [-L/2, L/2) after rounding to float32, z = 0. A tilted cell ``[Lx, Ly, xy]``:
+    ``r = (Lx s_x + xy Ly s_y, Ly s_y)`` with fractional coordinates ``s`` in [-1/2, 1/2), as HOOMD
+    computes them from the float32 values of the positions and of the box it reads."""
     L = np.asarray(box, dtype=np.float64)
+    if L.shape == (3,):
+        return _hoomd_tilted(positions, L)
     p = np.asarray(positions, dtype=np.float64)
     p = p - L * np.floor(p / L) - 0.5 * L
     p32 = p.astype(np.float32)
@@ -194,6 +204,30 @@ def hoomd_positions(positions, box) -> np.ndarray:
     p32 = np.where(p32 >= half, p32 - L32, p32)
     p32 = np.where(p32 < -half, p32 + L32, p32)
     out = np.zeros((len(p), 3), dtype=np.float32)
+    out[:, :2] = p32
+    return out
+
+
+def _hoomd_tilted(positions, box):
+    Lx, Ly, xy = box
+    s = fractional(positions, box) - 0.5  # the cell centred on the origin: r - (a + b) / 2
+    s -= np.floor(s + 0.5)  # [-1/2, 1/2)
+    p32 = np.stack([Lx * s[:, 0] + xy * Ly * s[:, 1], Ly * s[:, 1]], axis=1).astype(np.float32)
+    # what HOOMD reads: the float32 box; a coordinate rounded onto an edge goes to its image
+    b32 = np.asarray(box, np.float32)
+    shift_y, shift_x = np.array([b32[2] * b32[1], b32[1]], np.float32), np.array([b32[0], 0.0], np.float32)
+    for _ in range(4):
+        f = fractional(p32.astype(np.float64), b32.astype(np.float64))
+        up, down = f[:, 1] >= 0.5, f[:, 1] < -0.5
+        if not (up.any() or down.any()):
+            right, left = f[:, 0] >= 0.5, f[:, 0] < -0.5
+            if not (right.any() or left.any()):
+                break
+            p32[right] -= shift_x
+            p32[left] += shift_x
+        p32[up] -= shift_y
+        p32[down] += shift_y
+    out = np.zeros((len(p32), 3), dtype=np.float32)
     out[:, :2] = p32
     return out
 
@@ -213,12 +247,12 @@ def _write_gsd(pk, tmp, hoomd):
             if isinstance(item, int):
                 missing = item
                 break
-            k, cols, conf, types, alpha = item
+            k, cols, conf, types, alpha, cell = item
             pos, rad, box = conf["positions"], conf["radii"], conf["box"]
             fr = hoomd.Frame()
             fr.configuration.step = k
             fr.configuration.dimensions = 2
-            fr.configuration.box = [float(box[0]), float(box[1]), 1.0, 0.0, 0.0, 0.0]
+            fr.configuration.box = [float(box[0]), float(box[1]), 1.0, tilt(box), 0.0, 0.0]
             fr.particles.N = len(rad)
             fr.particles.types = types
             fr.particles.typeid = conf["species"].astype(np.uint32)
@@ -228,6 +262,7 @@ def _write_gsd(pk, tmp, hoomd):
                    GSD_BOX64: np.asarray(box, np.float64), f"{GSD_PREFIX}exponent": np.array([alpha])}
             for name, value in cols.items():
                 log[f"{GSD_PREFIX}{name}"] = _gsd_log_value(name, value)
+            log[f"{GSD_PREFIX}cell"] = _gsd_log_value("cell", cell)  # in every frame, as every log chunk
             fr.log = log
             traj.append(fr)
             count += 1
@@ -245,13 +280,18 @@ def _xyz_value(value) -> str:
     return repr(float(value))
 
 
-def xyz_frame(cols, conf, types, exponent) -> str:
-    """One extended XYZ frame (see docs/STORE.md, "Export formats")."""
+def xyz_frame(cols, conf, types, exponent, cell="fixed") -> str:
+    """One extended XYZ frame (see docs/STORE.md, "Export formats"). A tilted cell's second lattice
+    vector is ``(xy Ly, Ly, 0)``, and ``gamma`` carries its float64 ``xy``."""
     pos, rad, box, sp = conf["positions"], conf["radii"], conf["box"], conf["species"]
-    Lx, Ly = (repr(float(x)) for x in box)
-    head = [f'Lattice="{Lx} 0.0 0.0 0.0 {Ly} 0.0 0.0 0.0 1.0"', f"Properties={XYZ_PROPERTIES}", 'pbc="T T F"']
+    Lx, Ly = (repr(float(x)) for x in box[:2])
+    bx = repr(tilt(box) * float(box[1])) if len(box) > 2 else "0.0"
+    head = [f'Lattice="{Lx} 0.0 0.0 {bx} {Ly} 0.0 0.0 0.0 1.0"', f"Properties={XYZ_PROPERTIES}", 'pbc="T T F"']
     head += [f"{name}={_xyz_value(value)}" for name, value in cols.items()]
+    if len(box) > 2 and "gamma" not in cols:
+        head.append(f"gamma={_xyz_value(tilt(box))}")
     head.append(f"exponent={_xyz_value(float(exponent))}")
+    head.append(f"cell={_xyz_value(cell)}")
     names = [_UNSAFE.sub("_", t) or "_" for t in types]
     lines = [str(len(rad)), " ".join(head)]
     lines += [f"{names[s]} {x!r} {y!r} 0.0 {r!r}"
@@ -267,7 +307,7 @@ def _write_xyz(pk, tmp, _module):
             if isinstance(item, int):
                 missing = item
                 break
-            k, cols, conf, types, alpha = item
-            fh.write(xyz_frame(cols, conf, types, alpha))
+            k, cols, conf, types, alpha, cell = item
+            fh.write(xyz_frame(cols, conf, types, alpha, cell))
             count += 1
     return {"packings": count, "without_configuration": missing}

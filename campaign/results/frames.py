@@ -3,7 +3,8 @@
 ``read_packings(path, variant=None, good=True)``
     one row per finished packing (index ``row``: the store's task row), columns ``id``,
     ``variant``, ``N``, ``E``, ``seed``, ``status`` and every stored scalar under its store
-    name (``A_G``, ``N_G``, ``psi_O``, ...). ``good=True`` keeps exactly the packings the
+    name (``A_G``, ``N_G``, ``psi_O``, ``gamma`` and ``sigma_xy`` (the cell's tilt and residual
+    shear stress; absent from stores written before them), ...). ``good=True`` keeps exactly the packings the
     reducer uses (``campaign.results.reading.first_done`` and ``usable_mask``: done, first row of its
     task id, ``jam_status == 0``, ``identities_ok == 1``); ``good=False`` every finished row.
 ``read_cells(path)``
@@ -209,7 +210,8 @@ class Packings:
 
     def configuration(self, task_id):
         """The stored configuration of a task: ``{"positions", "radii", "box", "species"}`` (float64,
-        species int), or None when the store did not keep it."""
+        species int; ``box`` is ``[Lx, Ly]``, or ``[Lx, Ly, xy]`` for a tilted cell), or None when the
+        store did not keep it."""
         from campaign.storage.checksums import check_configuration
 
         name = f"configurations/{task_id}"

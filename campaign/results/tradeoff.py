@@ -43,8 +43,14 @@ def _per_packing(fin):
     nan = np.full(len(fin), np.nan)
     cols = {q: s.get(q, nan) for q in QUANTITIES if q != "iso_excess"}
     if "N_C" in s and "N_G" in s:
-        # contacts (N_C counts each twice) beyond the isostatic 2 N_G - 1
-        cols["iso_excess"] = s["N_C"] / 2.0 - (2.0 * s["N_G"] - 1.0)
+        # contacts (N_C counts each twice) beyond the isostatic count: 2 N_G - 1 in a fixed cell,
+        # 2 N_G + 1 in a shear-stabilised one, z_iso N_G / 2 (an integer) where z_iso is stored
+        iso = 2.0 * s["N_G"] - 1.0
+        if "z_iso" in s:
+            with np.errstate(invalid="ignore"):
+                z = np.rint(s["z_iso"] * s["N_G"] / 2.0)
+            iso = np.where(np.isfinite(z), z, iso)
+        cols["iso_excess"] = s["N_C"] / 2.0 - iso
     else:
         cols["iso_excess"] = nan
     e_rel = s["E_G"] / np.asarray(fin.E, float) - 1.0 if "E_G" in s else nan

@@ -26,12 +26,12 @@ def _log(msg):
 
 def _warm_ups(tasks) -> list:
     """One protocol per distinct choice of compiled kernels among the tasks (minimiser, endgame,
-    route): the warm-up compiles each once, before any task is timed (variants, and
+    route, cell): the warm-up compiles each once, before any task is timed (variants, and
     ``endgame: auto``, may use several)."""
     out = {}
     for proto in sorted(set(t.protocol for t in tasks), key=repr):
         p = dict(proto)
-        out.setdefault(tuple(str(p.get(k)) for k in ("minimizer", "endgame", "route")), p)
+        out.setdefault(tuple(str(p.get(k)) for k in ("minimizer", "endgame", "route", "cell")), p)
     return list(out.values())
 
 

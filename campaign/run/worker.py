@@ -63,15 +63,17 @@ class KernelTask:
         protocol.pop("start", None)  # "ladder": the master sends the parent's packing as payload["start"]
         start = payload.get("start")
         if start is not None:
-            start = (start["positions"], start["radii"], start["species"])
+            start = (start["positions"], start["radii"], start["species"], start["box"])
         t0 = time.perf_counter()
         p = kernels.jam(payload["N"], payload["E"], list(payload["entropy"]), start=start,
                         box=tuple(system["box"]), exponent=exponent, **protocol)
         t1 = time.perf_counter()
         obs = [o for o in context["observables"]]
         bins = {h: np.asarray(e, dtype=np.float64) for h, e in (context.get("edges") or {}).items()}
+        # the isostatic count of the cell (2 N_G - 1 fixed, 2 N_G + 1 shear-stabilised): z_iso, delta_Z
+        cell = {"cell": protocol["cell"]} if "cell" in protocol else {}
         a = kernels.analyze(p.positions, p.radii, p.box, observables=obs, bins=bins or None,
-                            exponent=exponent, species=p.species)
+                            exponent=exponent, species=p.species, **cell)
         t2 = time.perf_counter()
         scalars = {k: float(v) for k, v in a.scalars.items()}
         # each identity flag too (1.0 holds), so a campaign shows which identity a packing fails
@@ -82,7 +84,7 @@ class KernelTask:
                        sigma_max=float(np.max(p.radii)), jam_seconds=t1 - t0, analyze_seconds=t2 - t1)
         if protocol.get("endgame", "none") != "none":
             scalars["factorizations"] = float(p.factorizations)  # the Newton endgame's sparse Cholesky
-        for name in ("energy_nonrattler", "pressure", "phi"):
+        for name in ("energy_nonrattler", "pressure", "phi", "gamma", "sigma_xy"):
             if name not in scalars and hasattr(p, name):
                 scalars[name] = float(getattr(p, name))
         hists = {h: a.histograms[h] for h in context["histograms"]}

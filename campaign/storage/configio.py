@@ -6,6 +6,11 @@ frame (GSD, XYZ) where it applies, what was expected and what came.
 
 ``read_configuration(path, fmt="auto", group="/", frame=None) -> Configuration``
 
+A box is the rectangle ``(Lx, Ly)`` or the tilted cell ``(Lx, Ly, xy)`` spanned by ``(Lx, 0)``
+and ``(xy Ly, Ly)`` (HOOMD's tilt factor; ``kernels.space``). A tilt of exactly 0 is read as the
+rectangle (``Configuration.box`` of shape (2,)); one beyond ``MAX_TILT`` is reduced by a change
+of lattice vectors (``b -> b - k a``, the same lattice), with a note.
+
 GSD (the ``gsd`` package, the ``export`` extra) and extended XYZ files may hold several
 frames; ``frame`` picks one (negative counts from the end; None: the only one). A frame
 written by ``campaign export`` carries the packing's float64 positions, radii and box
@@ -22,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from campaign.errors import UserError
+from campaign.plan.spec import CELLS
 
 FORMATS = ("auto", "text", "npz", "hdf5", "gsd", "xyz")
 _HDF5_SUFFIXES = (".h5", ".hdf5", ".hdf", ".he5")
@@ -40,13 +46,15 @@ GSD_PREFIX = "campaign/"
 #: How far outside the box a centre may lie, in box lengths, before the input is
 #: taken for a unit or column mix-up (centres are folded back periodically).
 OUTSIDE_LIMIT = 1.0
+#: Largest |xy| read as given (``kernels.space.MAX_TILT``); a larger tilt is reduced.
+MAX_TILT = 1.0
 
 
 @dataclass(frozen=True)
 class Configuration:
     positions: np.ndarray  # (n, 2) float64
     radii: np.ndarray  # (n,) float64
-    box: np.ndarray  # (2,) float64
+    box: np.ndarray  # (2,) float64 [Lx, Ly], or (3,) [Lx, Ly, xy] for a tilted cell
     species: np.ndarray | None  # (n,) int or None
     source: str
     exponent: float | None = None  # the pair potential's alpha, when the file says (campaign export)
@@ -54,6 +62,44 @@ class Configuration:
     frame: int | None = None  # the frame read (GSD, XYZ) and how many the file holds
     n_frames: int | None = None
     notes: tuple = ()  # what the reader wants the user to know (e.g. float32 positions)
+    cell: str | None = None  # "fixed" or "shear" when the file says (campaign export: the variant's cell)
+
+
+def tilt(box) -> float:
+    """The tilt factor ``xy`` of a box: its third value, 0 for a rectangle ``(Lx, Ly)``."""
+    return float(box[2]) if len(box) > 2 else 0.0
+
+
+def fractional(positions, box) -> np.ndarray:
+    """Fractional coordinates ``s`` of ``positions`` (n, 2) in the cell ``box``: ``r = (Lx s_x + xy Ly
+    s_y, Ly s_y)``, so ``s_y = y / Ly`` and ``s_x = (x - xy y) / Lx``."""
+    p = np.asarray(positions, dtype=np.float64)
+    s = np.empty_like(p)
+    s[:, 1] = p[:, 1] / box[1]
+    s[:, 0] = (p[:, 0] - tilt(box) * p[:, 1]) / box[0]
+    return s
+
+
+def describe_box(box) -> str:
+    """``1 x 1``, or ``1.02 x 0.98, tilt xy = 0.013`` for a tilted cell."""
+    text = f"{box[0]:g} x {box[1]:g}"
+    return text + (f", tilt xy = {box[2]:g}" if len(box) > 2 else "")
+
+
+def _reduced_tilt(box, notes, where):
+    """A (3,) box with ``xy`` 0 as the rectangle (2,); ``|xy| > MAX_TILT`` reduced by whole periods
+    ``Lx / Ly`` (``b - k a``: the same lattice), noted."""
+    if box.shape != (3,):
+        return box
+    if box[2] == 0.0:
+        return box[:2].copy()
+    if abs(box[2]) > MAX_TILT:
+        k = round(box[2] * box[1] / box[0])
+        xy = box[2] - k * box[0] / box[1]
+        notes.append(f"{where}: tilt xy = {box[2]!r} reduced to {xy!r} (lattice vector b - {k} a: the same "
+                     "periodic cell)")
+        box = np.array([box[0], box[1], xy])
+    return box
 
 
 def detect_format(path: str) -> str:
@@ -89,13 +135,15 @@ def read_configuration(path, fmt: str = "auto", group: str = "/", frame: int | N
     elif kind == "npz":
         pos, rad, box, species, where = _read_npz(path)
     elif kind == "hdf5":
-        pos, rad, box, species, where = _read_hdf5(path, group)
+        pos, rad, box, species, where, extra = _read_hdf5(path, group)
     elif kind == "gsd":
         pos, rad, box, species, where, extra = _read_gsd(path, frame)
     else:
         pos, rad, box, species, where, extra = _read_xyz(path, frame)
+    notes = list(extra.pop("notes", ()))
+    box = _reduced_tilt(box, notes, path)
     _check_geometry(path, pos, rad, box, where)
-    return Configuration(pos, rad, box, species, path, **extra)
+    return Configuration(pos, rad, box, species, path, notes=tuple(notes), **extra)
 
 
 # ----------------------------------------------------------------------------- text
@@ -130,15 +178,16 @@ def _read_text(path):
             continue
         tokens = text.replace(",", " ").split()
         if box is None:
-            if len(tokens) not in (1, 2):
+            if len(tokens) not in (1, 2, 3):
                 raise UserError(
-                    f"{path}, line {lineno}: expected the box line 'Lx Ly' (or 'L' for a square box), "
-                    f"got {len(tokens)} columns")
-            sides = [_number(path, lineno, t, "a box side") for t in tokens]
+                    f"{path}, line {lineno}: expected the box line 'Lx Ly' (or 'L' for a square box, "
+                    f"'Lx Ly xy' for a tilted cell), got {len(tokens)} columns")
+            sides = [_number(path, lineno, t, "a box side" if i < 2 else "the tilt xy")
+                     for i, t in enumerate(tokens)]
             if len(sides) == 1:
                 sides = sides * 2
-            if min(sides) <= 0:
-                raise UserError(f"{path}, line {lineno}: expected positive box sides, got {' '.join(tokens)}")
+            if min(sides[:2]) <= 0:
+                raise UserError(f"{path}, line {lineno}: expected positive box sides, got {' '.join(tokens[:2])}")
             box = sides
             box_line = lineno
             continue
@@ -174,15 +223,16 @@ def _check_arrays(path, pos, rad, box, species, rows=None):
         raise UserError(f"{path}: array 'radii': expected shape ({n},) to match 'positions', got {rad.shape}")
     if box.shape == ():
         box = np.array([float(box), float(box)])
-    if box.shape != (2,):
-        raise UserError(f"{path}: array 'box': expected two sides (Lx, Ly), got shape {box.shape}")
+    if box.shape not in ((2,), (3,)):
+        raise UserError(f"{path}: array 'box': expected two sides (Lx, Ly) or a tilted cell (Lx, Ly, xy), got "
+                        f"shape {box.shape}")
     for name, arr in (("positions", pos), ("radii", rad)):
         bad = np.flatnonzero(~np.all(np.isfinite(arr.reshape(n, -1)), axis=1))
         if bad.size:
             raise UserError(f"{path}: array '{name}', row {bad[0]}: expected finite numbers, got NaN or inf")
     if not np.all(np.isfinite(box)):
         raise UserError(f"{path}: array 'box': expected finite sides, got {box.tolist()}")
-    if not np.all(box > 0):
+    if not np.all(box[:2] > 0):
         raise UserError(f"{path}: array 'box': expected positive sides, got {box.tolist()}")
     bad = np.flatnonzero(rad <= 0)
     if bad.size:
@@ -260,7 +310,32 @@ def _read_hdf5(path, group):
         rad = np.asarray(got["radii"])
         box = np.asarray(got["box"])
         species = np.asarray(got["species"]) if "species" in got else None
-    return _check_arrays(path, *_as_float(path, pos, rad, box), species)
+        cell = _store_cell(fh, group)
+    return (*_check_arrays(path, *_as_float(path, pos, rad, box), species), {"cell": cell})
+
+
+def _store_cell(fh, group):
+    """The cell of a campaign store's packing read in place (``/configurations/<task id>``): its
+    variant's, from the spec stored in the file; None for any other HDF5 group."""
+    parts = [p for p in group.split("/") if p]
+    if len(parts) != 2 or parts[0] != "configurations" or "spec_yaml" not in fh.attrs:
+        return None
+    try:
+        from campaign.plan.spec import parse_spec
+
+        text = fh.attrs["spec_yaml"]
+        spec = parse_spec(text.decode() if isinstance(text, bytes) else str(text), "the stored spec")
+        cells = {v.name: dict(v.protocol).get("cell", "fixed") for v in spec.variants}
+        if set(cells.values()) == {"fixed"}:
+            return "fixed"
+        ids, variants, want = fh["tasks/id"], fh["tasks/variant"], parts[1].encode()
+        for lo in range(0, ids.shape[0], 65536):
+            hit = np.flatnonzero(ids[lo:lo + 65536] == want)
+            if hit.size:
+                return cells.get(variants[lo + hit[0]].decode(), None)
+    except Exception:  # noqa: BLE001 - a foreign or damaged store: the cell is not known
+        return None
+    return None
 
 
 # ----------------------------------------------------------------------------- frames
@@ -326,19 +401,23 @@ def _read_gsd(path, frame):
     if GSD_POSITIONS64 in log and GSD_RADII64 in log:
         pos = np.asarray(log[GSD_POSITIONS64])
         rad = np.asarray(log[GSD_RADII64])
-        box = np.asarray(log[GSD_BOX64]) if GSD_BOX64 in log else box6[:2]
+        box = np.asarray(log[GSD_BOX64]) if GSD_BOX64 in log else box6[[0, 1, 3] if box6[3] else [0, 1]]
         if pos.shape[:1] != (n,):
             raise UserError(f"{where}: log chunk {GSD_POSITIONS64!r} has {pos.shape[:1]} rows, the frame "
                             f"{n} particles")
     else:
-        if box6.size != 6 or np.any(box6[3:] != 0):
-            raise UserError(f"{where}: configuration/box {box6.tolist()} is tilted; expected a rectangular "
-                            "box [Lx, Ly, Lz, 0, 0, 0]")
+        if box6.size != 6 or np.any(box6[4:] != 0):
+            raise UserError(f"{where}: configuration/box {box6.tolist()} is tilted out of the plane; expected "
+                            "a 2D box [Lx, Ly, Lz, xy, 0, 0]")
         p3 = np.asarray(fr.particles.position, dtype=np.float64).reshape(n, -1)
         if p3.shape[1] == 3 and n and np.any(p3[:, 2] != p3[0, 2]):
             raise UserError(f"{where}: particles at different z; expected a 2D configuration")
         box = box6[:2]
-        pos = p3[:, :2] + 0.5 * box  # HOOMD's box is centred on the origin: [-L/2, L/2)
+        if box6[3] == 0:
+            pos = p3[:, :2] + 0.5 * box  # HOOMD's box is centred on the origin: [-L/2, L/2)
+        else:  # a tilted box, centred too: r = (Lx s_x + xy Ly s_y, Ly s_y), s in [-1/2, 1/2)
+            box = box6[[0, 1, 3]]
+            pos = p3[:, :2] + 0.5 * np.array([box[0] + box[2] * box[1], box[1]])
         rad = 0.5 * np.asarray(fr.particles.diameter, dtype=np.float64)
         if np.asarray(fr.particles.position).dtype == np.float32:
             notes.append(f"{where}: positions and diameters are GSD's float32 (the frame has no float64 copy "
@@ -352,8 +431,13 @@ def _read_gsd(path, frame):
             if key.startswith(GSD_PREFIX) and key != GSD_BOX64}
     exponent = info.get("exponent")
     extra = dict(exponent=float(exponent) if isinstance(exponent, (int, float)) else None, info=info,
-                 frame=k, n_frames=n_frames, notes=tuple(notes))
+                 frame=k, n_frames=n_frames, notes=tuple(notes), cell=_cell(info.get("cell")))
     return pos, rad, box, species, geom, extra
+
+
+def _cell(value):
+    """The cell a file names (``campaign/cell``, ``cell=``), if it is one of ``CELLS``."""
+    return value if isinstance(value, str) and value in CELLS else None
 
 
 # ----------------------------------------------------------------------------- extended XYZ
@@ -469,6 +553,9 @@ def _xyz_columns(where, header):
 
 
 def _xyz_box(where, header):
+    """The box of a ``Lattice``: ``(Lx, Ly)``, or ``(Lx, Ly, xy)`` when its second vector is tilted
+    (``xy Ly, Ly, 0``); the comment line's ``gamma`` (``campaign export``'s float64 tilt) is that
+    ``xy`` when it agrees with the lattice to rounding."""
     lat = next((v for k, v in header.items() if k.lower() == "lattice"), None)
     if lat is None or lat is True:
         raise UserError(f"{where}: no Lattice=\"...\" in the comment line; expected the periodic box "
@@ -480,9 +567,9 @@ def _xyz_box(where, header):
     if len(v) != 9 or not all(math.isfinite(x) for x in v):
         raise UserError(f"{where}: Lattice=\"{lat}\": expected 9 finite numbers (three cell vectors)")
     a, b = v[0:3], v[3:6]
-    if a[1] != 0 or a[2] != 0 or b[0] != 0 or b[2] != 0:
-        raise UserError(f"{where}: Lattice=\"{lat}\": a tilted cell; expected a rectangular box with its first "
-                        "vector along x and its second along y (\"Lx 0 0 0 Ly 0 0 0 Lz\")")
+    if a[1] != 0 or a[2] != 0 or b[2] != 0:
+        raise UserError(f"{where}: Lattice=\"{lat}\": expected its first vector along x and its second in the "
+                        "x-y plane (\"Lx 0 0 0 Ly 0 0 0 Lz\", or \"Lx 0 0 xy*Ly Ly 0 0 0 Lz\" for a tilted cell)")
     if a[0] <= 0 or b[1] <= 0:
         raise UserError(f"{where}: Lattice=\"{lat}\": expected positive box sides, got {a[0]!r} and {b[1]!r}")
     pbc = next((v for k, v in header.items() if k.lower() == "pbc"), None)
@@ -493,7 +580,13 @@ def _xyz_box(where, header):
         if not (flags[0] and flags[1]):
             raise UserError(f"{where}: pbc=\"{pbc}\": the box is not periodic in x and y; the analysis "
                             "needs a periodic box")
-    return np.array([a[0], b[1]], dtype=np.float64)
+    if b[0] == 0:
+        return np.array([a[0], b[1]], dtype=np.float64)
+    xy = b[0] / b[1]
+    exact = _xyz_scalar("gamma", header.get("gamma", ""))
+    if isinstance(exact, float) and math.isfinite(exact) and abs(exact * b[1] - b[0]) <= 1e-12 * max(a[0], b[1]):
+        xy = exact
+    return np.array([a[0], b[1], xy], dtype=np.float64)
 
 
 def _xyz_count(path, lineno, line):
@@ -633,7 +726,7 @@ def _parse_xyz_frame(path, k, n_frames, start, n, comment, lines):
     rows = [f"line {start + 2 + i}" for i in range(n)]
     exponent = info.get("exponent")
     extra = dict(exponent=float(exponent) if isinstance(exponent, (int, float)) and not isinstance(exponent, bool)
-                 else None, info=info, frame=k, n_frames=n_frames)
+                 else None, info=info, frame=k, n_frames=n_frames, cell=_cell(info.get("cell")))
     return np.ascontiguousarray(pos[:, :2]), rad, box, species, (rows, f"line {start + 1}"), extra
 
 
@@ -645,17 +738,23 @@ def _check_geometry(path, pos, rad, box, where):
     n = pos.shape[0]
     if n < 2:
         raise UserError(f"{path}: expected at least 2 disks, got {n}")
-    with np.errstate(over="ignore"):  # a box near the float64 limit: the bounds go to inf, harmlessly
-        lo = -OUTSIDE_LIMIT * box
-        hi = (1.0 + OUTSIDE_LIMIT) * box
-    outside = np.flatnonzero(np.any((pos < lo) | (pos >= hi), axis=1))
+    if box.shape == (2,):
+        with np.errstate(over="ignore"):  # a box near the float64 limit: the bounds go to inf, harmlessly
+            lo = -OUTSIDE_LIMIT * box
+            hi = (1.0 + OUTSIDE_LIMIT) * box
+        outside = np.flatnonzero(np.any((pos < lo) | (pos >= hi), axis=1))
+        cell = f"the box [0, {box[0]:g}) x [0, {box[1]:g})"
+    else:  # the same bound on the fractional coordinates of the tilted cell
+        with np.errstate(over="ignore", invalid="ignore"):
+            s = fractional(pos, box)
+        outside = np.flatnonzero(np.any((s < -OUTSIDE_LIMIT) | (s >= 1.0 + OUTSIDE_LIMIT) | ~np.isfinite(s), axis=1))
+        cell = f"the tilted cell ({box[0]:g} x {box[1]:g}, xy = {box[2]:g})"
     if outside.size:
         k = outside[0]
         raise UserError(
-            f"{path}, {rows[k]}: position ({pos[k, 0]:g}, {pos[k, 1]:g}) is far outside the box "
-            f"[0, {box[0]:g}) x [0, {box[1]:g}) (expected centres within one box length of it; "
-            f"{outside.size} such row(s))")
-    if 4.0 * rad.max() >= box.min():
+            f"{path}, {rows[k]}: position ({pos[k, 0]:g}, {pos[k, 1]:g}) is far outside {cell} (expected "
+            f"centres within one box length of it; {outside.size} such row(s))")
+    if 4.0 * rad.max() >= box[:2].min():
         k = int(np.argmax(rad))
         raise UserError(
             f"{path}, {rows[k]}: radius {rad[k]:g} is too large for the box ({box_where}: "

@@ -811,7 +811,7 @@ def _config_shape_problem(a, n):
     if pos is None or rad is None or box is None:
         return "lacks positions, radii or box"
     m = rad.shape[0] if rad.ndim == 1 else -1
-    if pos.shape != (m, 2) or box.shape != (2,) or (sp is not None and sp.shape != (m,)):
+    if pos.shape != (m, 2) or box.shape not in ((2,), (3,)) or (sp is not None and sp.shape != (m,)):
         return f"has arrays of inconsistent shapes (positions {pos.shape}, radii {rad.shape}, box {box.shape})"
     if n is not None and m != int(n):
         return f"holds {m} disks, but its task has N = {int(n)}"
