@@ -34,7 +34,7 @@ from numba import njit
 
 from kernels.cells import _as_radii, _candidate_pairs_core
 from kernels.potential import _pair_inv_sigma, _rows_from_pairs, check_exponent
-from kernels.space import _as_box, _as_positions, _wrap_core
+from kernels.space import _as_box, _as_positions, _wrap_core, near_image
 
 
 @njit(cache=True, inline="always")
@@ -91,16 +91,7 @@ def _hessian_rows(positions, box, start, nbr, inv_s, alpha, keep, diag, offdiag,
             j = nbr[k]
             dx = positions[j, 0] - xi
             dy = positions[j, 1] - yi
-            if dy > hy:
-                dy -= Ly
-                dx -= tilt
-            elif dy < -hy:
-                dy += Ly
-                dx += tilt
-            while dx > hx:
-                dx -= Lx
-            while dx < -hx:
-                dx += Lx
+            dx, dy = near_image(dx, dy, Lx, Ly, tilt, hx, hy)
             d2 = dx * dx + dy * dy
             q = inv_s[k]
             if d2 * q * q >= 1.0 or not (keep[i] and keep[j]):

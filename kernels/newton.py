@@ -62,6 +62,7 @@ from kernels.linesearch import _dot, _line_search, _max_disp2, _max_norm2, energ
 from kernels.potential import _energy_forces_rows
 from kernels.sparse import (CUTS, _adjacency, _nd_order, _numeric_core, _solve_core,
                             _symbolic_core)
+from kernels.space import near_image
 
 FAILED = 4  # the shifted Hessian was not positive definite even at MU_MAX
 NOT_READY = 5  # Newton did not start: the network is not rigid yet
@@ -103,16 +104,7 @@ def _ratio_step(positions, box, start, nbr, inv_s, p, budget):
             j = nbr[k]
             dx = positions[j, 0] - positions[i, 0]
             dy = positions[j, 1] - positions[i, 1]
-            if dy > hy:
-                dy -= Ly
-                dx -= tilt
-            elif dy < -hy:
-                dy += Ly
-                dx += tilt
-            while dx > hx:
-                dx -= Lx
-            while dx < -hx:
-                dx += Lx
+            dx, dy = near_image(dx, dy, Lx, Ly, tilt, hx, hy)
             r = np.sqrt(dx * dx + dy * dy)
             s = 1.0 / inv_s[k]
             gap = r - s

@@ -41,7 +41,7 @@ import numpy as np
 from numba import njit
 
 from kernels.cells import _as_radii, _candidate_pairs_core
-from kernels.space import _as_box, _as_positions, _wrap_core
+from kernels.space import _as_box, _as_positions, _wrap_core, near_image
 
 ALPHA_RANGE = (2.0, 3.0)
 
@@ -104,17 +104,7 @@ def _energy_forces_core(positions, box, pi, pj, inv_s, alpha, forces):
         j = pj[k]
         dx = positions[j, 0] - positions[i, 0]
         dy = positions[j, 1] - positions[i, 1]
-        # minimum image by single shifts (see docstring): dy first, its period moves dx by the tilt
-        if dy > hy:
-            dy -= Ly
-            dx -= tilt
-        elif dy < -hy:
-            dy += Ly
-            dx += tilt
-        while dx > hx:
-            dx -= Lx
-        while dx < -hx:
-            dx += Lx
+        dx, dy = near_image(dx, dy, Lx, Ly, tilt, hx, hy)
         d2 = dx * dx + dy * dy
         q = inv_s[k]
         if d2 * q * q >= 1.0:
@@ -176,16 +166,7 @@ def _energy_forces_rows_scaled(positions, box, start, nbr, inv_s, scale, alpha, 
             j = nbr[k]
             dx = positions[j, 0] - xi
             dy = positions[j, 1] - yi
-            if dy > hy:
-                dy -= Ly
-                dx -= tilt
-            elif dy < -hy:
-                dy += Ly
-                dx += tilt
-            while dx > hx:
-                dx -= Lx
-            while dx < -hx:
-                dx += Lx
+            dx, dy = near_image(dx, dy, Lx, Ly, tilt, hx, hy)
             d2 = dx * dx + dy * dy
             q = inv_s[k] * scale
             if d2 * q * q >= 1.0:

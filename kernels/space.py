@@ -20,6 +20,7 @@ Jitted functions usable from other numba code:
 
 * ``minimum_image(dx, L)``: one component reduced to ``[-L/2, L/2]``.
 * ``separation(dx, dy, box) -> (dx, dy)``: the nearest-image separation in the cell.
+* ``near_image(dx, dy, Lx, Ly, tilt, hx, hy)``: the same by single shifts, for the force loops.
 * ``widths(box) -> (wx, wy)``: distances between opposite sides of the cell.
 * ``_wrap_core(positions, box)``: positions folded into ``[0, Lx) x [0, Ly)`` (new array).
 
@@ -54,6 +55,26 @@ def separation(dx, dy, box):
     dy = dy - Ly * k
     dx = dx - box[2] * Ly * k
     return dx - box[0] * np.floor(dx / box[0] + 0.5), dy
+
+
+@njit(cache=True, inline="always")
+def near_image(dx, dy, Lx, Ly, tilt, hx, hy):
+    """``separation`` by single shifts, for the force loops: ``dy`` (within one period of the
+    image in range: positions wrapped, then moved less than a quarter box) shifted once by
+    ``b`` (moving ``dx`` by ``tilt = xy Ly``), then ``dx`` by as many ``a`` as it takes (one in
+    a rectangular box). ``hx, hy`` are ``Lx / 2, Ly / 2``. Branches instead of ``floor``: the
+    shifts are rare, and the result is ``separation``'s."""
+    if dy > hy:
+        dy -= Ly
+        dx -= tilt
+    elif dy < -hy:
+        dy += Ly
+        dx += tilt
+    while dx > hx:
+        dx -= Lx
+    while dx < -hx:
+        dx += Lx
+    return dx, dy
 
 
 @njit(cache=True, inline="always")

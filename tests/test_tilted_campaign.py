@@ -144,8 +144,8 @@ def test_the_shear_campaign(capsys):
 class _FakeKernels:
     """Records what the worker hands to ``kernels.jam`` and ``kernels.analyze``."""
 
-    def __init__(self, with_scalars=True):
-        self.calls, self.with_scalars = [], with_scalars
+    def __init__(self):
+        self.calls = []
 
     def jam(self, n, energy, seed, **kw):
         from types import SimpleNamespace
@@ -161,9 +161,7 @@ class _FakeKernels:
         from types import SimpleNamespace
 
         self.calls.append(("analyze", kw))
-        sc = {"N": len(radii), "z_iso": 4.0}
-        if self.with_scalars:
-            sc.update(gamma=float(box[2]) if len(box) > 2 else 0.0, sigma_xy=5e-9)
+        sc = {"N": len(radii), "z_iso": 4.0, "gamma": float(box[2]) if len(box) > 2 else 0.0, "sigma_xy": 5e-9}
         return SimpleNamespace(scalars=sc, identities={"euler": True}, histograms={})
 
 
@@ -176,20 +174,18 @@ def test_the_worker_passes_the_cell_to_jam_and_analyze(monkeypatch, cell):
     task = tasks.expand(spec)[0]
     system = spec.system.canonical()
     context = {"system": system, "observables": ["scalars"], "histograms": [], "edges": {}}
-    for with_scalars in (True, False):
-        fake = _FakeKernels(with_scalars)
-        monkeypatch.setattr(kernels, "jam", fake.jam)
-        monkeypatch.setattr(kernels, "analyze", fake.analyze)
-        scalars, _, config = KernelTask().run(task.payload(), dict(context, configurations=True))
-        (_, jam_kw), (_, an_kw) = fake.calls
-        if cell == "shear":
-            assert jam_kw["cell"] == "shear" and an_kw["cell"] == "shear"
-            assert config["box"].shape == (3,) and scalars["gamma"] == 0.01
-        else:  # the default reaches neither: the fixed cell's calls are those of before
-            assert "cell" not in jam_kw and "cell" not in an_kw
-            assert config["box"].shape == (2,) and scalars["gamma"] == 0.0
-        # the analysis' sigma_xy, else the packing's
-        assert scalars["sigma_xy"] == (5e-9 if with_scalars else -3e-9)
+    fake = _FakeKernels()
+    monkeypatch.setattr(kernels, "jam", fake.jam)
+    monkeypatch.setattr(kernels, "analyze", fake.analyze)
+    scalars, _, config = KernelTask().run(task.payload(), dict(context, configurations=True))
+    (_, jam_kw), (_, an_kw) = fake.calls
+    if cell == "shear":
+        assert jam_kw["cell"] == "shear" and an_kw["cell"] == "shear"
+        assert config["box"].shape == (3,) and scalars["gamma"] == 0.01
+    else:  # the default reaches neither: the fixed cell's calls are those of before
+        assert "cell" not in jam_kw and "cell" not in an_kw
+        assert config["box"].shape == (2,) and scalars["gamma"] == 0.0
+    assert scalars["sigma_xy"] == 5e-9  # the analysis' (over every contact)
 
 
 # ----------------------------------------------------------------------------- configuration files
@@ -291,7 +287,7 @@ def test_extended_xyz_of_a_tilted_cell(tmp_path, monkeypatch):
     c = read_configuration(tmp_path / "t.xyz")
     assert _bits_equal(c.box, box) and _bits_equal(c.positions, pos) and c.cell == "shear"
     # another program's tilted Lattice, no gamma: xy = b_x / Ly
-    text = (f'2\nLattice="2.0 0 0 0.5 1.25 0 0 0 1" Properties=pos:R:2:radius:R:1\n'
+    text = ('2\nLattice="2.0 0 0 0.5 1.25 0 0 0 1" Properties=pos:R:2:radius:R:1\n'
             "0.1 0.1 0.05\n1.5 1.0 0.05\n")
     (tmp_path / "o.xyz").write_text(text)
     c = read_configuration(tmp_path / "o.xyz")

@@ -137,9 +137,11 @@ def test_triangular_crystal_in_its_tilted_cell():
     a = analyze(pos, rad, box, obs)
     s = a.scalars
     n = m * m
-    # exact: six contacts per disk (N_C counts both ends), every void a triangle
+    # exact: six contacts per disk (N_C counts both ends), every void a triangle; the grain
+    # polygon is the hexagon of contact points at d/2: 3 sqrt3 d^2 / 8 of the sqrt3 d^2 / 2 per disk
     assert s["N_C"] == 6 * n and s["N_V"] == 2 * n and s["psi_O"] == 1.0 and s["N_R"] == 0
     assert s["identities_ok"]
+    assert s["A_G"] == pytest.approx(0.75, rel=1e-12) and s["A_V"] == pytest.approx(0.25, rel=1e-11)
     # harmonic contact force f = x / s at overlap x: p = (1 / 2A) 3 n r f
     sig = d * (1 + x)
     p_exact = 3 * n * d * (x / (1 + x)) / sig / (2 * box[0] * box[1])
@@ -155,6 +157,14 @@ def test_triangular_crystal_in_its_tilted_cell():
     # the hexagonal symmetry: c11 = c22, no shear couplings
     assert s["c11"] == pytest.approx(s["c22"], rel=1e-9)
     assert abs(s["c16"]) <= 1e-9 * s["c11"] and abs(s["c26"]) <= 1e-9 * s["c11"]
+    # exact Born moduli of the harmonic nearest-neighbour crystal: contact stiffness k = 1/sigma^2,
+    # tension f = (1 - d/sigma)/sigma; three bonds per disk whose n_x^2 n_y^2 sum to 3/8 give
+    # c66 = (sqrt3/4)(k - f/d); the Cauchy relations hold up to the pressure terms of C's
+    # convention: c12 = c66 + p/2, c11 = 3 c66 + p/2
+    k, f = 1 / sig ** 2, (1 - d / sig) / sig
+    assert s["c66"] == pytest.approx(np.sqrt(3) / 4 * (k - f / d), rel=1e-9)
+    assert s["c12"] == pytest.approx(s["c66"] + p_exact / 2, rel=1e-9)
+    assert s["c11"] == pytest.approx(3 * s["c66"] + p_exact / 2, rel=1e-9)
 
 
 def _shear_energy(pos, rad, box, h):

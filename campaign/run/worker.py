@@ -84,7 +84,7 @@ class KernelTask:
                        sigma_max=float(np.max(p.radii)), jam_seconds=t1 - t0, analyze_seconds=t2 - t1)
         if protocol.get("endgame", "none") != "none":
             scalars["factorizations"] = float(p.factorizations)  # the Newton endgame's sparse Cholesky
-        for name in ("energy_nonrattler", "pressure", "phi", "gamma", "sigma_xy"):
+        for name in ("energy_nonrattler", "pressure", "phi"):
             if name not in scalars and hasattr(p, name):
                 scalars[name] = float(getattr(p, name))
         hists = {h: a.histograms[h] for h in context["histograms"]}
