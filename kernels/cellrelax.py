@@ -47,7 +47,9 @@ from kernels.space import near_image
 @njit(cache=True)
 def _stress_rows(positions, box, start, nbr, inv_s, alpha, forces, stress):
     """``kernels.potential._energy_forces_rows`` that also sums the stress tensor times the
-    area into ``stress`` = ``[S_xx, S_yy, S_xy]`` (``S_ab = sum f r_a r_b / r``)."""
+    area into ``stress`` = ``[S_xx, S_yy, S_xy]`` (``S_ab = sum f r_a r_b / r``). A copy of that
+    loop, not a switch inside it: the fixed cell's force loop stays as it was (its speed depends
+    on its machine code, ``kernels.protocol``)."""
     n = positions.shape[0]
     Lx = box[0]
     Ly = box[1]
