@@ -1,4 +1,4 @@
-"""Campaigns in the shear-stabilised ensemble (issue #32): the spec's ``cell``, the stored ``gamma``
+"""Campaigns in the shear-stabilised ensemble: the spec's ``cell``, the stored ``gamma``
 and ``sigma_xy``, tilted configurations through every reader and writer, ``campaign draw`` of a
 tilted cell, and a store written before these scalars.
 
