@@ -237,6 +237,11 @@ def test_validate_states_the_interval_and_advises_auto(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "estimated cost " in out and "core-hours (" in out and ", 68%)" in out, out
     assert "advice: this campaign would cost" in out and "`endgame: auto`" in out and "% less" in out, out
+    # nor for an energy ladder: Newton on its decompressed starts loses contacts below 1e-12
+    spec.write_text(BIG + "protocol: {start: ladder}\n")
+    assert cli.main(["validate", str(spec), "--calibration", str(cal)]) == 0
+    assert "advice:" not in capsys.readouterr().out
+    spec.write_text(BIG)
     # an endgame no cheaper than FIRE: no advice
     same = _write(tmp_path, _calibration(), "same.json")
     assert cli.main(["validate", str(spec), "--calibration", str(same)]) == 0

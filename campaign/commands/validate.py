@@ -97,6 +97,8 @@ def _auto_advice(spec, tasks, cal):
         if proto.get("endgame") == "auto" or proto.get("minimizer", "fire") != "fire" or "stop" in proto \
                 or "route" in proto or "cell" in proto:  # the Newton endgame: FIRE, O'Hern, fixed cell
             continue
+        if proto.get("start") == "ladder":  # Newton on ladder starts loses contacts (SPEED_ACCURACY.md)
+            continue
         bare = {k: x for k, x in proto.items() if k != "endgame"}
         if any(w is not v and w.system == v.system and {k: x for k, x in dict(w.protocol).items()
                                                         if k != "endgame"} == bare for w in spec.variants):
