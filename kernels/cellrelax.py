@@ -39,7 +39,7 @@ from numba import njit
 
 from kernels.fire import (A_START, BELOW, CONVERGED, DT_MAX_FACTOR, DT_MIN_FACTOR, MAX_STEPS,
                           N_NEG_MAX, STALLED, _fire_adapt, _fire_kick, _fire_mix_move, _fire_power,
-                          _verlet_rows, _wrap_inplace)
+                          _fire_retreat, _verlet_rows, _wrap_inplace)
 from kernels.potential import pair_energy_force_inv
 from kernels.space import near_image
 
@@ -207,11 +207,7 @@ def _fire_cell_core(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_a
                 status = STALLED
                 break
             # half a step back, the cell with the disks
-            for i in range(n):
-                positions[i, 0] -= 0.5 * dt * vel[i, 0]
-                positions[i, 1] -= 0.5 * dt * vel[i, 1]
-                vel[i, 0] = 0.0
-                vel[i, 1] = 0.0
+            _fire_retreat(positions, vel, dt)
             _deform(positions, ref, box, area, -0.5 * dt * cv[0] / lam, -0.5 * dt * cv[1] / lam)
             cv[0] = 0.0
             cv[1] = 0.0

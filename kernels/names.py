@@ -1,5 +1,5 @@
-"""Names of the observables and the histograms they produce, and of the continuous size
-distributions (no numba: cheap to import).
+"""Names of the observables and the histograms they produce, of the continuous size
+distributions, and the largest tilt of a periodic cell (no numba: cheap to import).
 
 The campaign's spec validation and the kernels both read these tables
 (docs/CONTRACTS.md, ``kernels.analyze``, ``kernels.jam``).
@@ -34,3 +34,8 @@ SIZE_DISTRIBUTIONS = ("uniform", "lognormal")
 #: Largest polydispersity accepted: at 0.5 the uniform distribution's smallest disk is 0.13
 #: of the mean, the log-normal's 1st percentile 0.28; wider ones make most small disks rattlers.
 MAX_POLYDISPERSITY = 0.5
+
+#: Largest |xy| of a tilted cell ``[Lx, Ly, xy]`` (``kernels.space``) the kernels accept and the
+#: configuration readers take as given: ``xy - Lx/Ly`` describes the same lattice (``b -> b - a``),
+#: so any cell can be reduced; beyond 1 its sides meet at angles that only waste cell-list work.
+MAX_TILT = 1.0

@@ -30,10 +30,8 @@ Checked wrappers: ``wrap(positions, box)``, ``_as_box(box)``.
 import numpy as np
 from numba import njit
 
-#: Largest |xy| accepted: a cell is reduced to |xy Ly| <= Lx / 2 by a lattice change (b -> b - a,
-#: xy -> xy - Lx / Ly, describes the same lattice); beyond 1 the cell's sides meet at angles that
-#: only waste cell-list work.
-MAX_TILT = 1.0
+from kernels.names import MAX_TILT
+
 
 
 @njit(cache=True, inline="always")

@@ -28,6 +28,7 @@ import numpy as np
 
 from campaign.errors import UserError
 from campaign.plan.spec import CELLS
+from kernels.names import MAX_TILT  # a larger tilt is reduced on reading
 
 FORMATS = ("auto", "text", "npz", "hdf5", "gsd", "xyz")
 _HDF5_SUFFIXES = (".h5", ".hdf5", ".hdf", ".he5")
@@ -46,8 +47,6 @@ GSD_PREFIX = "campaign/"
 #: How far outside the box a centre may lie, in box lengths, before the input is
 #: taken for a unit or column mix-up (centres are folded back periodically).
 OUTSIDE_LIMIT = 1.0
-#: Largest |xy| read as given (``kernels.space.MAX_TILT``); a larger tilt is reduced.
-MAX_TILT = 1.0
 
 
 @dataclass(frozen=True)
