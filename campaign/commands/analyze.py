@@ -95,7 +95,7 @@ def main(args) -> int:
     cell = args.cell or conf.cell or "fixed"
     try:
         result = analyze(conf.positions, conf.radii, conf.box, names, exponent=exponent, species=conf.species,
-                         **({"cell": cell} if cell != "fixed" else {}))
+                         cell=cell)
     except ValueError as exc:  # input the reader let through but the analysis cannot use
         raise UserError(f"{conf.source}: {exc}") from None
 

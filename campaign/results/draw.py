@@ -172,62 +172,45 @@ def _concat(kind, parts):
 
 
 def _with_images(kind, primary, box, window):
-    """Primary copies plus every translate by whole box lengths that meets the window (by lattice
-    vectors ``i (Lx, 0) + j (xy Ly, Ly)`` in a tilted cell ``box = (Lx, Ly, xy)``)."""
-    if len(box) > 2:
-        return _tilted_images(kind, primary, box, window)
+    """Primary copies plus every translate by the cell's lattice vectors ``i (Lx, 0) + j (xy Ly,
+    Ly)`` (whole box lengths in a rectangle, ``xy = 0``) that meets the window, in order of
+    ``(i, j)``."""
     lo, hi = _bbox(kind, primary)
-    Lx, Ly = box
-    x0, y0, x1, y1 = window
-    # shifts i Lx with x0 < hi + i Lx and lo + i Lx < x1 (likewise in y)
-    imin = np.ceil((x0 - hi[:, 0]) / Lx).astype(np.int64) if lo.size else np.zeros(0, np.int64)
-    imax = np.floor((x1 - lo[:, 0]) / Lx).astype(np.int64) if lo.size else np.zeros(0, np.int64)
-    jmin = np.ceil((y0 - hi[:, 1]) / Ly).astype(np.int64) if lo.size else np.zeros(0, np.int64)
-    jmax = np.floor((y1 - lo[:, 1]) / Ly).astype(np.int64) if lo.size else np.zeros(0, np.int64)
-    parts = []
-    if lo.size:
-        for i in range(int(imin.min()), int(imax.max()) + 1):
-            for j in range(int(jmin.min()), int(jmax.max()) + 1):
-                if i == 0 and j == 0:
-                    continue
-                keep = (imin <= i) & (i <= imax) & (jmin <= j) & (j <= jmax)
-                if keep.any():
-                    parts.append(_select(kind, primary, keep, np.array([i * Lx, j * Ly])))
-    return Primitives(primary, _concat(kind, parts) or {})
-
-
-def _tilted_images(kind, primary, box, window):
-    lo, hi = _bbox(kind, primary)
-    Lx, Ly = box[0], box[1]
-    t = box[2] * Ly  # the x shift of one period along b
-    x0, y0, x1, y1 = window
-    parts = []
     if not lo.size:
         return Primitives(primary, {})
+    Lx, Ly = float(box[0]), float(box[1])
+    t = tilt(box) * Ly  # the x shift of one period along b
+    x0, y0, x1, y1 = window
+    # shifts i Lx + j t with x0 < hi + i Lx + j t and lo + i Lx + j t < x1 (likewise j Ly in y)
     jmin = np.ceil((y0 - hi[:, 1]) / Ly).astype(np.int64)
     jmax = np.floor((y1 - lo[:, 1]) / Ly).astype(np.int64)
+    shifts = []
     for j in range(int(jmin.min()), int(jmax.max()) + 1):
-        # shifts i Lx + j t with x0 < hi + i Lx + j t and lo + i Lx + j t < x1
         imin = np.ceil((x0 - hi[:, 0] - j * t) / Lx).astype(np.int64)
         imax = np.floor((x1 - lo[:, 0] - j * t) / Lx).astype(np.int64)
-        for i in range(int(imin.min()), int(imax.max()) + 1):
-            if i == 0 and j == 0:
-                continue
-            keep = (imin <= i) & (i <= imax) & (jmin <= j) & (j <= jmax)
-            if keep.any():
-                parts.append(_select(kind, primary, keep, np.array([i * Lx + j * t, j * Ly])))
+        shifts += [(i, j, imin, imax) for i in range(int(imin.min()), int(imax.max()) + 1) if (i, j) != (0, 0)]
+    parts = []
+    for i, j, imin, imax in sorted(shifts, key=lambda sh: sh[:2]):
+        keep = (imin <= i) & (i <= imax) & (jmin <= j) & (j <= jmax)
+        if keep.any():
+            parts.append(_select(kind, primary, keep, np.array([i * Lx + j * t, j * Ly])))
     return Primitives(primary, _concat(kind, parts) or {})
 
 
 def _into_cell(positions, box):
-    """Centres moved by whole lattice vectors into the parallelogram of the cell ``[Lx, Ly, xy]``
-    (fractional coordinates in [0, 1) up to rounding)."""
-    Lx, Ly, xy = (float(v) for v in box)
+    """Centres moved by whole lattice vectors into the cell ``[0, 1)^2`` of fractional
+    coordinates: ``[0, Lx) x [0, Ly)`` for a rectangle, the parallelogram of a tilted cell."""
+    Lx, Ly, xy = float(box[0]), float(box[1]), tilt(box)
     p = np.array(positions, dtype=np.float64)
     k = np.floor(p[:, 1] / Ly)
     p[:, 1] -= k * Ly
     p[:, 0] -= k * xy * Ly
     p[:, 0] -= np.floor((p[:, 0] - xy * p[:, 1]) / Lx) * Lx
+    # floor can leave a tiny negative input on the upper edge: fold it back
+    up = p[:, 1] >= Ly
+    p[up, 1] -= Ly
+    p[up, 0] -= xy * Ly
+    p[p[:, 0] - xy * p[:, 1] >= Lx, 0] -= Lx
     return p
 
 
@@ -241,11 +224,7 @@ def scene(positions, radii, box, species=None, *, exponent=2.0, region=None, lay
     window = check_window(region, box)
     pos = np.asarray(positions, dtype=np.float64)
     rad = np.asarray(radii, dtype=np.float64)
-    if box.shape == (3,):  # a tilted cell: centres into its parallelogram
-        pos = _into_cell(pos, box)
-    else:
-        pos = pos - np.floor(pos / box) * box  # centres into [0, L); everything else is unwrapped from them
-        pos[pos >= box] -= np.broadcast_to(box, pos.shape)[pos >= box]
+    pos = _into_cell(pos, box)  # everything else is unwrapped from the centres
     net = network(pos, rad, box)
     rattler = net["rattler"]
     offsets, src, dst = net["offsets"], net["src"], net["dst"]
