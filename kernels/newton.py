@@ -35,17 +35,25 @@ the sparse Cholesky of ``kernels.sparse``:
   ``READY_FRACTION`` of the disks carry load (``NOT_READY`` otherwise, nothing moved).
 * **Stopping.** The rattler-aware force residual of ``kernels.fire`` below ``tol``, at a
   certified minimum: the Hessian of the load-bearing network alone (rattlers and their
-  contacts left out) plus ``MU_CERT k0`` must factor (``CONVERGED``), else the point is a
-  saddle (``NOT_MINIMUM``). Shifted Newton converges to saddles as readily as to minima, and
-  near jamming they are common: without this check minimisations of O'Hern searches at
-  N = 1024 ended on saddles up to 3.6 times above the energy FIRE reached from the same start. Also: the energy below the caller's abort
+  contacts left out) plus ``mu k0`` must factor (``CONVERGED``), else the point is a saddle
+  (``NOT_MINIMUM``), with ``mu = min(MU_CERT, CERT_PRESTRESS f / (k0 d))`` (``f`` the mean
+  contact force, ``d`` the mean diameter). Shifted Newton converges to saddles as readily as
+  to minima, and near jamming they are common: without this check minimisations of O'Hern
+  searches at N = 1024 ended on saddles up to 3.6 times above the energy FIRE reached from the
+  same start. A saddle's negative curvature is of the prestress's size ``f / d`` (about
+  ``sqrt(E_G) k0``), so a fixed shift would accept the saddles of low energies: with
+  ``MU_CERT k0`` alone, packings below E_G ~ 1e-12 ended on hypostatic saddles one or two
+  contacts short. Also: the energy below the caller's abort
   level (``BELOW``); the residual not halved for ``STALL_ITERS`` iterations or ``FAILS_MAX``
   failed line searches in a row (``STALLED``); ``max_iter`` iterations (``MAX_STEPS``).
 
 ``_fire_newton`` tries Newton first and then after every ``PROBE_STEPS`` FIRE steps (FIRE's
 velocities kept between turns unless Newton moved the packing) until one minimisation ends.
-A saddle is left by FIRE from a small reproducible nudge (``NUDGE`` typical overlaps): FIRE
-is the globally robust method, Newton the fast local one.
+A saddle is left by FIRE from a small reproducible nudge (``NUDGE`` typical overlaps), and FIRE
+alone finishes that minimisation: the negative curvature is weak, FIRE takes far longer than
+one probe to leave the saddle, and Newton tried again lands on it again (one packing at
+N = 512, E_G 1e-16 spent 6900 factorisations and 20 times FIRE's force evaluations so). FIRE is
+the globally robust method, Newton the fast local one.
 
 Jitted cores: ``_newton_core(...)`` and ``_fire_newton(...)`` (same calling convention and
 return tuple as ``kernels.fire._fire_core``, plus the counts of factorisations, symbolic
@@ -71,7 +79,8 @@ NOT_MINIMUM = 6  # Newton converged to a saddle: FIRE's turn, from a nudge
 HANDOFF = 1e-2  # FIRE runs until the force residual is below this, then Newton
 PATTERN_SKIN = 0.02  # pairs within their contact distance plus this many mean diameters
 MU_MIN = 1e-10  # smallest diagonal shift, relative to the mean contact stiffness
-MU_CERT = 1e-6  # a minimum's rattler-free Hessian plus this shift must be positive definite
+MU_CERT = 1e-6  # a minimum's rattler-free Hessian plus this shift must be positive definite,
+CERT_PRESTRESS = 1e-3  # or this fraction of the prestress scale f / (k0 d) if that is smaller
 NUDGE = 1e-2  # a saddle is left with random displacements of this many typical overlaps
 MU_FAIL = 1e-6  # shift after a failed factorisation or line search (then tenfold per failure)
 MU_MAX = 1e-1  # a factorisation failing at this shift ends the endgame
@@ -152,6 +161,7 @@ def _newton_core(positions, radii, box, alpha, tol, max_iter, pskin, e_abort):
     diag0 = np.empty((n, 3))
     ncon = np.empty(n, dtype=np.int64)
     everyone = np.ones(n, dtype=np.bool_)
+    dbar = 2.0 * np.mean(radii)  # the typical contact distance, for the prestress scale
     mu = MU_MIN
     it = 0
     nforce = 0
@@ -229,7 +239,8 @@ def _newton_core(positions, radii, box, alpha, tol, max_iter, pskin, e_abort):
             # contacts left out), shifted by MU_CERT, is positive definite: no instability
             # stronger than the ones FIRE's own minima near jamming show
             _hessian_rows(positions, box, start, nbr, inv_s, alpha, alive, diag0, off, ncon)
-            _shifted(diag0, alive, MU_CERT, k0, diag)
+            _shifted(diag0, alive, min(MU_CERT, CERT_PRESTRESS * mean_f / (k0 * dbar)), k0,
+                     diag)
             bad = _numeric_core(perm, sup_first, sup_nchild, upd_ptr, upd_rows, rel, l_ptr,
                                 pair_ptr, pair_idx, pair_col, pair_row, max_front, stack_size,
                                 diag, off, lval)
@@ -340,7 +351,8 @@ def _fire_newton(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abor
     w = 0.0
     res = np.inf
     nc = 0
-    while True:
+    newton = True  # until Newton lands on a saddle: then FIRE finishes the minimisation
+    while newton:
         nst, it, nf, e2, w2, res2, nc2, fa, sy = _newton_core(positions, radii, box, alpha, tol,
                                                               NEWTON_ITERS, pskin, e_abort)
         nforce += nf
@@ -355,7 +367,10 @@ def _fire_newton(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abor
             vel[:] = 0.0
             state = _fire_state(dt0)
         if nst == NOT_MINIMUM:
-            # at a saddle the forces balance: a small, reproducible nudge lets FIRE roll off
+            # at a saddle the forces balance: a small, reproducible nudge lets FIRE roll off;
+            # its negative curvature is of the prestress's size, so FIRE needs far longer than
+            # a probe to leave it, and Newton, tried again, would land on it again
+            newton = False
             nudges += 1
             amp = NUDGE * (0.5 * alpha * max(e2, 0.0) / n) ** (1.0 / alpha) * mean_d
             seed = np.uint64(nudges)
@@ -373,6 +388,11 @@ def _fire_newton(positions, radii, box, alpha, tol, max_steps, skin, dt0, e_abor
         nforce += nf
         if st != MAX_STEPS:
             break  # converged, below the abort level or stalled
+    if not newton and st == MAX_STEPS and steps < max_steps:
+        st, s2, nf, e, w, res, nc = _fire_run(positions, radii, box, alpha, tol,
+                                              max_steps - steps, skin, e_abort, vel, state)
+        steps += s2
+        nforce += nf
     return st, steps, nforce, e, w, res, nc, nfact, nsym, nit
 
 

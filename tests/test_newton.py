@@ -92,16 +92,27 @@ def test_an_accepted_step_never_raises_the_energy():
     assert steps >= 3 and energies[-1] < energies[0]
 
 
-def test_the_end_point_is_a_certified_minimum():
-    """The load-bearing network's Hessian at a Newton packing has the two translations as its
-    only (near-)zero modes and nothing below -MU_CERT k0."""
-    p = kernels.jam(96, 1e-12, seed=5, endgame="newton")
-    assert p.converged and p.factorizations > 0
+def _lowest_modes(p):
+    """Eigenvalues of the load-bearing network's Hessian / the largest, and its contacts beyond
+    2 N_G - 1 (the isostatic count in a fixed box)."""
     hb = hessian(p.positions, p.radii, p.box, rattlers=False)
     ev = np.linalg.eigvalsh(hb.dense())
-    k0 = 1.0 / (2 * np.mean(p.radii)) ** 2
-    assert ev[0] > -newton.MU_CERT * k0
-    assert np.sum(np.abs(ev) < 1e-9 * ev[-1]) <= 2 + np.sum(ev < 0)
+    return ev / ev[-1], len(hb.pairs_i) - (2 * len(hb.nodes) - 1)
+
+
+@pytest.mark.parametrize("n, e, seed", [(96, 1e-12, 5), (512, 1e-13, 1), (512, 1e-15, 2)])
+def test_the_end_point_is_a_certified_minimum(n, e, seed):
+    """At a Newton packing the load-bearing network's Hessian has the two translations as its
+    only zero modes and no negative curvature beyond round-off. Near jamming a saddle's
+    negative curvature is of the prestress's size (f / d, 4e-10 .. 7e-8 of the largest
+    eigenvalue at E_G 1e-16 .. 1e-13, measured): a certification shift of 1e-6 k0 accepted such saddles,
+    hypostatic packings one or two contacts short (these cases did)."""
+    p = kernels.jam(n, e, seed=seed, endgame="newton")
+    assert p.converged and p.factorizations > 0
+    ev, excess = _lowest_modes(p)
+    assert ev[0] > -1e-12, ev[:3]
+    assert np.sum(np.abs(ev) < 1e-12) == 2
+    assert excess >= 0
 
 
 def test_reproducible_bits():
