@@ -175,3 +175,34 @@ def test_start_packing_from_another_box_is_refused():
     p = kernels.jam(32, 1e-3, 0, box=(2.0, 1.0))
     with pytest.raises(ValueError, match=r"start: expected a packing in the box \[1.0, 1.0\]"):
         kernels.jam(32, 1e-5, 0, start=p)
+
+
+def test_a_large_ladder_start_never_deadlocks_a_busy_worker(tmp_path, monkeypatch):
+    """A ladder step carries its parent's packing (hundreds of kB at N_G 8192), more than a
+    pipe's buffer or MPI's eager limit. Sent to a worker still busy with a task, it blocked the
+    master in its send while the worker blocked sending its result (a large configuration too)
+    to the master: both waited forever (seen at N_G 8192). Real worker processes, packings of
+    20000 disks (480 kB), each task 0.2 s."""
+    import threading
+
+    from campaign.run.comm import LocalComm
+
+    monkeypatch.setenv("CAMPAIGN_SYNTHETIC_DELAY", "0.2")
+    spec, tasks, ctx, store = _setup(tmp_path, SPEC.replace("N_G: [16, 32]", "N_G: [20000]")
+                                     .replace("seeds: 3", "seeds: 2"))
+    comm = LocalComm(ctx, 1)
+    out = {}
+    try:
+        assert comm.wait_ready() == set()
+        t = threading.Thread(target=lambda: out.update(Master(comm, store, tasks, retries=0).run()), daemon=True)
+        t.start()
+        t.join(60)
+        assert not t.is_alive(), "the master and its worker are deadlocked"
+    finally:
+        if out:
+            comm.close()
+        else:  # deadlocked: kill the worker so that the test process can go on
+            for p in comm.procs.values():
+                p.kill()
+    assert out == {"done": len(tasks), "failed": 0, "abandoned": 0, "stopped": None, "remaining": 0}
+    store.close()

@@ -277,3 +277,20 @@ def test_newton_endgame_is_identical_for_1_2_3_workers(tmp_path):
         assert set(ids) == {t.decode() for t, v in zip(g["tasks/id"][()], g["tasks/variant"][()]) if v == b"fire"}
         for t in ids:
             assert f[f"configurations/{t}/positions"][()].tobytes() == g[f"configurations/{t}/positions"][()].tobytes()
+
+
+def test_large_ladder_starts_do_not_deadlock_under_mpi(tmp_path):
+    """Ladder steps of 20000 disks (a 480 kB start, beyond MPI's eager limit) to one busy worker:
+    the master's blocking send and the worker's result would wait for each other forever if the
+    step were sent while the worker is busy (tests/test_ladder.py, the same with local workers)."""
+    spec = tmp_path / "big.yaml"
+    spec.write_text(SPEC.replace("N_G: [16, 32]", "N_G: [20000]").replace("seeds: 4", "seeds: 2")
+                    .replace("variants: [{name: loose, force_tolerance: 1.0e-3}, {name: ladder, start: ladder}]",
+                             "protocol: {start: ladder}"))
+    r = _campaign(["run", str(spec), "--out", str(tmp_path / "big.h5")], n=2,
+                  env=_env(CAMPAIGN_SYNTHETIC_DELAY="0.2"), timeout=120)
+    assert r.returncode == 0, r.stderr
+    from campaign.storage.store import DONE
+
+    with h5py.File(tmp_path / "big.h5", "r") as f:
+        assert list(f["tasks/status"][:]) == [DONE] * 6

@@ -4,7 +4,9 @@ It talks to a ``comm`` (campaign.run.comm: inline, local processes or MPI) and a
 ``store`` (campaign.storage.store) and knows nothing else about either. Tasks go out
 most expensive first (campaign.plan.tasks.cost), ``depth`` (2) per worker at a time
 so that a worker never waits for the master between two tasks (more when tasks
-are only milliseconds long).
+are only milliseconds long). A ladder step, which carries its parent's packing, goes
+only to a worker with nothing in flight: sends are blocking, and a large one to a busy
+worker would wait for that worker while it waits to send its result.
 
 * A failed task (an error record from its worker, or a worker that died under
   it) goes back into the queue until it has had ``1 + retries`` attempts; then
@@ -148,6 +150,12 @@ class Master:
         while len(q) < depth and self._queued() and self.stop_reason is None:
             i = self._peek()
             task = self.tasks[i]
+            if task.parent is not None and q:
+                # a ladder step carries its parent's packing (hundreds of kB at N_G 8192): only to a
+                # worker waiting for work. A busy worker sends its result before it reads again, so
+                # a payload beyond the pipe's buffer (or MPI's eager limit) sent to it now would
+                # block this send while the worker blocks sending its result here: a deadlock
+                return
             if self.can_dispatch is not None and not self.can_dispatch(task, [self.tasks[j] for j in q]):
                 self.stop_reason = "wall time"
                 self.log("\ncampaign: the next task would not fit in the time left; no new tasks")
