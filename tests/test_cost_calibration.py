@@ -237,10 +237,18 @@ def test_validate_states_the_interval_and_advises_auto(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "estimated cost " in out and "core-hours (" in out and ", 68%)" in out, out
     assert "advice: this campaign would cost" in out and "`endgame: auto`" in out and "% less" in out, out
-    # nor for an energy ladder: Newton on its decompressed starts loses contacts below 1e-12
+    # an energy ladder too, by the ladder's own endgame factor (here half of the ladder's FIRE)
+    ladder = _calibration()
+    d, cov = ladder.blocks["ladder"]
+    ladder.blocks["ladder_endgame"] = (d + np.array([math.log(0.5), 0, 0, 0]), cov)
+    lad = _write(tmp_path, ladder, "ladder.json")
     spec.write_text(BIG + "protocol: {start: ladder}\n")
-    assert cli.main(["validate", str(spec), "--calibration", str(cal)]) == 0
-    assert "advice:" not in capsys.readouterr().out
+    assert cli.main(["validate", str(spec), "--calibration", str(lad)]) == 0
+    out = capsys.readouterr().out
+    assert "advice: this campaign would cost" in out and "`endgame: auto`" in out, out
+    ladder.blocks["ladder_endgame"] = (d, cov)
+    assert cli.main(["validate", str(spec), "--calibration", str(_write(tmp_path, ladder, "s.json"))]) == 0
+    assert "advice:" not in capsys.readouterr().out  # a ladder endgame no cheaper: none
     spec.write_text(BIG)
     # an endgame no cheaper than FIRE: no advice
     same = _write(tmp_path, _calibration(), "same.json")
@@ -251,6 +259,37 @@ def test_validate_states_the_interval_and_advises_auto(tmp_path, capsys):
     assert cli.main(["validate", str(spec), "--calibration", str(cal)]) == 0
     out = capsys.readouterr().out
     assert "endgame: auto in 'default': Newton for 4 of 16 packings (N_G/E_G 4096/1e-13)" in out, out
+
+
+SCAN = BIG.replace("E_G: [1.0e-3, 1.0e-13]", "E_G: [1.0e-3, 1.0e-8, 1.0e-13]")
+
+
+def test_validate_prices_the_fast_protocol_for_energy_scans(tmp_path, capsys):
+    """A scan of three energies or more of independent FIRE packings is told what the ladder
+    with endgame auto would cost: the estimate of that very campaign, and its price in A_G."""
+    spec = tmp_path / "scan.yaml"
+    cal = _write(tmp_path, _calibration())
+    fast = estimate(expand(parse_spec(SCAN + "protocol: {start: ladder, endgame: auto}\n")), calibration.load(cal))
+    fire = estimate(expand(parse_spec(SCAN)), calibration.load(cal))
+    assert fast.seconds < 0.95 * fire.seconds
+    spec.write_text(SCAN)
+    assert cli.main(["validate", str(spec), "--calibration", str(cal)]) == 0
+    out = capsys.readouterr().out
+    assert (f"advice: this campaign scans 3 energies: the fast protocol (`start: ladder`, `endgame: auto`) "
+            f"would cost {fast.seconds / 3600:.3g} core-hours instead of {fire.seconds / 3600:.3g}") in out, out
+    assert "A_G about 0.001 lower" in out and "not for the finite-size table" in out
+    # per variant; none for a ladder, CG, the shear cell, or two energies
+    for extra in ("protocol: {start: ladder}\n", "protocol: {minimizer: cg}\n", "protocol: {cell: shear}\n"):
+        spec.write_text(SCAN + extra)
+        assert cli.main(["validate", str(spec), "--calibration", str(cal)]) == 0
+        assert "fast protocol" not in capsys.readouterr().out, extra
+    spec.write_text(BIG)
+    assert cli.main(["validate", str(spec), "--calibration", str(cal)]) == 0
+    assert "fast protocol" not in capsys.readouterr().out
+    spec.write_text(SCAN + "variants: [{name: tight, force_tolerance: 1.0e-7}]\n")
+    assert cli.main(["validate", str(spec), "--calibration", str(cal)]) == 0
+    out = capsys.readouterr().out
+    assert "advice: 'default' scans 3 energies" in out and "advice: 'tight' scans 3 energies" in out, out
 
 
 def test_the_interval_widens_with_the_constants_errors():

@@ -64,7 +64,7 @@ def _main(args, cal) -> int:
         parts = [f"{v.name} {estimate([t for t in tasks if t.variant == v.name], cal).seconds / 3600:.3g}"
                  for v in spec.variants]
         print(f"  per variant (core-hours): {', '.join(parts)}")
-    for line in _auto_advice(spec, tasks, cal):
+    for line in _auto_advice(spec, tasks, cal) + _fast_advice(spec, tasks, cal):
         print(line)
     learnt = _learnt_remaining(spec, tasks)
     if learnt:
@@ -97,8 +97,6 @@ def _auto_advice(spec, tasks, cal):
         if proto.get("endgame") == "auto" or proto.get("minimizer", "fire") != "fire" or "stop" in proto \
                 or "route" in proto or "cell" in proto:  # the Newton endgame: FIRE, O'Hern, fixed cell
             continue
-        if proto.get("start") == "ladder":  # Newton on ladder starts loses contacts (SPEED_ACCURACY.md)
-            continue
         bare = {k: x for k, x in proto.items() if k != "endgame"}
         if any(w is not v and w.system == v.system and {k: x for k, x in dict(w.protocol).items()
                                                         if k != "endgame"} == bare for w in spec.variants):
@@ -120,6 +118,37 @@ def _auto_advice(spec, tasks, cal):
                    f"instead of {now / 3600:.3g} with {current} ({1 - auto.seconds / now:.0%} less; Newton "
                    f"for {n_newton} of {len(mine)} packings, FIRE for the rest). Its packings differ slightly "
                    "from FIRE's and get new task ids: docs/NEWTON.md")
+    return out
+
+
+def _fast_advice(spec, tasks, cal):
+    """What the fast protocol for energy scans (`start: ladder` with `endgame: auto`) would cost,
+    per variant of independent FIRE packings at three energies or more, with its price in
+    accuracy (measured in docs/SPEED_ACCURACY.md)."""
+    from dataclasses import replace
+
+    out = []
+    for v in spec.variants:
+        proto = dict(v.protocol)
+        if len(v.E) < 3 or "start" in proto or proto.get("minimizer", "fire") != "fire" or "stop" in proto \
+                or "route" in proto or "cell" in proto:
+            continue
+        fast = replace(v, protocol=tuple(sorted({**proto, "start": "ladder", "endgame": "auto"}.items())))
+        mine = [t for t in tasks if t.variant == v.name]
+        now = sum(cal.seconds(t.N, t.E, t.protocol, t.exponent, t.parent_E) for t in mine)
+        cells = {}
+        for t in mine:
+            key = (t.N, t.E, fast.task_protocol(t.N, t.E), t.exponent, fast.parent_E(t.E))
+            cells[key] = cells.get(key, 0) + 1
+        alt = cal.estimate((n, *k) for k, n in cells.items())
+        if now <= 0 or alt.seconds > (1.0 - AUTO_ADVICE) * now:
+            continue
+        where = f"{v.name!r}" if len(spec.variants) > 1 else "this campaign"
+        out.append(f"  advice: {where} scans {len(v.E)} energies: the fast protocol (`start: ladder`, "
+                   f"`endgame: auto`) would cost {alt.seconds / 3600:.3g} core-hours instead of {now / 3600:.3g} "
+                   f"({1 - alt.seconds / now:.0%} less). Its packings are made from the next higher "
+                   "energy's, not independent: A_G about 0.001 lower (N_G 1024 - 4096), not for the "
+                   "finite-size table (docs/SPEED_ACCURACY.md#the-fast-protocol-for-energy-scans)")
     return out
 
 
