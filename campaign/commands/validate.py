@@ -86,6 +86,25 @@ def _endgames(spec, tasks):
     return out
 
 
+def _takes_newton(proto) -> bool:
+    """Whether a protocol can take the Newton endgame: FIRE, the O'Hern route, the fixed cell."""
+    return proto.get("minimizer", "fire") == "fire" and not {"stop", "route", "cell"} & proto.keys()
+
+
+def _repriced(mine, cal, key):
+    """One variant's tasks ``mine`` priced as they are and as ``key(task) -> (N, E, protocol,
+    exponent, parent_E)`` would have them: ``(seconds, {cell: count}, Estimate)``, or None unless
+    the alternative saves at least ``AUTO_ADVICE`` of the time."""
+    from collections import Counter
+
+    now = sum(cal.seconds(t.N, t.E, t.protocol, t.exponent, t.parent_E) for t in mine)
+    cells = Counter(key(t) for t in mine)
+    alt = cal.estimate((n, *k) for k, n in cells.items())
+    if now <= 0 or alt.seconds > (1.0 - AUTO_ADVICE) * now:
+        return None
+    return now, cells, alt
+
+
 def _auto_advice(spec, tasks, cal):
     """Where `endgame: auto` would save time by the calibrated model: FIRE's (or Newton's)
     estimate against auto's, per variant that could take it."""
@@ -94,24 +113,19 @@ def _auto_advice(spec, tasks, cal):
     out = []
     for v in spec.variants:
         proto = dict(v.protocol)
-        if proto.get("endgame") == "auto" or proto.get("minimizer", "fire") != "fire" or "stop" in proto \
-                or "route" in proto or "cell" in proto:  # the Newton endgame: FIRE, O'Hern, fixed cell
+        if proto.get("endgame") == "auto" or not _takes_newton(proto):
             continue
         bare = {k: x for k, x in proto.items() if k != "endgame"}
         if any(w is not v and w.system == v.system and {k: x for k, x in dict(w.protocol).items()
                                                         if k != "endgame"} == bare for w in spec.variants):
             continue  # a variant that differs from this one by its endgame only: auto would repeat its packings
         mine = [t for t in tasks if t.variant == v.name]
-        alt = {}
-        for t in mine:
-            p = resolve_protocol(dict(t.protocol, endgame="auto"), t.N, t.E, t.exponent)
-            key = (t.N, t.E, p, t.exponent, t.parent_E)
-            alt[key] = alt.get(key, 0) + 1
-        now = sum(cal.seconds(t.N, t.E, t.protocol, t.exponent, t.parent_E) for t in mine)
-        auto = cal.estimate((n, *k) for k, n in alt.items())
-        if now <= 0 or auto.seconds > (1.0 - AUTO_ADVICE) * now:
+        priced = _repriced(mine, cal, lambda t: (t.N, t.E, resolve_protocol(dict(t.protocol, endgame="auto"), t.N,
+                                                                            t.E, t.exponent), t.exponent, t.parent_E))
+        if priced is None:
             continue
-        n_newton = sum(n for k, n in alt.items() if dict(k[2]).get("endgame") == "newton")
+        now, cells, auto = priced
+        n_newton = sum(n for k, n in cells.items() if dict(k[2]).get("endgame") == "newton")
         current = "the Newton endgame everywhere" if proto.get("endgame") == "newton" else "FIRE alone"
         where = f"{v.name!r}" if len(spec.variants) > 1 else "this campaign"
         out.append(f"  advice: {where} would cost {auto.seconds / 3600:.3g} core-hours with `endgame: auto` "
@@ -130,19 +144,14 @@ def _fast_advice(spec, tasks, cal):
     out = []
     for v in spec.variants:
         proto = dict(v.protocol)
-        if len(v.E) < 3 or "start" in proto or proto.get("minimizer", "fire") != "fire" or "stop" in proto \
-                or "route" in proto or "cell" in proto:
+        if len(v.E) < 3 or "start" in proto or not _takes_newton(proto):
             continue
         fast = replace(v, protocol=tuple(sorted({**proto, "start": "ladder", "endgame": "auto"}.items())))
-        mine = [t for t in tasks if t.variant == v.name]
-        now = sum(cal.seconds(t.N, t.E, t.protocol, t.exponent, t.parent_E) for t in mine)
-        cells = {}
-        for t in mine:
-            key = (t.N, t.E, fast.task_protocol(t.N, t.E), t.exponent, fast.parent_E(t.E))
-            cells[key] = cells.get(key, 0) + 1
-        alt = cal.estimate((n, *k) for k, n in cells.items())
-        if now <= 0 or alt.seconds > (1.0 - AUTO_ADVICE) * now:
+        priced = _repriced([t for t in tasks if t.variant == v.name], cal,
+                           lambda t: (t.N, t.E, fast.task_protocol(t.N, t.E), t.exponent, fast.parent_E(t.E)))
+        if priced is None:
             continue
+        now, _, alt = priced
         where = f"{v.name!r}" if len(spec.variants) > 1 else "this campaign"
         out.append(f"  advice: {where} scans {len(v.E)} energies: the fast protocol (`start: ladder`, "
                    f"`endgame: auto`) would cost {alt.seconds / 3600:.3g} core-hours instead of {now / 3600:.3g} "
