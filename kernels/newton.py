@@ -236,8 +236,8 @@ def _newton_core(positions, radii, box, alpha, tol, max_iter, pskin, e_abort):
         k0 = ksum / ncont if ncont > 0 else 1.0
         if residual < tol:
             # a minimum only if the load-bearing network's own Hessian (rattlers and their
-            # contacts left out), shifted by MU_CERT, is positive definite: no instability
-            # stronger than the ones FIRE's own minima near jamming show
+            # contacts left out), shifted by a thousandth of the prestress's scale (at most
+            # MU_CERT), is positive definite: a saddle's instability is of the prestress's size
             _hessian_rows(positions, box, start, nbr, inv_s, alpha, alive, diag0, off, ncon)
             _shifted(diag0, alive, min(MU_CERT, CERT_PRESTRESS * mean_f / (k0 * dbar)), k0,
                      diag)

@@ -33,7 +33,6 @@ from numba import njit
 from kernels.names import MAX_TILT
 
 
-
 @njit(cache=True, inline="always")
 def minimum_image(dx, L):
     """Nearest-image separation component: ``dx - L * round(dx / L)``.
