@@ -57,13 +57,13 @@ counts one), ``max_steps`` the FIRE steps of each.
 import numpy as np
 from numba import njit
 
-from kernels.fire import (A_START, BELOW, CONVERGED, DT_MAX_FACTOR, DT_MIN_FACTOR, MAX_STEPS,
-                          N_NEG_MAX, STALLED, CHECK_EVERY, _dt_for, _fire_adapt, _fire_core,
-                          _fire_kick, _fire_mix_move, _fire_power, _fire_retreat, _residual_core,
-                          _verlet_rows, _wrap_inplace)
+from kernels.fire import (_dt_for, _fire_adapt, _fire_core, _fire_kick, _fire_mix_move, _fire_power,
+                          _fire_retreat, _residual_core, _verlet_rows, _wrap_inplace)
 from kernels.potential import _energy_forces_rows_scaled
 from kernels.protocol import (ABORT_FRACTION, AIM, E_FIRST_GUESS, ST_CONVERGED, ST_MAX_SEARCH, ST_MAX_STEPS,
                               ST_STALLED, ST_TOO_DENSE, _spatial_order)
+from kernels.rules import (A_START, BELOW, CHECK_EVERY, CONVERGED, DT_MAX_FACTOR, DT_MIN_FACTOR,
+                           MAX_STEPS, N_NEG_MAX, STALLED)
 from kernels.space import _wrap_core
 
 BARO_SCALE = 0.5  # barostat coordinate u = BARO_SCALE d sqrt(n) ln(lambda)

@@ -37,10 +37,11 @@ place).
 import numpy as np
 from numba import njit
 
-from kernels.fire import (A_START, BELOW, CONVERGED, DT_MAX_FACTOR, DT_MIN_FACTOR, MAX_STEPS,
-                          N_NEG_MAX, STALLED, _fire_adapt, _fire_kick, _fire_mix_move, _fire_power,
-                          _fire_retreat, _verlet_rows, _wrap_inplace)
+from kernels.fire import (_fire_adapt, _fire_kick, _fire_mix_move, _fire_power, _fire_retreat,
+                          _verlet_rows, _wrap_inplace)
 from kernels.potential import pair_energy_force_inv
+from kernels.rules import (A_START, BELOW, CONVERGED, DT_MAX_FACTOR, DT_MIN_FACTOR, MAX_STEPS,
+                           N_NEG_MAX, STALLED)
 from kernels.space import near_image
 
 

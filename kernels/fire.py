@@ -45,46 +45,26 @@ from kernels.cells import _as_radii, _candidate_pairs_core
 from kernels.network import HALF_PLANE_TOL, _overlapping_core, _rattlers_core
 from kernels.potential import (_energy_forces_core, _energy_forces_rows, _pair_inv_sigma,
                                _rows_from_pairs, check_exponent, pair_energy_force)
+from kernels import rules
+from kernels.rules import (A_START, BELOW, CHECK_EVERY, CONVERGED, DT_FACTOR, DT_MAX_FACTOR,
+                           DT_MIN_FACTOR, MAX_STEPS, N_NEG_MAX, STALLED, STATUS_NAMES)
 from kernels.space import _as_box, _as_positions, _wrap_core, separation
 
-N_DELAY = 20
-F_INC = 1.1
-F_DEC = 0.5
-A_START = 0.25
-F_A = 0.99
-DT_MAX_FACTOR = 10.0
-DT_MIN_FACTOR = 0.02
-N_NEG_MAX = 2000
-CHECK_EVERY = 100
-
-DT_FACTOR = 0.04  # initial FIRE time step in units of 1/sqrt(stiffness), see _dt_for below
-
-# status codes of _fire_core
-CONVERGED = 0
-MAX_STEPS = 1
-STALLED = 2
-BELOW = 3  # the energy fell below the caller's abort level (the minimum is lower still)
-STATUS_NAMES = ("converged", "max_steps", "stalled", "below")
+# FIRE's rules (constants, status codes, the time-step adaptation) are kernels.rules', compiled
+# here for the CPU minimisers; the GPU block compiles the same functions (kernels.gpu.block).
+_fire_adapt = njit(cache=True)(rules.fire_adapt)
+_dt_from_diameter = njit(cache=True, inline="always")(rules.dt_from_diameter)
 
 
 @njit(cache=True)
 def _dt_for(radii, alpha, e_per_disk):
-    """Initial FIRE time step ``DT_FACTOR / sqrt(k)`` (unit masses).
-
-    ``k = (alpha - 1) x^(alpha - 2) / s^2`` is the stiffness of a contact between two
-    disks of mean diameter ``s`` at overlap ``x = 3 (alpha E)^(1/alpha)`` (a few
-    times the typical overlap at energy ``E`` per disk). With ``dt_max = 10 dt0`` the
-    factor 0.04 keeps the fastest harmonic mode stable; 0.06 already is not.
-    """
+    """Initial FIRE time step for ``radii`` at ``e_per_disk`` (``rules.dt_from_diameter`` at
+    their mean diameter)."""
     s = 0.0
     for i in range(radii.shape[0]):
         s += radii[i]
     s = 2.0 * s / radii.shape[0]
-    x = 3.0 * (alpha * max(e_per_disk, 1e-300)) ** (1.0 / alpha)
-    if x > 0.2:
-        x = 0.2
-    k = (alpha - 1.0) * x ** (alpha - 2.0) / (s * s)
-    return DT_FACTOR / np.sqrt(k)
+    return _dt_from_diameter(s, alpha, e_per_disk)
 
 
 # The two thin wrappers below are inlined (numba IR) into their jitted callers: a separately
@@ -182,28 +162,6 @@ def _verlet_rows(positions, radii, box, skin, sigma_radii, ref):
 # One FIRE 2.0 step in passes over the disks, shared by ``_fire_core`` and the pressure
 # route (``kernels.barostat``), which adds its radius degree of freedom to the sums by
 # passing it as the starting value.
-
-
-@njit(cache=True)
-def _fire_adapt(p, step, n_pos, n_neg, dt, a, dt_min, dt_max):
-    """FIRE 2.0's time step and mixing after a step of power ``p``: after ``N_DELAY``
-    downhill steps grow ``dt`` and shrink ``a``; on a non-positive power count it (a stall
-    past ``N_NEG_MAX``) and, past the first ``N_DELAY`` steps, shrink ``dt`` and reset ``a``
-    (the caller then retreats half a step). Returns ``(n_pos, n_neg, dt, a)``."""
-    if p > 0.0:
-        n_pos += 1
-        n_neg = 0
-        if n_pos > N_DELAY:
-            dt = min(dt * F_INC, dt_max)
-            a *= F_A
-    else:
-        n_pos = 0
-        n_neg += 1
-        if step >= N_DELAY:
-            if dt * F_DEC >= dt_min:
-                dt *= F_DEC
-            a = A_START
-    return n_pos, n_neg, dt, a
 
 
 @njit(cache=True)

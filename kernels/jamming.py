@@ -13,6 +13,7 @@ the FIRE 2.0 minimiser of ``kernels.fire`` (or the conjugate-gradient minimiser 
 from dataclasses import dataclass, field
 import math
 import numbers
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -368,6 +369,15 @@ def jam(n, energy, seed, start=None, **settings):
     skin must stay below half the shorter box side) and an energy below what float64
     can resolve at this size and tolerance (``energy_floor``).
     """
+    job = _prepare(n, energy, seed, start, settings)
+    return _run(job)
+
+
+def _prepare(n, energy, seed, start, settings):
+    """The checked inputs of one search (``jam``'s arguments; ValueError on any bad one) as a
+    ``SimpleNamespace``: the options, the codes of the minimiser, search rule, endgame and
+    cell, the start (positions, radii at scale 1, species, the cell ``[Lx, Ly, xy]``) and the
+    bounds. ``kernels.gpu`` prepares its packings with it too."""
     unknown = sorted(set(settings) - set(DEFAULTS))
     if unknown:
         raise ValueError(f"settings: expected names among {sorted(DEFAULTS)}, got {unknown}")
@@ -447,18 +457,40 @@ def jam(n, energy, seed, start=None, **settings):
             f"positions exceeds force_tolerance times the contact forces), got {energy!r}; "
             "use a larger force_tolerance, a larger energy or a smaller n")
 
-    if opt["route"] == "pressure":
+    return SimpleNamespace(n=n, e_min=e_min, box=box, alpha=alpha, window=window, tol=tol,
+                           search_tol=search_tol, max_search=max_search, max_steps=max_steps,
+                           minimizer=minimizer, e_tol=e_tol, rule=rule, endgame=endgame, cell=cell,
+                           delta=delta, skin=skin, positions=positions, radii0=radii0,
+                           species=species_idx, cell_box=cell_box, max_radius=max_radius, opt=opt,
+                           start=start)
+
+
+def _run(job):
+    """Run the prepared search on the CPU and make its ``Packing``."""
+    n, positions, radii0, cell_box, alpha = job.n, job.positions, job.radii0, job.cell_box, job.alpha
+    if job.opt["route"] == "pressure":
         status, scale, e_tot, virial, residual, iterations, nforce = _pressure_core(
-            positions, radii0, cell_box, alpha, e_min, window, tol, search_tol, max_search, max_steps,
-            skin, max_radius, STAGE_STEP, BARO_SCALE, False)
+            positions, radii0, cell_box, alpha, job.e_min, job.window, job.tol, job.search_tol,
+            job.max_search, job.max_steps, job.skin, job.max_radius, STAGE_STEP, BARO_SCALE, False)
         nfact = 0
     else:
         status, scale, e_tot, virial, residual, iterations, nforce, nfact = _ohern_core(
-            positions, radii0, cell_box, alpha, e_min, window, tol, search_tol, max_search,
-            max_steps, skin, delta, rule, max_radius, ENERGY_STEP, minimizer, e_tol, endgame, cell)
-    if cell:
-        box = cell_box
-    radii = radii0 * scale
+            positions, radii0, cell_box, alpha, job.e_min, job.window, job.tol, job.search_tol,
+            job.max_search, job.max_steps, job.skin, job.delta, job.rule, job.max_radius,
+            ENERGY_STEP, job.minimizer, job.e_tol, job.endgame, job.cell)
+    return _packing(job, STATUS_NAMES[status], scale, e_tot, virial, residual, iterations, nforce,
+                    nfact)
+
+
+def _packing(job, status, scale, e_tot, virial, residual, iterations, nforce, nfact, device=None):
+    """The ``Packing`` of a finished search of ``job`` (positions minimised in place in
+    ``job.positions``, the cell in ``job.cell_box``): radii at ``scale``, the rattler count,
+    the residual shear stress. ``device``: recorded in the settings when not the CPU's."""
+    n, positions, cell_box, alpha = job.n, job.positions, job.cell_box, job.alpha
+    box = cell_box if job.cell else job.box
+    species_idx = job.species
+    opt = job.opt
+    radii = job.radii0 * scale
     area = float(cell_box[0] * cell_box[1])
     pi, pj = _candidate_pairs_core(positions, radii, cell_box, 0.0)
     # kernels.fire._nonrattler_mask_core written out: its kernels are loaded already (the search
@@ -474,10 +506,11 @@ def jam(n, energy, seed, start=None, **settings):
         energy=e_tot / n, energy_nonrattler=e_tot / n_g if n_g else math.nan,
         phi=float(math.pi * np.sum(radii ** 2) / area), pressure=virial / (2.0 * area),
         force_residual=float(residual), iterations=int(iterations),
-        force_evaluations=int(nforce), status=STATUS_NAMES[status], exponent=alpha,
+        force_evaluations=int(nforce), status=status, exponent=alpha,
         n_nonrattlers=n_g, factorizations=int(nfact),
-        settings=dict(opt, box=tuple(box.tolist()), exponent=alpha, energy=e_min, n=n,
-                      start="random" if start is None else "packing"),
+        settings=dict(opt, box=tuple(box.tolist()), exponent=alpha, energy=job.e_min, n=n,
+                      start="random" if job.start is None else "packing",
+                      **({} if device is None else {"device": device})),
     )
 
 

@@ -63,11 +63,11 @@ analyses and Newton iterations).
 import numpy as np
 from numba import njit
 
-from kernels.fire import (BELOW, CONVERGED, MAX_STEPS, STALLED, _fire_run, _fire_state,
-                          _residual_alive, _verlet_rows, _wrap_inplace)
+from kernels.fire import _fire_run, _fire_state, _residual_alive, _verlet_rows, _wrap_inplace
 from kernels.hessian import _hessian_rows
 from kernels.linesearch import _dot, _line_search, _max_disp2, _max_norm2, energy_resolution
 from kernels.potential import _energy_forces_rows
+from kernels.rules import BELOW, CONVERGED, MAX_STEPS, STALLED
 from kernels.sparse import (CUTS, _adjacency, _nd_order, _numeric_core, _solve_core,
                             _symbolic_core)
 from kernels.space import near_image

@@ -37,6 +37,8 @@ Checked wrappers (all pairs found with ``kernels.cells``): ``pair_potential``,
 ``energy``, ``forces``, ``pressure``.
 """
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -46,20 +48,24 @@ from kernels.space import _as_box, _as_positions, _wrap_core, near_image
 ALPHA_RANGE = (2.0, 3.0)
 
 
-@njit(cache=True, inline="always")
-def pair_energy_force_inv(r, inv_s, alpha):
+def pair_energy_force_py(r, inv_s, alpha):
     """Pair energy ``V`` and repulsive force ``f = -dV/dr`` at distance ``r``, given
-    ``inv_s = 1/s``. This is the one definition of the potential."""
+    ``inv_s = 1/s``. This is the one definition of the potential: plain Python on scalars,
+    compiled here for the CPU (``pair_energy_force_inv``) and by ``kernels.gpu.block`` for the
+    GPU."""
     x = 1.0 - r * inv_s
     if x <= 0.0:
         return 0.0, 0.0
     if alpha == 2.0:
         return 0.5 * x * x, x * inv_s
     if alpha == 2.5:
-        xs = x * np.sqrt(x)
+        xs = x * math.sqrt(x)
         return 0.4 * x * xs, xs * inv_s
     xa1 = x ** (alpha - 1.0)
     return x * xa1 / alpha, xa1 * inv_s
+
+
+pair_energy_force_inv = njit(cache=True, inline="always")(pair_energy_force_py)
 
 
 @njit(cache=True, inline="always")

@@ -66,7 +66,10 @@ from numba import njit
 from kernels.cellrelax import _fire_cell_core
 from kernels.cg import _cg_core
 from kernels.newton import PATTERN_SKIN, _fire_newton
-from kernels.fire import BELOW, CONVERGED, DT_FACTOR, MAX_STEPS, _dt_for, _fire_core
+from kernels.fire import _dt_for, _fire_core
+from kernels import rules
+from kernels.rules import (BELOW, CONVERGED, DT_FACTOR, MAX_STEPS, SEARCH_HALVING,  # noqa: F401
+                           SEARCH_NAMES, SEARCH_PAPER, SEARCH_SECANT)
 from kernels.space import _wrap_core
 
 AIM = 0.5  # the secant rule aims at E_min (1 + AIM window)
@@ -77,10 +80,8 @@ ABORT_FRACTION = 0.5  # stop a minimisation once E_G < ABORT_FRACTION E_min
 # not depend on the energy. Later minimisations use the energy of the latest jammed minimum.
 E_FIRST_GUESS = 1e-8
 
-SEARCH_HALVING = 0
-SEARCH_SECANT = 1
-SEARCH_PAPER = 2
-SEARCH_NAMES = ("halving", "secant", "paper")
+#: The search's next radius scale (``kernels.rules.search_step``, the rule the GPU block shares).
+_search_step = njit(cache=True)(rules.search_step)
 
 MIN_FIRE = 0
 MIN_CG = 1
@@ -288,51 +289,9 @@ def _ohern_search(minimize, positions, radii0, box, alpha, e_min, window, tol, s
         if it >= max_search:
             status = ST_MAX_SEARCH
             break
-        direction = 1 if (st == BELOW or eg < e_min) else -1
-        if rule == SEARCH_HALVING or rule == SEARCH_PAPER:
-            if rule == SEARCH_HALVING and last_dir != 0 and direction != last_dir:
-                delta *= 0.5
-            last_dir = direction
-            if direction > 0:
-                new = scale * (1.0 + delta)
-            else:
-                new = scale / (1.0 + delta)
-            if rule == SEARCH_PAPER:
-                delta *= 0.5  # after every minimisation, whatever the direction
-        else:
-            if st == CONVERGED and eg > 0.0:
-                # a jammed minimum: refit g = slope (scale - scale_J)
-                n_below = 0
-                s2 = s1
-                g2 = g1
-                s1 = scale
-                g1 = eg ** inv_a
-                # one-point model: scale_J ~ scale (1 - x)
-                c1 = 1.0 / (scale * x_per_g)
-                slope = c1
-                if s2 > 0.0 and s1 != s2:
-                    c2 = (g1 - g2) / (s1 - s2)
-                    if 0.2 * c1 < c2 < 5.0 * c1:
-                        slope = c2
-                g_goal = g_target
-                if g1 > g_target and g1 * energy_step ** inv_a > g_goal:
-                    g_goal = g1 * energy_step ** inv_a
-                new = s1 + (g_goal - g1) / slope
-            else:
-                # below the window without a force-balanced minimum (unjammed, or
-                # aborted at E < E_min / 2): grow, doubling the step each time
-                n_below += 1
-                s1 = -1.0
-                s2 = -1.0
-                if slope > 0.0:
-                    g_now = max(eg, 0.0) ** inv_a
-                    new = scale + 2.0 ** (n_below - 1) * (g_target - g_now) / slope
-                else:
-                    new = scale * (1.0 + delta0)
-            if new > scale * (1.0 + delta0):
-                new = scale * (1.0 + delta0)
-            if new < scale / (1.0 + delta0):
-                new = scale / (1.0 + delta0)
+        new, delta, last_dir, s1, g1, s2, g2, slope, n_below = _search_step(
+            rule, st == CONVERGED and eg > 0.0, st == BELOW or eg < e_min, eg, scale, delta, last_dir,
+            s1, g1, s2, g2, slope, n_below, delta0, g_target, x_per_g, inv_a, energy_step)
         if new == scale:
             # the step is below floating-point resolution of the scale factor
             status = ST_MAX_SEARCH

@@ -21,11 +21,14 @@ Jitted functions usable from other numba code:
 * ``minimum_image(dx, L)``: one component reduced to ``[-L/2, L/2]``.
 * ``separation(dx, dy, box) -> (dx, dy)``: the nearest-image separation in the cell.
 * ``near_image(dx, dy, Lx, Ly, tilt, hx, hy)``: the same by single shifts, for the force loops.
+* ``_fold(x, y, Lx, Ly, tilt)``: one point folded into the fundamental domain.
 * ``widths(box) -> (wx, wy)``: distances between opposite sides of the cell.
 * ``_wrap_core(positions, box)``: positions folded into ``[0, Lx) x [0, Ly)`` (new array).
 
 Checked wrappers: ``wrap(positions, box)``, ``_as_box(box)``.
 """
+
+import math
 
 import numpy as np
 from numba import njit
@@ -54,13 +57,13 @@ def separation(dx, dy, box):
     return dx - box[0] * np.floor(dx / box[0] + 0.5), dy
 
 
-@njit(cache=True, inline="always")
-def near_image(dx, dy, Lx, Ly, tilt, hx, hy):
+def near_image_py(dx, dy, Lx, Ly, tilt, hx, hy):
     """``separation`` by single shifts, for the force loops: ``dy`` (within one period of the
     image in range: positions wrapped, then moved less than a quarter box) shifted once by
     ``b`` (moving ``dx`` by ``tilt = xy Ly``), then ``dx`` by as many ``a`` as it takes (one in
     a rectangular box). ``hx, hy`` are ``Lx / 2, Ly / 2``. Branches instead of ``floor``: the
-    shifts are rare, and the result is ``separation``'s."""
+    shifts are rare, and the result is ``separation``'s. Plain Python on scalars, compiled here
+    for the CPU (``near_image``) and by ``kernels.gpu.block`` for the GPU."""
     if dy > hy:
         dy -= Ly
         dx -= tilt
@@ -74,11 +77,38 @@ def near_image(dx, dy, Lx, Ly, tilt, hx, hy):
     return dx, dy
 
 
+near_image = njit(cache=True, inline="always")(near_image_py)
+
+
 @njit(cache=True, inline="always")
 def widths(box):
     """Distances between opposite sides of the cell: across ``b`` (``Lx / sqrt(1 + xy^2)``)
     and across ``a`` (``Ly``)."""
     return box[0] / np.sqrt(1.0 + box[2] * box[2]), box[1]
+
+
+def fold_py(x, y, Lx, Ly, tilt):
+    """One point ``(x, y)`` folded into ``[0, Lx) x [0, Ly)`` by lattice vectors of the cell
+    (``tilt = xy Ly``). Plain Python on scalars, compiled here for the CPU (``_wrap_core``) and
+    by ``kernels.gpu.block`` for the GPU."""
+    k = math.floor(y / Ly)
+    y = y - Ly * k
+    x = x - tilt * k
+    # floor can return y == L for tiny negative inputs: fold it back
+    if y >= Ly:
+        y -= Ly
+        x -= tilt
+    if y < 0.0:
+        y = 0.0
+    x = x - Lx * math.floor(x / Lx)
+    if x >= Lx:
+        x -= Lx
+    if x < 0.0:
+        x = 0.0
+    return x, y
+
+
+_fold = njit(cache=True, inline="always")(fold_py)
 
 
 @njit(cache=True)
@@ -91,22 +121,7 @@ def _wrap_core(positions, box):
     Ly = box[1]
     tilt = box[2] * Ly
     for i in range(n):
-        k = np.floor(positions[i, 1] / Ly)
-        y = positions[i, 1] - Ly * k
-        x = positions[i, 0] - tilt * k
-        # floor can return y == L for tiny negative inputs: fold it back
-        if y >= Ly:
-            y -= Ly
-            x -= tilt
-        if y < 0.0:
-            y = 0.0
-        x = x - Lx * np.floor(x / Lx)
-        if x >= Lx:
-            x -= Lx
-        if x < 0.0:
-            x = 0.0
-        out[i, 0] = x
-        out[i, 1] = y
+        out[i, 0], out[i, 1] = _fold(positions[i, 0], positions[i, 1], Lx, Ly, tilt)
     return out
 
 

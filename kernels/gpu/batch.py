@@ -1,0 +1,250 @@
+"""Batches of packings, one thread block each: on a GPU (numba.cuda) or its CPU emulation.
+
+``jam_batch(n, energies, seeds, **settings)`` prepares each packing as ``kernels.jam`` does
+(same checks, same random start from the seed), sorts each start by cell once (memory
+locality), runs the whole O'Hern search of every packing in its own block
+(``kernels.gpu.block``) and returns one ``Packing`` per packing, in the caller's disk order.
+
+Backends (``backend=`` or ``CAMPAIGN_GPU_BACKEND``; default ``auto``):
+
+* ``cuda``: one kernel launch for the batch, one block of ``threads`` threads per packing
+  (``numba-cuda``, the ``gpu`` extra). Under ``NUMBA_ENABLE_CUDASIM=1`` numba's CUDA simulator
+  runs the same kernel on the CPU, one Python thread per GPU thread (tiny N only).
+* ``emulate``: the block's phases compiled with ``numba.njit`` and looped over the threads
+  (``kernels.gpu.block``): the GPU's arithmetic in the GPU's order, at about the speed of the
+  CPU kernels; what the tests run whole packings with.
+* ``auto``: ``cuda`` when a CUDA device (or the simulator) is available, else ``emulate``.
+
+Capacities (refused with a ``BlockOverflow`` result for that packing, never a wrong list): at
+most ``MAXNB`` neighbours within contact plus the skin per disk, and at most the cell
+capacity per cell of the list's grid.
+"""
+
+from functools import lru_cache
+import math
+import os
+
+import numpy as np
+
+from kernels.gpu.block import (N_OUT, N_PARAMS, O_ENERGY, O_FORCE_EVALS, O_ITERATIONS, O_RESIDUAL,
+                               O_SCALE, O_STATUS, O_STEPS, O_VIRIAL, P_ABORT, P_AIM, P_ALPHA,
+                               P_DELTA, P_E_FIRST, P_E_MIN, P_ENERGY_STEP, P_LX, P_LY, P_MAX_RADIUS,
+                               P_MAX_SEARCH, P_MAX_STEPS, P_MEAN_D, P_NCX, P_NCY, P_RMAX, P_RULE,
+                               P_SEARCH_TOL, P_SIN_TOL, P_SKIN, P_TOL, P_WINDOW, P_XY, ROWS,
+                               ST_OVERFLOW, make_block)
+
+MAXNB = 32  # neighbour slots per disk (within r_i + r_j + skin: about 10-14 in a dense packing)
+CELL_CAP = 48  # slots per cell of the list's grid (about 2-3 disks per cell on average)
+DEFAULT_THREADS = 256
+BACKENDS = ("auto", "cuda", "emulate")
+
+
+class BlockOverflow(RuntimeError):
+    """A packing whose neighbour row or cell outgrew its slots (returned, not raised, in its
+    place in ``jam_batch``'s list)."""
+
+
+def _device():
+    """``kernels.gpu.device`` (numba-cuda), or None where it cannot be imported."""
+    try:
+        from kernels.gpu import device
+    except Exception:  # noqa: BLE001 - no numba-cuda, or a build that does not load: no GPU
+        return None
+    return device
+
+
+def cuda_available() -> bool:
+    """Whether a CUDA device (or numba's CUDA simulator) can run the kernel."""
+    dev = _device()
+    try:
+        return dev is not None and dev.available()
+    except Exception:  # noqa: BLE001 - no driver: no GPU
+        return False
+
+
+def resolve_backend(backend=None) -> str:
+    """``cuda`` or ``emulate`` for ``backend`` (None: ``CAMPAIGN_GPU_BACKEND``, else auto)."""
+    name = backend or os.environ.get("CAMPAIGN_GPU_BACKEND") or "auto"
+    if name not in BACKENDS:
+        raise ValueError(f"backend: expected one of {list(BACKENDS)}, got {name!r}")
+    if name == "auto":
+        return "cuda" if cuda_available() else "emulate"
+    if name == "cuda" and not cuda_available():
+        raise ValueError("backend: 'cuda' needs a CUDA device and numba-cuda (pip install "
+                         "'jamming-campaign[gpu]'), or NUMBA_ENABLE_CUDASIM=1 for the simulator; "
+                         "none is available here")
+    return name
+
+
+def describe(backend) -> str:
+    """What runs the blocks: ``cuda:<device name>``, ``cuda-simulator`` or ``emulation``."""
+    if resolve_backend(backend) == "emulate":
+        return "emulation"
+    return _device().name()
+
+
+def _noop():
+    pass
+
+
+def _slot_add(arr, i, v):
+    old = arr[i]
+    arr[i] = old + v
+    return old
+
+
+@lru_cache(maxsize=None)
+def _emulator():
+    """The block compiled for the CPU, and a loop over a batch's packings."""
+    from numba import njit
+
+    block = make_block(njit, njit(_noop), njit(_slot_add))
+
+    @njit
+    def run(nt, pos, vel, frc, ref, rad0, rad, nbr, ninv, nnb, cell_of, cell_cnt, cell_mem, alive,
+            alive2, prm, out):
+        red = np.zeros((ROWS, nt))
+        for b in range(pos.shape[0]):
+            block(0, nt, nt, pos[b], vel[b], frc[b], ref[b], rad0[b], rad[b], nbr[b], ninv[b],
+                  nnb[b], cell_of[b], cell_cnt[b], cell_mem[b], alive[b], alive2[b], red, prm[b],
+                  out[b])
+
+    return run
+
+
+def threads_for(n, threads=None) -> int:
+    """Threads per block: ``threads`` (default ``DEFAULT_THREADS``), a power of two, at most the
+    power of two at or above ``n`` and at least 1."""
+    nt = DEFAULT_THREADS if threads is None else int(threads)
+    if nt < 1 or nt & (nt - 1):
+        raise ValueError(f"threads: expected a power of two >= 1, got {threads!r}")
+    return max(1, min(nt, 1 << max(0, (n - 1).bit_length())))
+
+
+def _grid(job, n):
+    """Cells allocated along x and y (those of the starting radii, finer by the search's
+    largest first shrink) and their capacity."""
+    from kernels.cells import _cell_grid
+
+    box = job.cell_box
+    skin = job.skin * 2.0 * float(np.mean(job.radii0))
+    cutoff = (2.0 * float(job.radii0.max()) + skin) / (1.0 + job.delta) ** 2
+    ncx, ncy = (int(v) for v in _cell_grid(box, cutoff, n))
+    cap = min(n, max(CELL_CAP, 4 * -(-n // (ncx * ncy))))
+    return ncx, ncy, cap
+
+
+def _params(job, ncx, ncy):
+    from kernels.jamming import ENERGY_STEP
+    from kernels.network import HALF_PLANE_TOL
+    from kernels.protocol import ABORT_FRACTION, AIM, E_FIRST_GUESS
+
+    prm = np.zeros(N_PARAMS)
+    prm[P_E_MIN] = job.e_min
+    prm[P_WINDOW] = job.window
+    prm[P_TOL] = job.tol
+    prm[P_SEARCH_TOL] = job.search_tol
+    prm[P_MAX_SEARCH] = job.max_search
+    prm[P_MAX_STEPS] = job.max_steps
+    prm[P_SKIN] = job.skin
+    prm[P_DELTA] = job.delta
+    prm[P_RULE] = job.rule
+    prm[P_MAX_RADIUS] = job.max_radius
+    prm[P_ENERGY_STEP] = ENERGY_STEP
+    prm[P_ALPHA] = job.alpha
+    prm[P_LX], prm[P_LY], prm[P_XY] = job.cell_box
+    prm[P_MEAN_D] = 2.0 * float(np.mean(job.radii0))
+    prm[P_RMAX] = float(job.radii0.max())
+    prm[P_SIN_TOL] = math.sin(HALF_PLANE_TOL)
+    prm[P_NCX] = ncx
+    prm[P_NCY] = ncy
+    prm[P_AIM] = AIM
+    prm[P_ABORT] = ABORT_FRACTION
+    prm[P_E_FIRST] = E_FIRST_GUESS
+    return prm
+
+
+def prepare(n, energies, seeds, starts=None, **settings):
+    """The checked jobs of a batch (``kernels.jamming._prepare``), refusing what the block does
+    not run: it runs FIRE 2.0 on the O'Hern route in a fixed cell, stopping on the force
+    residual (any potential, size distribution and search rule)."""
+    from kernels.jamming import _prepare
+
+    energies = list(energies)
+    seeds = list(seeds)
+    starts = [None] * len(energies) if starts is None else list(starts)
+    if not (len(energies) == len(seeds) == len(starts)) or not energies:
+        raise ValueError(f"energies, seeds, starts: expected equal non-zero lengths, got "
+                         f"{len(energies)}, {len(seeds)} and {len(starts)}")
+    jobs = [_prepare(n, e, s, st, dict(settings)) for e, s, st in zip(energies, seeds, starts)]
+    opt = jobs[0].opt
+    if (opt["minimizer"], opt["stop"], opt["route"], opt["endgame"], opt["cell"]) != (
+            "fire", "force", "ohern", "none", "fixed"):
+        raise ValueError("device 'gpu' runs FIRE on the O'Hern route in a fixed cell; expected "
+                         "minimizer 'fire', stop 'force', route 'ohern', endgame 'none' and cell "
+                         f"'fixed', got {opt['minimizer']!r}, {opt['stop']!r}, {opt['route']!r}, "
+                         f"{opt['endgame']!r} and {opt['cell']!r}")
+    return jobs
+
+
+def jam_batch(n, energies, seeds, starts=None, backend=None, threads=None, **settings):
+    """Jammed packings of ``n`` disks, one per ``(energy, seed[, start])``, each in its own
+    thread block; settings as ``kernels.jam`` (FIRE on the O'Hern route, fixed cell).
+
+    Returns a list with, per packing, a ``Packing`` (``settings["device"]`` says what ran it;
+    ``force_evaluations`` counts FIRE's force evaluations as on the CPU) or a
+    ``BlockOverflow`` for a packing whose lists outgrew their slots."""
+    from kernels.jamming import STATUS_NAMES, _packing
+    from kernels.protocol import _spatial_order
+
+    jobs = prepare(n, energies, seeds, starts, **settings)
+    which = resolve_backend(backend)
+    nt = threads_for(n, threads)
+    B = len(jobs)
+    grids = [_grid(j, n) for j in jobs]
+    ncell = max(g[0] * g[1] for g in grids)
+    cap = max(g[2] for g in grids)
+    pos = np.empty((B, n, 2))
+    rad0 = np.empty((B, n))
+    prm = np.empty((B, N_PARAMS))
+    orders = []
+    for b, (job, (ncx, ncy, _)) in enumerate(zip(jobs, grids)):
+        # the start sorted by cell once: neighbours in space become neighbours in memory
+        order = _spatial_order(job.positions, job.cell_box, 2.0 * float(np.mean(job.radii0)))
+        orders.append(order)
+        pos[b] = job.positions[order]
+        rad0[b] = job.radii0[order]
+        prm[b] = _params(job, ncx, ncy)
+    arrays = [pos, np.zeros((B, n, 2)), np.zeros((B, n, 2)), np.zeros((B, n, 2)), rad0,
+              np.zeros((B, n)), np.zeros((B, n, MAXNB), np.int32), np.zeros((B, n, MAXNB)),
+              np.zeros((B, n), np.int32), np.zeros((B, n), np.int32),
+              np.zeros((B, ncell), np.int32), np.zeros((B, ncell, cap), np.int32),
+              np.zeros((B, n), np.int32), np.zeros((B, n), np.int32), prm,
+              np.zeros((B, N_OUT))]
+    if which == "emulate":
+        _emulator()(nt, *arrays)
+    else:
+        pos, arrays[-1] = _device().run_batch(nt, arrays)
+    out = arrays[-1]
+    device = describe(which)
+    results = []
+    for b, job in enumerate(jobs):
+        status = int(out[b, O_STATUS])
+        if status == ST_OVERFLOW:
+            results.append(BlockOverflow(
+                f"packing {b} (N={n}, E={job.e_min:g}): a neighbour row (at most {MAXNB} "
+                f"disks within contact plus the skin) or a cell (at most {cap} disks) outgrew "
+                "its slots; use a smaller skin"))
+            continue
+        final = np.empty((n, 2))
+        final[orders[b]] = pos[b]
+        job.positions = final
+        p = _packing(job, STATUS_NAMES[status], out[b, O_SCALE], out[b, O_ENERGY],
+                     out[b, O_VIRIAL], out[b, O_RESIDUAL], int(out[b, O_ITERATIONS]),
+                     int(out[b, O_FORCE_EVALS]), 0, device=device)
+        results.append(p)
+    return results
+
+
+__all__ = ["jam_batch", "prepare", "BlockOverflow", "resolve_backend", "describe", "cuda_available",
+           "threads_for", "MAXNB", "CELL_CAP", "DEFAULT_THREADS", "BACKENDS"]
