@@ -46,6 +46,12 @@ def configure(parser):
     parser.add_argument("--margin", type=float, default=60.0, metavar="SECONDS",
                         help="time kept free before the limit for collecting results and writing (default 60)")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
+    parser.add_argument("--gpus", type=int, default=0, metavar="K",
+                        help="GPU workers: locally the first K workers own GPUs 0..K-1; under mpiexec "
+                             "every worker rank owns one of its node's K GPUs (device: gpu tasks run "
+                             "in batches, one thread block each; docs/GPU.md)")
+    parser.add_argument("--gpu-batch", type=int, default=None, metavar="B",
+                        help="tasks of one variant and N_G per GPU launch (default 256)")
     # testing hook: the per-task function ("kernels", "synthetic" or "module:attr")
     parser.add_argument("--task-function", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--depth", type=int, default=2, help=argparse.SUPPRESS)

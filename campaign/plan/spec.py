@@ -40,7 +40,7 @@ from kernels.names import (DEFAULT_OBSERVABLES, HISTOGRAMS, MAX_POLYDISPERSITY, 
 PROTOCOL_DEFAULTS = {"window": 0.1, "force_tolerance": 1e-6}
 PROTOCOL_KEYS = ("window", "force_tolerance", "search_tolerance", "phi_start", "max_search", "max_steps",
                  "minimizer", "search", "delta", "skin", "start", "stop", "energy_tolerance", "route",
-                 "endgame", "cell")
+                 "endgame", "cell", "device", "gpu_threads")
 MINIMIZERS = ("fire", "cg")
 #: how each minimisation of the O'Hern search ends (``kernels.protocol.ENDGAME_NAMES``): FIRE
 #: alone ("none", the default) or FIRE handing over to sparse Newton steps (``kernels.newton``)
@@ -56,6 +56,12 @@ STARTS = ("random", "ladder")
 #: the periodic cell (``kernels.jamming.CELL_NAMES``): "fixed" (default, the spec's box) or "shear" (its
 #: tilt and aspect ratio relaxed with the disks at fixed area: the shear-stabilised ensemble)
 CELLS = ("fixed", "shear")
+#: what runs a packing's search: "cpu" (default, ``kernels.jam``) or "gpu" (one thread block per
+#: packing, ``kernels.gpu``): another trajectory from the same seed, so another task id
+DEVICES = ("cpu", "gpu")
+#: threads per block of a GPU packing (``gpu_threads``): a power of two; it fixes the order of the
+#: block's sums, so it is part of the packing's identity (the default, 256, is left out of it)
+GPU_THREADS_DEFAULT = 256
 
 TOP_KEYS = ("name", "seed", "system", "grid", "protocol", "variants", "observables", "bins",
             "store", "run", "output")
@@ -673,10 +679,12 @@ def _protocol(c, value, path, allow, base=None):
         "max_search": dict(lo=1, hi=10**9, integer=True),
         "max_steps": dict(lo=1, hi=10**12, integer=True),
         "energy_tolerance": dict(lo=0, hi=1, lo_open=True),
+        "gpu_threads": dict(lo=1, hi=1024, integer=True),
     }
     choices = {"search": ("search rule", SEARCH_RULES), "start": ("start", STARTS),
                "minimizer": ("minimizer", MINIMIZERS), "stop": ("stop rule", STOPS),
-               "route": ("route", ROUTES), "endgame": ("endgame", ENDGAMES), "cell": ("cell", CELLS)}
+               "route": ("route", ROUTES), "endgame": ("endgame", ENDGAMES), "cell": ("cell", CELLS),
+               "device": ("device", DEVICES)}
     for k, v in m.items():
         if k in checks:
             x = c.number(v, path + (k,), **checks[k])
@@ -719,6 +727,26 @@ def _protocol(c, value, path, allow, base=None):
                                 "it needs minimizer 'fire', stop 'force', route 'ohern' and endgame 'none', got "
                                 f"minimizer {out.get('minimizer', 'fire')!r}, stop {out.get('stop', 'force')!r}, "
                                 f"route {out.get('route', 'ohern')!r}, endgame {out.get('endgame', 'none')!r}")
+    if out.get("device") == "cpu":
+        del out["device"]  # the default: packings keep their ids
+    if "gpu_threads" in out:
+        t = int(out["gpu_threads"])
+        if out.get("device") != "gpu":
+            c.err(path + ("gpu_threads",), "gpu_threads sets the thread block of device 'gpu'; got device "
+                                           f"{out.get('device', 'cpu')!r}")
+        elif t & (t - 1):
+            c.err(path + ("gpu_threads",), f"gpu_threads must be a power of two (1 ... 1024), got {t}")
+        out["gpu_threads"] = t
+        if t == GPU_THREADS_DEFAULT:
+            del out["gpu_threads"]  # the default block: its packings keep their ids
+    if out.get("device") == "gpu" and any(k in out for k in ("stop", "route", "endgame", "cell", "start")) \
+            or out.get("device") == "gpu" and out.get("minimizer", "fire") != "fire":
+        c.err(path + ("device",), "device 'gpu' runs FIRE on the O'Hern route in a fixed cell from random "
+                                  "starts: it needs minimizer 'fire', stop 'force', route 'ohern', endgame "
+                                  "'none', cell 'fixed' and start 'random', got minimizer "
+                                  f"{out.get('minimizer', 'fire')!r}, stop {out.get('stop', 'force')!r}, route "
+                                  f"{out.get('route', 'ohern')!r}, endgame {out.get('endgame', 'none')!r}, cell "
+                                  f"{out.get('cell', 'fixed')!r}, start {out.get('start', 'random')!r}")
     if out.get("route") == "pressure" and (out.get("minimizer", "fire") != "fire" or "stop" in out):
         c.err(path + ("route",), "route 'pressure' relaxes with FIRE and stops on the force residual: it "
                                  f"needs minimizer 'fire' and stop 'force', got minimizer "

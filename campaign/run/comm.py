@@ -73,7 +73,21 @@ def _local_main(conn, context, rank):
         except (BrokenPipeError, OSError):
             raise SystemExit(0) from None
 
-    _worker.worker_loop(recv, send, context, rank)
+    def poll():
+        try:
+            return conn.poll(0)
+        except (EOFError, OSError):
+            return True  # the next recv says the master is gone
+
+    _worker.worker_loop(recv, send, context, rank, poll)
+
+
+def gpu_context(context: dict, device: int | None) -> dict:
+    """A worker's context: a GPU worker owns ``device`` (``CUDA_VISIBLE_DEVICES`` is set before
+    CUDA starts) and runs batches of ``context["gpu_batch"]`` tasks; any other runs one at a time."""
+    if device is None:
+        return dict(context, gpu_batch=1, gpu_device=None)
+    return dict(context, gpu_device=int(device))
 
 
 class LocalComm:
@@ -81,15 +95,18 @@ class LocalComm:
 
     launcher = "local"
 
-    def __init__(self, context: dict, n_workers: int):
+    def __init__(self, context: dict, n_workers: int, gpus: int = 0):
         import multiprocessing as mp
 
         ctx = mp.get_context("spawn")
         self.n_workers = n_workers
         self.conns, self.procs = {}, {}
+        # workers 1..gpus own GPU 0..gpus-1 and take batches of gpu_batch tasks (the master's depth)
+        self.capacity = {w: int(context.get("gpu_batch") or 1) for w in range(1, min(gpus, n_workers) + 1)}
         for w in range(1, n_workers + 1):
             parent, child = ctx.Pipe(duplex=True)
-            p = ctx.Process(target=_local_main, args=(child, context, w), name=f"campaign-worker-{w}",
+            wctx = gpu_context(context, w - 1 if w in self.capacity else None)
+            p = ctx.Process(target=_local_main, args=(child, wctx, w), name=f"campaign-worker-{w}",
                             daemon=True)
             p.start()
             child.close()
@@ -189,11 +206,16 @@ class MPIComm:
         self.n_workers = comm.Get_size() - 1
         self.hosts = []
         self._status = MPI.Status()
+        self.capacity = {}  # GPU workers and their batch size: set_capacity
 
     def wait_ready(self):
         for _ in range(self.n_workers):
             self.recv(timeout=None)
         return set()
+
+    def set_capacity(self, gpu_batch: int):
+        """Every worker rank owns a GPU (``campaign run --gpus``) and takes batches of ``gpu_batch``."""
+        self.capacity = {w: int(gpu_batch) for w in range(1, self.n_workers + 1)}
 
     def send(self, worker, payload):
         self.comm.send(payload, dest=worker, tag=TAG_TASK)
@@ -237,4 +259,12 @@ def mpi_worker(comm, context: dict) -> None:
     def send(msg):
         comm.send(msg, dest=0, tag=TAG_RESULT)
 
-    _worker.worker_loop(recv, send, context, rank)
+    def poll():
+        return comm.iprobe(source=0, tag=MPI.ANY_TAG)
+
+    gpus = int(context.get("gpus") or 0)
+    if gpus:  # one rank per GPU: the node's ranks share its GPUs in turn
+        local = comm.Split_type(MPI.COMM_TYPE_SHARED)
+        context = gpu_context(context, local.Get_rank() % gpus)
+        local.Free()
+    _worker.worker_loop(recv, send, context, rank, poll)

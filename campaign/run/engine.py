@@ -19,6 +19,10 @@ import time
 import traceback
 from pathlib import Path
 
+#: tasks a GPU worker runs in one launch (``campaign run --gpu-batch``): one thread block each; an
+#: H100 runs 132-528 blocks of 256 threads at once (docs/GPU.md)
+GPU_BATCH = 256
+
 
 def _log(msg):
     print(msg, file=sys.stderr, flush=True)
@@ -187,6 +191,8 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     retries = spec.retries if args.retries is None else args.retries
     if retries < 0:
         raise UserError(f"--retries must be >= 0, got {retries}")
+    if (getattr(args, "gpus", 0) or 0) < 0 or (getattr(args, "gpu_batch", None) or 1) < 1:
+        raise UserError(f"--gpus must be >= 0 and --gpu-batch >= 1, got {args.gpus} and {args.gpu_batch}")
     if mpi_comm is not None:
         launcher, n_workers = "mpi", mpi_comm.Get_size() - 1
     elif args.launcher == "inline":
@@ -195,6 +201,8 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
         n_workers = args.workers if args.workers is not None else (os.cpu_count() or 1)
         if n_workers < 1:
             raise UserError(f"--workers must be at least 1, got {n_workers}")
+        if getattr(args, "gpus", 0) and args.gpus > n_workers:
+            raise UserError(f"--gpus {args.gpus} needs as many workers (one per GPU), got --workers {n_workers}")
         launcher = "local"
     if args.task_function == "kernels":
         problems = energy_floor_problems(spec)
@@ -206,7 +214,8 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
                "systems": {v.name: v.system.canonical() for v in spec.variants},
                "observables": list(spec.observables), "histograms": list(spec.histograms),
                "bins": {h: list(e) for h, e in spec.bins}, "configurations": spec.configurations,
-               "protocol_warmups": _warm_ups(tasks)}
+               "protocol_warmups": _warm_ups(tasks), "gpus": int(getattr(args, "gpus", 0) or 0),
+               "gpu_batch": int(getattr(args, "gpu_batch", 0) or 0) or GPU_BATCH}
     edges = fn.histogram_edges(context)
     context["edges"] = {h: [float(x) for x in e] for h, e in edges.items()}
 
@@ -244,10 +253,12 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
             store.run["hosts"] = sorted(set(hosts))
             node_warm_up(mpi_comm, context, first_warms=False)  # rank 0 has warmed its node already
             comm = MPIComm(mpi_comm)
+            if context["gpus"]:
+                comm.set_capacity(context["gpu_batch"])
         elif launcher == "inline" or todo == 0:  # nothing to do: no worker processes to start
             comm = InlineComm(context)
         else:
-            comm = LocalComm(context, min(n_workers, max(1, todo)))
+            comm = LocalComm(context, min(n_workers, max(1, todo)), gpus=context["gpus"])
         comm.dead = comm.wait_ready()  # workers have loaded (not compiled: see warm_up above) the kernels
         wall = None
         if args.deadline is not None:

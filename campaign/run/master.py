@@ -74,6 +74,7 @@ class Master:
         self._orphans = [int(i) for i in sorted(self.blocked) if not todo[parent[i]]
                          and status[parent[i]] == FAILED]
         self.in_flight = {w: deque() for w in range(1, comm.n_workers + 1)}
+        self.capacity = dict(getattr(comm, "capacity", {}))  # GPU workers: tasks per batch
         self.alive = set(self.in_flight) - set(getattr(comm, "dead", ()))
         self.stop_reason = None      # why dispatching stopped early (signal name, wall time, ...)
         self.stop_since = None
@@ -146,7 +147,8 @@ class Master:
 
     def _dispatch(self, w):
         q = self.in_flight[w]
-        depth = self._depth()
+        # a GPU worker keeps a batch in flight (it runs the tasks of one variant and N_G together)
+        depth = max(self._depth(), self.capacity.get(w, 1))
         while len(q) < depth and self._queued() and self.stop_reason is None:
             i = self._peek()
             task = self.tasks[i]

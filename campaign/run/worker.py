@@ -47,12 +47,19 @@ class KernelTask:
         """Compile (or load from the numba cache) every kernel a task will use: one small packing
         per protocol of ``context["protocol_warmups"]`` (the engine's list of distinct choices)."""
         for protocol in context.get("protocol_warmups") or [{}]:
+            if protocol.get("device") == "gpu":
+                from kernels.gpu import simulated
+
+                if simulated():  # numba's CUDA simulator compiles nothing (and is slow)
+                    continue
             self.run({"N": 16, "E": 1e-3, "entropy": [0], "protocol": protocol}, context)
 
     def run(self, payload, context):
-        import kernels
+        return self._analyse(payload, context, *self._jam(payload, context))
 
-        # the variant's system (a spec's variants may override it), else the spec's
+    def _setup(self, payload, context):
+        """The variant's system (a spec's variants may override it, else the spec's), its exponent
+        and the ``kernels.jam`` keywords of the task's protocol."""
         system = (context.get("systems") or {}).get(payload.get("variant"), context["system"])
         exponent = system["potential"]["exponent"]
         protocol = dict(payload["protocol"])
@@ -61,12 +68,59 @@ class KernelTask:
         else:
             protocol["species"] = tuple((f, r) for _, f, r in system["species"])
         protocol.pop("start", None)  # "ladder": the master sends the parent's packing as payload["start"]
+        return system, exponent, protocol
+
+    def _jam(self, payload, context):
+        import kernels
+
+        system, exponent, protocol = self._setup(payload, context)
+        if protocol.get("device") == "gpu":
+            return self.jam_batch([payload], context)[0]
         start = payload.get("start")
         if start is not None:
             start = (start["positions"], start["radii"], start["species"], start["box"])
         t0 = time.perf_counter()
         p = kernels.jam(payload["N"], payload["E"], list(payload["entropy"]), start=start,
                         box=tuple(system["box"]), exponent=exponent, **protocol)
+        return p, time.perf_counter() - t0
+
+    def jam_batch(self, payloads, context):
+        """``device: gpu`` tasks of one variant and N, each in its own thread block of one launch
+        (``kernels.gpu.jam_batch``: on this worker's GPU, else the block's CPU emulation). Returns
+        ``(packing, seconds)`` per task (the batch's time shared equally), or the exception that
+        failed it."""
+        from kernels.gpu import jam_batch
+
+        system, exponent, protocol = self._setup(payloads[0], context)
+        protocol.pop("device")
+        threads = protocol.pop("gpu_threads", None)
+        t0 = time.perf_counter()
+        out = jam_batch(payloads[0]["N"], [p["E"] for p in payloads],
+                        [list(p["entropy"]) for p in payloads], threads=threads,
+                        box=tuple(system["box"]), exponent=exponent, **protocol)
+        share = (time.perf_counter() - t0) / len(payloads)
+        return [p if isinstance(p, Exception) else (p, share) for p in out]
+
+    def run_batch(self, payloads, context):
+        """``run`` for a batch of ``device: gpu`` tasks (``batch_key`` equal): one launch, then
+        each packing analysed. Returns per task ``run``'s tuple or the exception that failed it."""
+        out = []
+        for payload, got in zip(payloads, self.jam_batch(payloads, context)):
+            if isinstance(got, Exception):
+                out.append(got)
+                continue
+            try:
+                out.append(self._analyse(payload, context, *got))
+            except Exception as exc:  # noqa: BLE001 - that task fails, the batch goes on
+                out.append(exc)
+        return out
+
+    def _analyse(self, payload, context, p, jam_seconds):
+        import kernels
+
+        if isinstance(p, Exception):
+            raise p
+        system, exponent, protocol = self._setup(payload, context)
         t1 = time.perf_counter()
         obs = [o for o in context["observables"]]
         bins = {h: np.asarray(e, dtype=np.float64) for h, e in (context.get("edges") or {}).items()}
@@ -81,7 +135,7 @@ class KernelTask:
         scalars.update(force_residual=float(p.force_residual), iterations=float(p.iterations),
                        force_evaluations=float(p.force_evaluations),
                        jam_status=float(getattr(p, "status_code", JAM_STATUS.get(str(p.status), 9))),
-                       sigma_max=float(np.max(p.radii)), jam_seconds=t1 - t0, analyze_seconds=t2 - t1)
+                       sigma_max=float(np.max(p.radii)), jam_seconds=jam_seconds, analyze_seconds=t2 - t1)
         if protocol.get("endgame", "none") != "none":
             scalars["factorizations"] = float(p.factorizations)  # the Newton endgame's sparse Cholesky
         for name in ("energy_nonrattler", "pressure", "phi"):
@@ -92,7 +146,18 @@ class KernelTask:
         if context.get("configurations") or payload.get("return_configuration"):
             config = {"positions": np.asarray(p.positions, np.float64), "radii": np.asarray(p.radii, np.float64),
                       "box": np.asarray(p.box, np.float64), "species": np.asarray(p.species, np.int32)}
+        if "device" in p.settings:  # a GPU packing: what ran it, recorded beside the host
+            return scalars, hists, config, p.settings["device"]
         return scalars, hists, config
+
+
+def batch_key(payload):
+    """Tasks that can share one GPU launch have equal keys (a ``device: gpu`` task: its variant, N
+    and protocol; energies and seeds may differ); None for a task that runs alone."""
+    proto = payload.get("protocol") or {}
+    if proto.get("device") != "gpu" or payload.get("start") is not None:
+        return None
+    return payload.get("variant"), payload["N"], tuple(sorted(proto.items()))
 
 
 def _matches(spec: str, payload) -> bool:
@@ -129,6 +194,18 @@ class SyntheticTask:
                 out[h] = np.asarray(bins[h], np.float64)
             else:
                 out[h] = np.linspace(0.0, 1.0, SYNTHETIC_BINS.get(h, 10) + 1)
+        return out
+
+    def run_batch(self, payloads, context):
+        """``run`` per task (the engine's tests of GPU batches), recording the batch's size."""
+        out = []
+        for p in payloads:
+            try:
+                scalars, hists, config = self.run(p, context)
+            except Exception as exc:  # noqa: BLE001 - that task fails, the batch goes on
+                out.append(exc)
+                continue
+            out.append((dict(scalars, batch_size=float(len(payloads))), hists, config))
         return out
 
     def run(self, payload, context):
@@ -183,10 +260,37 @@ def resolve(name: str):
 def run_task(fn, payload: dict, context: dict, rank: int = 0) -> dict:
     """Run one task; never raises. Returns the summary dict of docs/CONTRACTS.md."""
     t0 = time.perf_counter()
-    summary = {"id": payload["id"], "ok": False, "scalars": {}, "histograms": {}, "configuration": None,
-               "wall": 0.0, "rank": rank, "host": _HOST, "error": None}
     try:
-        scalars, hists, config = fn.run(payload, context)
+        got = fn.run(payload, context)
+    except Exception as exc:  # noqa: BLE001 - a worker reports, it never raises
+        got = exc
+    return _summary(payload, context, rank, got, time.perf_counter() - t0)
+
+
+def run_tasks(fn, payloads: list, context: dict, rank: int = 0) -> list:
+    """Run a batch of tasks of one ``batch_key`` in one call of ``fn.run_batch``; never raises.
+    A fault of the whole batch (a GPU error: out of memory, a lost device) fails every task of
+    it with that reason. Returns one summary per task; ``wall`` is the batch's time shared."""
+    t0 = time.perf_counter()
+    try:
+        got = fn.run_batch(payloads, context)
+    except Exception as exc:  # noqa: BLE001 - a worker reports, it never raises
+        got = [exc] * len(payloads)
+    wall = (time.perf_counter() - t0) / len(payloads)
+    return [_summary(p, context, rank, g, wall) for p, g in zip(payloads, got)]
+
+
+def _summary(payload, context, rank, got, wall):
+    """The summary of one task from what its task function returned, or the exception (with its
+    traceback) that failed it."""
+    summary = {"id": payload["id"], "ok": False, "scalars": {}, "histograms": {}, "configuration": None,
+               "wall": wall, "rank": rank, "host": _HOST, "error": None}
+    try:
+        if isinstance(got, Exception):
+            raise got
+        scalars, hists, config, *device = got
+        if device:  # the task function says what ran it (a GPU packing): the store's host column
+            summary["host"] = f"{_HOST} {device[0]}"
         edges = context.get("edges") or {}
         if set(hists) != set(edges):
             raise RuntimeError(f"the task returned histograms {sorted(hists)}, expected {sorted(edges)}")
@@ -201,14 +305,13 @@ def run_task(fn, payload: dict, context: dict, rank: int = 0) -> dict:
     except Exception as exc:  # noqa: BLE001 - a worker reports, it never raises
         summary.update(ok=False, scalars={}, histograms={}, configuration=None,
                        error={"message": f"{type(exc).__name__}: {exc}"[:2000],
-                              "traceback": traceback.format_exc()[-20000:]})
-    summary["wall"] = time.perf_counter() - t0
+                              "traceback": "".join(traceback.format_exception(exc))[-20000:]})
     return summary
 
 
 # --------------------------------------------------------------------------- worker loop
 
-def worker_loop(recv, send, context: dict, rank: int) -> None:
+def worker_loop(recv, send, context: dict, rank: int, poll=None) -> None:
     """Serve tasks until told to stop.
 
     ``recv()`` returns ``("task", payload)`` or ``("stop",)``; ``send(msg)``
@@ -216,12 +319,19 @@ def worker_loop(recv, send, context: dict, rank: int) -> None:
     warmed up), then ``("result", index, attempt, summary)`` per task. Signals meant for the whole
     job (Ctrl-C, SIGTERM from a scheduler, SLURM's USR1 warning) are the master's business:
     a worker ignores them and finishes its task; the master decides when to stop.
+
+    Batches: with ``poll()`` (True when a message is waiting) and ``context["gpu_batch"]`` > 1, a
+    ``device: gpu`` task is run together with the tasks already waiting behind it that share its
+    ``batch_key``, up to ``gpu_batch`` of them, in one call of the task function's ``run_batch``
+    (one GPU launch); a task of another key waits for the next round.
     """
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1):
         try:
             signal.signal(sig, signal.SIG_IGN)
         except (ValueError, OSError):
             pass
+    if context.get("gpu_device") is not None:  # this worker's GPU, before anything starts CUDA
+        os.environ["CUDA_VISIBLE_DEVICES"] = str(context["gpu_device"])
     try:
         fn = resolve(context.get("task_function"))
     except Exception:  # noqa: BLE001 - report on the first task instead of dying silently
@@ -233,8 +343,10 @@ def worker_loop(recv, send, context: dict, rank: int) -> None:
         except Exception:  # noqa: BLE001 - a real problem shows up again in the first task
             pass
     send(("ready", rank))
+    limit = int(context.get("gpu_batch") or 1) if context.get("gpu_device") is not None else 1
+    held = None  # a message read while filling a batch that belongs to the next round
     while True:
-        msg = recv()
+        msg, held = (held, None) if held is not None else (recv(), None)
         if msg is None or msg[0] == "stop":
             return
         payload = msg[1]
@@ -242,7 +354,19 @@ def worker_loop(recv, send, context: dict, rank: int) -> None:
             summary = {"id": payload["id"], "ok": False, "scalars": {}, "histograms": {},
                        "configuration": None, "wall": 0.0, "rank": rank, "host": _HOST,
                        "error": {"message": "cannot load the task function", "traceback": err}}
-        else:
-            summary = run_task(fn, payload, context, rank)
-        send(("result", payload["index"], payload.get("attempt", 1), summary))
-
+            send(("result", payload["index"], payload.get("attempt", 1), summary))
+            continue
+        key = batch_key(payload)
+        batch = [payload]
+        if key is not None and limit > 1 and poll is not None and hasattr(fn, "run_batch"):
+            while len(batch) < limit and poll():
+                nxt = recv()
+                if nxt is not None and nxt[0] == "task" and batch_key(nxt[1]) == key:
+                    batch.append(nxt[1])
+                else:
+                    held = nxt if nxt is not None else ("stop",)
+                    break
+        summaries = (run_tasks(fn, batch, context, rank) if len(batch) > 1
+                     else [run_task(fn, payload, context, rank)])
+        for p, summary in zip(batch, summaries):
+            send(("result", p["index"], p.get("attempt", 1), summary))

@@ -8,7 +8,7 @@ Importing this package needs numba only; numba-cuda is imported when a CUDA back
 """
 
 from kernels.gpu.batch import (BACKENDS, BlockOverflow, cuda_available, describe, jam_batch,
-                               resolve_backend, threads_for)
+                               resolve_backend, simulated, threads_for)
 
 __all__ = ["jam_batch", "BlockOverflow", "cuda_available", "describe", "resolve_backend",
-           "threads_for", "BACKENDS"]
+           "threads_for", "simulated", "BACKENDS"]

@@ -31,7 +31,7 @@ from kernels.gpu.block import (N_OUT, N_PARAMS, O_ENERGY, O_FORCE_EVALS, O_ITERA
                                P_DELTA, P_E_FIRST, P_E_MIN, P_ENERGY_STEP, P_LX, P_LY, P_MAX_RADIUS,
                                P_MAX_SEARCH, P_MAX_STEPS, P_MEAN_D, P_NCX, P_NCY, P_RMAX, P_RULE,
                                P_SEARCH_TOL, P_SIN_TOL, P_SKIN, P_TOL, P_WINDOW, P_XY, ROWS,
-                               ST_OVERFLOW, make_block)
+                               ST_OVERFLOW, N_FL, N_IV, R0, X, Y, make_block)
 
 MAXNB = 32  # neighbour slots per disk (within r_i + r_j + skin: about 10-14 in a dense packing)
 CELL_CAP = 48  # slots per cell of the list's grid (about 2-3 disks per cell on average)
@@ -62,6 +62,13 @@ def cuda_available() -> bool:
         return False
 
 
+def simulated() -> bool:
+    """Whether numba's CUDA simulator stands in for the GPU (``NUMBA_ENABLE_CUDASIM=1``)."""
+    from numba import config
+
+    return bool(config.ENABLE_CUDASIM)
+
+
 def resolve_backend(backend=None) -> str:
     """``cuda`` or ``emulate`` for ``backend`` (None: ``CAMPAIGN_GPU_BACKEND``, else auto)."""
     name = backend or os.environ.get("CAMPAIGN_GPU_BACKEND") or "auto"
@@ -87,9 +94,9 @@ def _noop():
     pass
 
 
-def _slot_add(arr, i, v):
-    old = arr[i]
-    arr[i] = old + v
+def _slot_add(cells, c):
+    old = cells[0, c]
+    cells[0, c] = old + 1
     return old
 
 
@@ -101,13 +108,10 @@ def _emulator():
     block = make_block(njit, njit(_noop), njit(_slot_add))
 
     @njit
-    def run(nt, pos, vel, frc, ref, rad0, rad, nbr, ninv, nnb, cell_of, cell_cnt, cell_mem, alive,
-            alive2, prm, out):
+    def run(nt, fl, nbr, ninv, iv, cells, prm, out):
         red = np.zeros((ROWS, nt))
-        for b in range(pos.shape[0]):
-            block(0, nt, nt, pos[b], vel[b], frc[b], ref[b], rad0[b], rad[b], nbr[b], ninv[b],
-                  nnb[b], cell_of[b], cell_cnt[b], cell_mem[b], alive[b], alive2[b], red, prm[b],
-                  out[b])
+        for b in range(fl.shape[0]):
+            block(0, nt, nt, fl[b], nbr[b], ninv[b], iv[b], cells[b], red, prm[b], out[b])
 
     return run
 
@@ -204,27 +208,24 @@ def jam_batch(n, energies, seeds, starts=None, backend=None, threads=None, **set
     grids = [_grid(j, n) for j in jobs]
     ncell = max(g[0] * g[1] for g in grids)
     cap = max(g[2] for g in grids)
-    pos = np.empty((B, n, 2))
-    rad0 = np.empty((B, n))
+    fl = np.zeros((B, N_FL, n))
     prm = np.empty((B, N_PARAMS))
     orders = []
     for b, (job, (ncx, ncy, _)) in enumerate(zip(jobs, grids)):
         # the start sorted by cell once: neighbours in space become neighbours in memory
         order = _spatial_order(job.positions, job.cell_box, 2.0 * float(np.mean(job.radii0)))
         orders.append(order)
-        pos[b] = job.positions[order]
-        rad0[b] = job.radii0[order]
+        fl[b, X] = job.positions[order, 0]
+        fl[b, Y] = job.positions[order, 1]
+        fl[b, R0] = job.radii0[order]
         prm[b] = _params(job, ncx, ncy)
-    arrays = [pos, np.zeros((B, n, 2)), np.zeros((B, n, 2)), np.zeros((B, n, 2)), rad0,
-              np.zeros((B, n)), np.zeros((B, n, MAXNB), np.int32), np.zeros((B, n, MAXNB)),
-              np.zeros((B, n), np.int32), np.zeros((B, n), np.int32),
-              np.zeros((B, ncell), np.int32), np.zeros((B, ncell, cap), np.int32),
-              np.zeros((B, n), np.int32), np.zeros((B, n), np.int32), prm,
+    arrays = [fl, np.zeros((B, MAXNB, n), np.int32), np.zeros((B, MAXNB, n)),
+              np.zeros((B, N_IV, n), np.int32), np.zeros((B, cap + 1, ncell), np.int32), prm,
               np.zeros((B, N_OUT))]
     if which == "emulate":
         _emulator()(nt, *arrays)
     else:
-        pos, arrays[-1] = _device().run_batch(nt, arrays)
+        fl, arrays[-1] = _device().run_batch(nt, arrays)
     out = arrays[-1]
     device = describe(which)
     results = []
@@ -237,7 +238,8 @@ def jam_batch(n, energies, seeds, starts=None, backend=None, threads=None, **set
                 "its slots; use a smaller skin"))
             continue
         final = np.empty((n, 2))
-        final[orders[b]] = pos[b]
+        final[orders[b], 0] = fl[b, X]
+        final[orders[b], 1] = fl[b, Y]
         job.positions = final
         p = _packing(job, STATUS_NAMES[status], out[b, O_SCALE], out[b, O_ENERGY],
                      out[b, O_VIRIAL], out[b, O_RESIDUAL], int(out[b, O_ITERATIONS]),
@@ -246,5 +248,5 @@ def jam_batch(n, energies, seeds, starts=None, backend=None, threads=None, **set
     return results
 
 
-__all__ = ["jam_batch", "prepare", "BlockOverflow", "resolve_backend", "describe", "cuda_available",
+__all__ = ["jam_batch", "prepare", "simulated", "BlockOverflow", "resolve_backend", "describe", "cuda_available",
            "threads_for", "MAXNB", "CELL_CAP", "DEFAULT_THREADS", "BACKENDS"]

@@ -34,12 +34,16 @@ start by cell once; the CPU search re-sorts after its first minimisation), the m
 the time step taken as ``scale`` times the initial one, and the residual's forces those of the
 last FIRE step. The rules (FIRE 2.0, the search, the convergence test, rattlers) are the CPU's.
 
-Per-packing arrays (views of the batch's arrays, ``kernels.gpu.batch``): ``pos, vel, frc, ref``
-(n, 2); ``rad0, rad`` (n,); ``nbr`` (n, MAXNB) int32 and ``ninv`` (n, MAXNB) float64 (the
-neighbour rows and their ``1 / (r_i + r_j)``); ``nnb, cell_of`` (n,) int32; ``cell_cnt`` (C,)
-int32 and ``cell_mem`` (C, CAP) int32; ``alive, alive2`` (n,) int32; ``red`` (8, nt) float64
-(shared memory on the GPU); ``prm`` the packing's float64 parameters (``P_*``); ``out`` its
-results (``O_*``).
+Per-packing arrays (views of the batch's arrays, ``kernels.gpu.batch``), few and packed, because
+every array a GPU thread holds costs registers (its shape and strides): ``fl`` (10, n) float64, the
+rows ``X, Y`` (positions), ``VX, VY``, ``FX, FY``, ``RX, RY`` (positions at the lists' build),
+``R0`` (radii at scale 1), ``R`` (radii); ``nbr`` (MAXNB, n) int32 and ``ninv`` (MAXNB, n)
+float64: slot ``k`` of every disk's neighbour row and its ``1 / (r_i + r_j)`` (slot-major, so
+that the threads of a warp read consecutive words); ``iv`` (4, n) int32, the rows ``NNB``
+(neighbours), ``CELL`` (a disk's cell), ``ALIVE, ALIVE2`` (the rattler rounds); ``cells``
+(CAP + 1, C) int32: row 0 the count of each cell, rows 1..CAP its members; ``red`` (8, nt)
+float64 (shared memory on the GPU); ``prm`` the packing's float64 parameters (``P_*``); ``out``
+its results (``O_*``).
 """
 
 import math
@@ -91,13 +95,19 @@ ST_OVERFLOW = 5
 
 ROWS = 8  # rows of the reduction buffer red
 
+# rows of fl and iv
+X, Y, VX, VY, FX, FY, RX, RY, R0, R = range(10)
+N_FL = 10
+NNB, CELL, ALIVE, ALIVE2 = range(4)
+N_IV = 4
+
 
 def make_block(jit, sync, slot_add):
     """The block's phases and its O'Hern search compiled with ``jit`` (see the module
     docstring). Returns ``ohern_block``, the search of one packing:
 
-    ``ohern_block(t0, t1, nt, pos, vel, frc, ref, rad0, rad, nbr, ninv, nnb, cell_of, cell_cnt,
-    cell_mem, alive, alive2, red, prm, out)``."""
+    ``ohern_block(t0, t1, nt, fl, nbr, ninv, iv, cells, red, prm, out)``; ``slot_add(cells, c)``
+    takes the next slot of cell ``c`` (``cells[0, c] += 1``, returning the old count)."""
     pair = jit(pair_energy_force_py)
     near = jit(near_image_py)
     fold = jit(fold_py)
@@ -125,11 +135,11 @@ def make_block(jit, sync, slot_add):
             s = s // 2
 
     @jit
-    def forces(t0, t1, nt, pos, vel, frc, nbr, ninv, nnb, red, alpha, Lx, Ly, tilt):
+    def forces(t0, t1, nt, fl, nbr, ninv, iv, red, alpha, Lx, Ly, tilt):
         """Net forces, and the sums FIRE and its tests need: energy, virial, contacts and their
         force (each pair once), |F|^2, the power F.v (sums) and the largest |F|^2 (max).
         Returns ``(energy, virial, n_contacts, fsum, ff, p, fmax2)``."""
-        n = pos.shape[0]
+        n = fl.shape[1]
         hx = 0.5 * Lx
         hy = 0.5 * Ly
         for t in range(t0, t1):
@@ -141,15 +151,15 @@ def make_block(jit, sync, slot_add):
             p = 0.0
             fm = 0.0
             for i in range(t, n, nt):
-                xi = pos[i, 0]
-                yi = pos[i, 1]
+                xi = fl[X, i]
+                yi = fl[Y, i]
                 fx = 0.0
                 fy = 0.0
-                for k in range(nnb[i]):
-                    j = nbr[i, k]
-                    dx, dy = near(pos[j, 0] - xi, pos[j, 1] - yi, Lx, Ly, tilt, hx, hy)
+                for k in range(iv[NNB, i]):
+                    j = nbr[k, i]
+                    dx, dy = near(fl[X, j] - xi, fl[Y, j] - yi, Lx, Ly, tilt, hx, hy)
                     d2 = dx * dx + dy * dy
-                    q = ninv[i, k]
+                    q = ninv[k, i]
                     if d2 * q * q >= 1.0:
                         continue
                     r = math.sqrt(d2)
@@ -163,11 +173,11 @@ def make_block(jit, sync, slot_add):
                         fr = f / r
                         fx -= fr * dx
                         fy -= fr * dy
-                frc[i, 0] = fx
-                frc[i, 1] = fy
+                fl[FX, i] = fx
+                fl[FY, i] = fy
                 f2 = fx * fx + fy * fy
                 ff += f2
-                p += fx * vel[i, 0] + fy * vel[i, 1]
+                p += fx * fl[VX, i] + fy * fl[VY, i]
                 if f2 > fm:
                     fm = f2
             red[0, t] = e
@@ -183,15 +193,14 @@ def make_block(jit, sync, slot_add):
         return out
 
     @jit
-    def rebuild(t0, t1, nt, pos, ref, rad, nbr, ninv, nnb, cell_of, cell_cnt, cell_mem, red,
-                Lx, Ly, xy, skin, rmax, ncx, ncy):
-        """Wrap the positions, record them in ``ref`` and rebuild the neighbour rows: every
+    def rebuild(t0, t1, nt, fl, nbr, ninv, iv, cells, red, Lx, Ly, xy, skin, rmax, ncx, ncy):
+        """Wrap the positions, record them in ``RX, RY`` and rebuild the neighbour rows: every
         ``j != i`` within ``r_i + r_j + skin`` (nearest image), in increasing ``j``, from a cell
         list of cells at least ``2 rmax + skin`` wide. Returns False when a cell or a row
         outgrew its slots."""
-        n = pos.shape[0]
-        cap = cell_mem.shape[1]
-        maxnb = nbr.shape[1]
+        n = fl.shape[1]
+        cap = cells.shape[0] - 1
+        maxnb = nbr.shape[0]
         tilt = xy * Ly
         hx = 0.5 * Lx
         hy = 0.5 * Ly
@@ -210,29 +219,27 @@ def make_block(jit, sync, slot_add):
         ncell = nx * ny
         for t in range(t0, t1):
             for c in range(t, ncell, nt):
-                cell_cnt[c] = 0
+                cells[0, c] = 0
             for i in range(t, n, nt):
-                x, y = fold(pos[i, 0], pos[i, 1], Lx, Ly, tilt)
-                pos[i, 0] = x
-                pos[i, 1] = y
-                ref[i, 0] = x
-                ref[i, 1] = y
+                x, y = fold(fl[X, i], fl[Y, i], Lx, Ly, tilt)
+                fl[X, i] = x
+                fl[Y, i] = y
+                fl[RX, i] = x
+                fl[RY, i] = y
                 # the cell's own (sheared) coordinates: x - xy y along a, y along b
                 u = x - xy * y
                 u = u - Lx * math.floor(u / Lx)
-                cx = int(u / Lx * nx)
-                cy = int(y / Ly * ny)
-                cx = min(max(cx, 0), nx - 1)
-                cy = min(max(cy, 0), ny - 1)
-                cell_of[i] = cx * ny + cy
+                cx = min(max(int(u / Lx * nx), 0), nx - 1)
+                cy = min(max(int(y / Ly * ny), 0), ny - 1)
+                iv[CELL, i] = cx * ny + cy
         sync()
         for t in range(t0, t1):
             over = 0.0
             for i in range(t, n, nt):
-                c = cell_of[i]
-                s = slot_add(cell_cnt, c, 1)
+                c = iv[CELL, i]
+                s = slot_add(cells, c)
                 if s < cap:
-                    cell_mem[c, s] = i
+                    cells[1 + s, c] = i
                 else:
                     over = 1.0
             red[0, t] = over
@@ -240,22 +247,22 @@ def make_block(jit, sync, slot_add):
         for t in range(t0, t1):
             # each cell's members in increasing index (the slots were taken in any order)
             for c in range(t, ncell, nt):
-                m = min(cell_cnt[c], cap)
-                for a in range(1, m):
-                    v = cell_mem[c, a]
+                m = min(cells[0, c], cap)
+                for a in range(2, m + 1):
+                    v = cells[a, c]
                     b = a - 1
-                    while b >= 0 and cell_mem[c, b] > v:
-                        cell_mem[c, b + 1] = cell_mem[c, b]
+                    while b >= 1 and cells[b, c] > v:
+                        cells[b + 1, c] = cells[b, c]
                         b -= 1
-                    cell_mem[c, b + 1] = v
+                    cells[b + 1, c] = v
         sync()
         for t in range(t0, t1):
             over = red[0, t]
             for i in range(t, n, nt):
-                xi = pos[i, 0]
-                yi = pos[i, 1]
-                ri = rad[i]
-                ci = cell_of[i]
+                xi = fl[X, i]
+                yi = fl[Y, i]
+                ri = fl[R, i]
+                ci = iv[CELL, i]
                 cx = ci // ny
                 cy = ci - cx * ny
                 m = 0
@@ -264,26 +271,26 @@ def make_block(jit, sync, slot_add):
                     for b in range(3 if ny >= 3 else 1):
                         gy = (cy + b - 1) % ny if ny >= 3 else 0
                         g = gx * ny + gy
-                        for s in range(min(cell_cnt[g], cap)):
-                            j = cell_mem[g, s]
+                        for s in range(1, min(cells[0, g], cap) + 1):
+                            j = cells[s, g]
                             if j == i:
                                 continue
-                            dx, dy = near(pos[j, 0] - xi, pos[j, 1] - yi, Lx, Ly, tilt, hx, hy)
-                            rc = ri + rad[j] + skin
+                            dx, dy = near(fl[X, j] - xi, fl[Y, j] - yi, Lx, Ly, tilt, hx, hy)
+                            rc = ri + fl[R, j] + skin
                             if dx * dx + dy * dy < rc * rc:
                                 if m >= maxnb:
                                     over = 1.0
                                     continue
                                 # insert j in the row, kept in increasing index
                                 u = m - 1
-                                while u >= 0 and nbr[i, u] > j:
-                                    nbr[i, u + 1] = nbr[i, u]
-                                    ninv[i, u + 1] = ninv[i, u]
+                                while u >= 0 and nbr[u, i] > j:
+                                    nbr[u + 1, i] = nbr[u, i]
+                                    ninv[u + 1, i] = ninv[u, i]
                                     u -= 1
-                                nbr[i, u + 1] = j
-                                ninv[i, u + 1] = 1.0 / (ri + rad[j])
+                                nbr[u + 1, i] = j
+                                ninv[u + 1, i] = 1.0 / (ri + fl[R, j])
                                 m += 1
-                nnb[i] = m
+                iv[NNB, i] = m
             red[0, t] = over
         reduce(t0, t1, nt, red, 0, 1)
         ok = red[0, 0] == 0.0
@@ -291,45 +298,39 @@ def make_block(jit, sync, slot_add):
         return ok
 
     @jit
-    def load_bearing(i, pos, rad, nbr, nnb, alive, Lx, Ly, tilt, sin_tol):
-        """``kernels.network._load_bearing`` for disk ``i`` among the ``alive`` disks: at least
-        3 contacts and no closed half-plane through its centre holding all of them."""
-        hx = 0.5 * Lx
-        hy = 0.5 * Ly
-        xi = pos[i, 0]
-        yi = pos[i, 1]
+    def contact(i, k, fl, nbr, Lx, Ly, tilt):
+        """Slot ``k`` of disk ``i``'s row: its separation and whether the disks touch."""
+        j = nbr[k, i]
+        dx, dy = near(fl[X, j] - fl[X, i], fl[Y, j] - fl[Y, i], Lx, Ly, tilt, 0.5 * Lx, 0.5 * Ly)
+        s = fl[R, i] + fl[R, j]
+        d2 = dx * dx + dy * dy
+        return dx, dy, d2, d2 < s * s
+
+    @jit
+    def load_bearing(i, fl, nbr, iv, Lx, Ly, tilt, sin_tol):
+        """``kernels.network._load_bearing`` for disk ``i`` among the ``ALIVE`` disks: at least 3
+        contacts and no closed half-plane through its centre holding all of them."""
         z = 0
-        for k in range(nnb[i]):
-            j = nbr[i, k]
-            if alive[j] == 0:
-                continue
-            dx, dy = near(pos[j, 0] - xi, pos[j, 1] - yi, Lx, Ly, tilt, hx, hy)
-            s = rad[i] + rad[j]
-            if dx * dx + dy * dy < s * s:
+        for k in range(iv[NNB, i]):
+            if iv[ALIVE, nbr[k, i]] != 0 and contact(i, k, fl, nbr, Lx, Ly, tilt)[3]:
                 z += 1
         if z < 3:
             return False
-        for k in range(nnb[i]):
-            j = nbr[i, k]
-            if alive[j] == 0:
+        for k in range(iv[NNB, i]):
+            if iv[ALIVE, nbr[k, i]] == 0:
                 continue
-            dx, dy = near(pos[j, 0] - xi, pos[j, 1] - yi, Lx, Ly, tilt, hx, hy)
-            s = rad[i] + rad[j]
-            d2 = dx * dx + dy * dy
-            if d2 >= s * s:
+            dx, dy, d2, touch = contact(i, k, fl, nbr, Lx, Ly, tilt)
+            if not touch:
                 continue
             d = math.sqrt(d2)
             ux = dx / d if d > 0.0 else 0.0
             uy = dy / d if d > 0.0 else 0.0
             all_left = True
-            for l in range(nnb[i]):
-                j2 = nbr[i, l]
-                if l == k or alive[j2] == 0:
+            for l in range(iv[NNB, i]):
+                if l == k or iv[ALIVE, nbr[l, i]] == 0:
                     continue
-                ex, ey = near(pos[j2, 0] - xi, pos[j2, 1] - yi, Lx, Ly, tilt, hx, hy)
-                s2 = rad[i] + rad[j2]
-                e2 = ex * ex + ey * ey
-                if e2 >= s2 * s2:
+                ex, ey, e2, touch2 = contact(i, l, fl, nbr, Lx, Ly, tilt)
+                if not touch2:
                     continue
                 e = math.sqrt(e2)
                 vx = ex / e if e > 0.0 else 0.0
@@ -342,45 +343,42 @@ def make_block(jit, sync, slot_add):
         return True
 
     @jit
-    def residual(t0, t1, nt, pos, frc, rad, nbr, ninv, nnb, alive, alive2, red, alpha, Lx, Ly,
-                 tilt, sin_tol):
+    def residual(t0, t1, nt, fl, nbr, ninv, iv, red, alpha, Lx, Ly, tilt, sin_tol):
         """The force residual on non-rattlers (``kernels.fire._residual_core``) from the
         current forces: rattlers removed in rounds (a disk goes when it is not load-bearing
         among the disks alive in the previous round; the surviving set does not depend on the
         order), then ``max |F|`` over non-rattlers over the mean force of their contacts.
         Returns ``(residual, n_nonrattlers)``."""
-        n = pos.shape[0]
-        hx = 0.5 * Lx
-        hy = 0.5 * Ly
+        n = fl.shape[1]
         for t in range(t0, t1):
             for i in range(t, n, nt):
-                alive[i] = 1
+                iv[ALIVE, i] = 1
         sync()
         while True:
             for t in range(t0, t1):
                 changed = 0.0
                 for i in range(t, n, nt):
                     keep = 0
-                    if alive[i] != 0:
-                        if load_bearing(i, pos, rad, nbr, nnb, alive, Lx, Ly, tilt, sin_tol):
+                    if iv[ALIVE, i] != 0:
+                        if load_bearing(i, fl, nbr, iv, Lx, Ly, tilt, sin_tol):
                             keep = 1
                         else:
                             changed = 1.0
-                    alive2[i] = keep
+                    iv[ALIVE2, i] = keep
                 red[0, t] = changed
             reduce(t0, t1, nt, red, 0, 1)
             changed_any = red[0, 0] != 0.0
             sync()
             for t in range(t0, t1):
                 for i in range(t, n, nt):
-                    alive[i] = alive2[i]
+                    iv[ALIVE, i] = iv[ALIVE2, i]
             sync()
             if not changed_any:
                 break
         for t in range(t0, t1):
             ng = 0.0
             for i in range(t, n, nt):
-                ng += alive[i]
+                ng += iv[ALIVE, i]
             red[0, t] = ng
         reduce(t0, t1, nt, red, 1, 0)
         ng = red[0, 0]
@@ -391,20 +389,16 @@ def make_block(jit, sync, slot_add):
             nc = 0.0
             fm = 0.0
             for i in range(t, n, nt):
-                xi = pos[i, 0]
-                yi = pos[i, 1]
-                for k in range(nnb[i]):
-                    j = nbr[i, k]
-                    if j < i or not (use_all or (alive[i] != 0 and alive[j] != 0)):
+                for k in range(iv[NNB, i]):
+                    j = nbr[k, i]
+                    if j < i or not (use_all or (iv[ALIVE, i] != 0 and iv[ALIVE, j] != 0)):
                         continue
-                    dx, dy = near(pos[j, 0] - xi, pos[j, 1] - yi, Lx, Ly, tilt, hx, hy)
-                    s = rad[i] + rad[j]
-                    d2 = dx * dx + dy * dy
-                    if d2 < s * s:
-                        fs += pair(math.sqrt(d2), ninv[i, k], alpha)[1]
+                    dx, dy, d2, touch = contact(i, k, fl, nbr, Lx, Ly, tilt)
+                    if touch:
+                        fs += pair(math.sqrt(d2), ninv[k, i], alpha)[1]
                         nc += 1.0
-                if use_all or alive[i] != 0:
-                    f2 = frc[i, 0] * frc[i, 0] + frc[i, 1] * frc[i, 1]
+                if use_all or iv[ALIVE, i] != 0:
+                    f2 = fl[FX, i] * fl[FX, i] + fl[FY, i] * fl[FY, i]
                     if f2 > fm:
                         fm = f2
             red[0, t] = fs
@@ -423,12 +417,12 @@ def make_block(jit, sync, slot_add):
         return math.sqrt(fm) / mean, ng
 
     @jit
-    def fire(t0, t1, nt, pos, vel, frc, ref, rad, nbr, ninv, nnb, cell_of, cell_cnt, cell_mem,
-             alive, alive2, red, prm, tol, max_steps, skin, rmax, dt0, e_abort):
+    def fire(t0, t1, nt, fl, nbr, ninv, iv, cells, red, prm, tol, max_steps, skin, rmax, dt0,
+             e_abort):
         """One FIRE 2.0 minimisation at fixed radii (``kernels.fire._fire_run`` from rest).
         Returns ``(status, steps, force_evaluations, energy, virial, residual)``; status
         ``ST_OVERFLOW`` when the lists outgrew their slots."""
-        n = pos.shape[0]
+        n = fl.shape[1]
         alpha = prm[P_ALPHA]
         Lx = prm[P_LX]
         Ly = prm[P_LY]
@@ -445,14 +439,13 @@ def make_block(jit, sync, slot_add):
         n_neg = 0
         for t in range(t0, t1):
             for i in range(t, n, nt):
-                vel[i, 0] = 0.0
-                vel[i, 1] = 0.0
-        if not rebuild(t0, t1, nt, pos, ref, rad, nbr, ninv, nnb, cell_of, cell_cnt, cell_mem,
-                       red, Lx, Ly, xy, skin, rmax, ncx, ncy):
+                fl[VX, i] = 0.0
+                fl[VY, i] = 0.0
+        if not rebuild(t0, t1, nt, fl, nbr, ninv, iv, cells, red, Lx, Ly, xy, skin, rmax, ncx, ncy):
             return ST_OVERFLOW, 0, 0, 0.0, 0.0, math.inf
         half2 = 0.25 * skin * skin
-        energy, virial, nc, fsum, ff, p, fmax2 = forces(t0, t1, nt, pos, vel, frc, nbr, ninv,
-                                                        nnb, red, alpha, Lx, Ly, tilt)
+        energy, virial, nc, fsum, ff, p, fmax2 = forces(t0, t1, nt, fl, nbr, ninv, iv, red, alpha,
+                                                        Lx, Ly, tilt)
         nforce = 1
         status = rules.MAX_STEPS
         res = math.inf
@@ -469,8 +462,7 @@ def make_block(jit, sync, slot_add):
             mean_f = fsum / nc
             bound = math.sqrt(fmax2) / mean_f if mean_f > 0.0 else 0.0
             if bound < tol or step % rules.CHECK_EVERY == 0 or step >= max_steps:
-                res = residual(t0, t1, nt, pos, frc, rad, nbr, ninv, nnb, alive, alive2, red,
-                               alpha, Lx, Ly, tilt, sin_tol)[0]
+                res = residual(t0, t1, nt, fl, nbr, ninv, iv, red, alpha, Lx, Ly, tilt, sin_tol)[0]
                 if res < tol:
                     status = rules.CONVERGED
                     break
@@ -481,21 +473,20 @@ def make_block(jit, sync, slot_add):
             n_pos, n_neg, dt, a = fire_adapt(p, step, n_pos, n_neg, dt, a, dt_min, dt_max)
             if p <= 0.0 and n_neg > rules.N_NEG_MAX:
                 status = rules.STALLED
-                res = residual(t0, t1, nt, pos, frc, rad, nbr, ninv, nnb, alive, alive2, red,
-                               alpha, Lx, Ly, tilt, sin_tol)[0]
+                res = residual(t0, t1, nt, fl, nbr, ninv, iv, red, alpha, Lx, Ly, tilt, sin_tol)[0]
                 break
             # (retreat half a step and stop on a non-positive power), then v += dt F
             for t in range(t0, t1):
                 vv = 0.0
                 for i in range(t, n, nt):
                     if p <= 0.0:
-                        pos[i, 0] -= 0.5 * dt * vel[i, 0]
-                        pos[i, 1] -= 0.5 * dt * vel[i, 1]
-                        vel[i, 0] = 0.0
-                        vel[i, 1] = 0.0
-                    vel[i, 0] += dt * frc[i, 0]
-                    vel[i, 1] += dt * frc[i, 1]
-                    vv += vel[i, 0] * vel[i, 0] + vel[i, 1] * vel[i, 1]
+                        fl[X, i] -= 0.5 * dt * fl[VX, i]
+                        fl[Y, i] -= 0.5 * dt * fl[VY, i]
+                        fl[VX, i] = 0.0
+                        fl[VY, i] = 0.0
+                    fl[VX, i] += dt * fl[FX, i]
+                    fl[VY, i] += dt * fl[FY, i]
+                    vv += fl[VX, i] * fl[VX, i] + fl[VY, i] * fl[VY, i]
                 red[0, t] = vv
             reduce(t0, t1, nt, red, 1, 0)
             vv = red[0, 0]
@@ -505,12 +496,12 @@ def make_block(jit, sync, slot_add):
             for t in range(t0, t1):
                 disp2 = 0.0
                 for i in range(t, n, nt):
-                    vel[i, 0] = (1.0 - a) * vel[i, 0] + mix * frc[i, 0]
-                    vel[i, 1] = (1.0 - a) * vel[i, 1] + mix * frc[i, 1]
-                    pos[i, 0] += dt * vel[i, 0]
-                    pos[i, 1] += dt * vel[i, 1]
-                    ddx = pos[i, 0] - ref[i, 0]
-                    ddy = pos[i, 1] - ref[i, 1]
+                    fl[VX, i] = (1.0 - a) * fl[VX, i] + mix * fl[FX, i]
+                    fl[VY, i] = (1.0 - a) * fl[VY, i] + mix * fl[FY, i]
+                    fl[X, i] += dt * fl[VX, i]
+                    fl[Y, i] += dt * fl[VY, i]
+                    ddx = fl[X, i] - fl[RX, i]
+                    ddy = fl[Y, i] - fl[RY, i]
                     d2 = ddx * ddx + ddy * ddy
                     if d2 > disp2:
                         disp2 = d2
@@ -519,21 +510,20 @@ def make_block(jit, sync, slot_add):
             disp2 = red[0, 0]
             sync()
             if disp2 > half2:
-                if not rebuild(t0, t1, nt, pos, ref, rad, nbr, ninv, nnb, cell_of, cell_cnt,
-                               cell_mem, red, Lx, Ly, xy, skin, rmax, ncx, ncy):
+                if not rebuild(t0, t1, nt, fl, nbr, ninv, iv, cells, red, Lx, Ly, xy, skin, rmax,
+                               ncx, ncy):
                     return ST_OVERFLOW, step, nforce, energy, virial, math.inf
-            energy, virial, nc, fsum, ff, p, fmax2 = forces(t0, t1, nt, pos, vel, frc, nbr, ninv,
-                                                            nnb, red, alpha, Lx, Ly, tilt)
+            energy, virial, nc, fsum, ff, p, fmax2 = forces(t0, t1, nt, fl, nbr, ninv, iv, red,
+                                                            alpha, Lx, Ly, tilt)
             nforce += 1
         return status, step, nforce, energy, virial, res
 
     @jit
-    def ohern_block(t0, t1, nt, pos, vel, frc, ref, rad0, rad, nbr, ninv, nnb, cell_of, cell_cnt,
-                    cell_mem, alive, alive2, red, prm, out):
+    def ohern_block(t0, t1, nt, fl, nbr, ninv, iv, cells, red, prm, out):
         """The O'Hern search of one packing (``kernels.protocol._ohern_search`` with FIRE):
-        radii scaled from ``rad0`` until a force-balanced minimum lands in ``[E_min, E_min (1 +
+        radii scaled from ``R0`` until a force-balanced minimum lands in ``[E_min, E_min (1 +
         window)]``; positions minimised in place and left wrapped, results in ``out``."""
-        n = pos.shape[0]
+        n = fl.shape[1]
         e_min = prm[P_E_MIN]
         window = prm[P_WINDOW]
         tol = prm[P_TOL]
@@ -574,21 +564,19 @@ def make_block(jit, sync, slot_add):
             it += 1
             for t in range(t0, t1):
                 for i in range(t, n, nt):
-                    rad[i] = scale * rad0[i]
+                    fl[R, i] = scale * fl[R0, i]
             sync()
             skin = skin_factor * mean_d * scale
             rmax = rmax0 * scale
             dt0 = dt_from_diameter(mean_d * scale, alpha, e_guess)
-            st, nst, nf, e, w, res = fire(t0, t1, nt, pos, vel, frc, ref, rad, nbr, ninv, nnb,
-                                          cell_of, cell_cnt, cell_mem, alive, alive2, red, prm,
+            st, nst, nf, e, w, res = fire(t0, t1, nt, fl, nbr, ninv, iv, cells, red, prm,
                                           search_tol, max_steps, skin, rmax, dt0, abort)
             nforce += nf
             steps += nst
             if (st == rules.CONVERGED and e_min <= e / n <= e_max and search_tol > tol):
                 # polish to the final tolerance at the same radii
-                st, nst, nf, e, w, res = fire(t0, t1, nt, pos, vel, frc, ref, rad, nbr, ninv,
-                                              nnb, cell_of, cell_cnt, cell_mem, alive, alive2,
-                                              red, prm, tol, max_steps, skin, rmax, dt0, abort)
+                st, nst, nf, e, w, res = fire(t0, t1, nt, fl, nbr, ninv, iv, cells, red, prm, tol,
+                                              max_steps, skin, rmax, dt0, abort)
                 nforce += nf
                 steps += nst
             e_last = e
@@ -628,9 +616,9 @@ def make_block(jit, sync, slot_add):
         tilt = prm[P_XY] * Ly
         for t in range(t0, t1):
             for i in range(t, n, nt):
-                x, y = fold(pos[i, 0], pos[i, 1], Lx, Ly, tilt)
-                pos[i, 0] = x
-                pos[i, 1] = y
+                x, y = fold(fl[X, i], fl[Y, i], Lx, Ly, tilt)
+                fl[X, i] = x
+                fl[Y, i] = y
         sync()
         if t0 == 0:
             out[O_STATUS] = status

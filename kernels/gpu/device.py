@@ -14,7 +14,7 @@ import numpy as np
 if not hasattr(np, "row_stack"):
     np.row_stack = np.vstack
 
-from numba import cuda, float64  # noqa: E402 (after the numpy alias)
+from numba import config, cuda, float64  # noqa: E402 (after the numpy alias)
 
 from kernels.gpu.block import ROWS, make_block  # noqa: E402
 
@@ -23,26 +23,33 @@ def _sync():
     cuda.syncthreads()
 
 
-def _slot_add(arr, i, v):
-    return cuda.atomic.add(arr, i, v)
+def _slot_add(cells, c):
+    return cuda.atomic.add(cells, (0, c), 1)
+
+
+#: registers a thread may use: the whole search is one kernel and, unbounded, takes 255 per
+#: thread (ptxas for sm_90); a block of ``nt`` threads must fit the SM's 65536 registers
+REGISTER_FILE = 65536
 
 
 @lru_cache(maxsize=None)
-def kernel(nt):
+def kernel(nt, max_registers=None):
     """The batch kernel for blocks of ``nt`` threads: block ``b`` runs the O'Hern search of
-    packing ``b`` (arguments: ``kernels.gpu.block``'s arrays with a leading batch axis)."""
+    packing ``b`` (arguments: ``kernels.gpu.block``'s arrays with a leading batch axis).
+    ``max_registers`` per thread (default: as many as let one block fit an SM, at most 255;
+    fewer let more blocks share an SM, at the cost of spills). Registers never change the
+    results."""
     device = cuda.jit(device=True)
     block = make_block(device, device(_sync), device(_slot_add))
+    regs = max_registers or min(255, REGISTER_FILE // nt // 8 * 8)
 
-    @cuda.jit
-    def run(pos, vel, frc, ref, rad0, rad, nbr, ninv, nnb, cell_of, cell_cnt, cell_mem, alive,
-            alive2, prm, out):
+    # (numba's CUDA simulator takes no register bound)
+    @cuda.jit(**({} if config.ENABLE_CUDASIM else {"max_registers": regs}))
+    def run(fl, nbr, ninv, iv, cells, prm, out):
         b = cuda.blockIdx.x
         t = cuda.threadIdx.x
         red = cuda.shared.array((ROWS, nt), dtype=float64)
-        block(t, t + 1, nt, pos[b], vel[b], frc[b], ref[b], rad0[b], rad[b], nbr[b], ninv[b],
-              nnb[b], cell_of[b], cell_cnt[b], cell_mem[b], alive[b], alive2[b], red, prm[b],
-              out[b])
+        block(t, t + 1, nt, fl[b], nbr[b], ninv[b], iv[b], cells[b], red, prm[b], out[b])
 
     return run
 
@@ -54,18 +61,16 @@ def available() -> bool:
 
 def name() -> str:
     """``cuda:<device name>`` or ``cuda-simulator``."""
-    import os
-
-    if os.environ.get("NUMBA_ENABLE_CUDASIM") == "1":
+    if config.ENABLE_CUDASIM:
         return "cuda-simulator"
     n = cuda.get_current_device().name
     return "cuda:" + (n.decode() if isinstance(n, bytes) else str(n))
 
 
-def run_batch(nt, arrays):
-    """Copy the batch's arrays to the device, run one block per packing, and return the
-    positions and results (the first and last arrays) copied back."""
+def run_batch(nt, arrays, max_registers=None):
+    """Copy the batch's arrays to the device, run one block per packing, and return ``fl`` and
+    the results (the first and last arrays) copied back."""
     dev = [cuda.to_device(a) for a in arrays]
-    kernel(nt)[arrays[0].shape[0], nt](*dev)
+    kernel(nt, max_registers)[arrays[0].shape[0], nt](*dev)
     cuda.synchronize()
     return dev[0].copy_to_host(), dev[-1].copy_to_host()
