@@ -1,7 +1,7 @@
 """Contact-network analysis of one configuration: ``analyze()`` and ``Analysis``.
 
 ``analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0,
-species=None)`` measures everything ``PHYSICS.md`` defines on one packing (any
+species=None)`` measures everything ``docs/PHYSICS.md`` defines on one packing (any
 configuration, including ones made by other programs) and checks every exact
 identity of the contact network, reporting the result as flags, never raising on a
 packing that fails them. Observables are chosen by name (``OBSERVABLES``); an
@@ -104,7 +104,7 @@ ORDER_THRESHOLD = 0.9
 LENGTH_RANGE = (1e-100, 1e100)
 
 #: Free cell parameters per ensemble (``cell``): each adds one contact to the isostatic count
-#: ``N_C = 2 N_G - 1 + free`` (``PHYSICS.md``): none in a fixed cell, tilt and aspect ratio in a
+#: ``N_C = 2 N_G - 1 + free`` (``docs/PHYSICS.md``): none in a fixed cell, tilt and aspect ratio in a
 #: shear-stabilised one (``kernels.cellrelax``).
 CELL_CONSTRAINTS = {"fixed": 0, "shear": 2}
 
@@ -221,7 +221,7 @@ def analyze(positions, radii, box, observables=None, bins=None, *, exponent=2.0,
     max_void_sides : voids with more sides are not triangulated (and flagged)
     cell : the packing's ensemble, which sets its isostatic count: "fixed" (a fixed cell,
         ``N_C = 2 N_G - 1``) or "shear" (tilt and aspect ratio relaxed, ``N_C = 2 N_G + 1``;
-        ``PHYSICS.md``); ``z_iso`` and ``delta_Z`` use it
+        ``docs/PHYSICS.md``); ``z_iso`` and ``delta_Z`` use it
     """
     pos, rad, b, alpha = _check_inputs(positions, radii, box, exponent, species)
     if cell not in CELL_CONSTRAINTS:

@@ -6,7 +6,7 @@ moved by a deformation of the whole configuration, fractional coordinates fixed,
 
     F = [[e^eps, gamma], [0, e^-eps]]      r -> F r,  (Lx, Ly, xy Ly) -> (e^eps Lx, A / Lx', e^eps xy Ly + gamma Ly),
 
-whose generalised forces are (``PHYSICS.md``; ``S_ab = sum over contacts f r_a r_b / r``, the
+whose generalised forces are (``docs/PHYSICS.md``; ``S_ab = sum over contacts f r_a r_b / r``, the
 stress tensor times the area)
 
     -dU/dgamma = S_xy = A sigma_xy,      -dU/deps = S_xx - S_yy = A (sigma_xx - sigma_yy).

@@ -1,6 +1,6 @@
 """Contact network of a disk configuration in a periodic rectangular box (numba).
 
-Conventions (``PHYSICS.md``, "The contact network"):
+Conventions (``docs/PHYSICS.md``, "The contact network"):
 
 * a contact is a pair with minimum-image centre distance ``|d| < r_g + r_g'``;
 * rattlers (fewer than 3 contacts, or all contacts in a closed half-plane through the

@@ -220,7 +220,7 @@ def _pair_array_core(r, s, alpha):
 def stress_from_bonds(radii, bi, bj, dx, dy, exponent):
     """The stress tensor times the area, ``(S_xx, S_yy, S_xy)`` with ``S_ab = sum f r_a r_b / r``
     over the bonds ``(bi, bj)`` of separations ``(dx, dy)`` (``f > 0`` repulsive): ``sigma =
-    S / A``, the pressure is ``(S_xx + S_yy) / (2 A)`` (``PHYSICS.md``)."""
+    S / A``, the pressure is ``(S_xx + S_yy) / (2 A)`` (``docs/PHYSICS.md``)."""
     dx = np.asarray(dx, dtype=np.float64)
     dy = np.asarray(dy, dtype=np.float64)
     r = np.hypot(dx, dy)

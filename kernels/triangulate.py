@@ -1,7 +1,7 @@
 """Per-void Delaunay triangulation and fictitious contacts (numba).
 
 Each void of a valid packing is bounded by a convex cycle of grain centres (its
-*minimum cycle*, ``PHYSICS.md``). The cycle is unwrapped with the half-edge
+*minimum cycle*, ``docs/PHYSICS.md``). The cycle is unwrapped with the half-edge
 displacements, so voids that straddle the periodic boundary need no special care.
 Its Delaunay triangulation is built by the classical recursion for points in convex
 position: the Delaunay triangle on a chord ``(i, j)`` has its apex at the vertex
