@@ -23,6 +23,7 @@ Implementations:
 from __future__ import annotations
 
 import collections
+import os
 import socket
 import sys
 import time
@@ -247,24 +248,47 @@ def mpi_worker(comm, context: dict) -> None:
     status = MPI.Status()
     rank = comm.Get_rank()
 
+    probed = []  # a message matched by poll, received by the next recv
+
+    def probe():
+        msg = comm.improbe(source=0, tag=MPI.ANY_TAG, status=status)
+        return None if msg is None else (msg, status.Get_tag())
+
     def recv():
         backoff = _Backoff()
         while True:
-            msg = comm.improbe(source=0, tag=MPI.ANY_TAG, status=status)
-            if msg is not None:
-                obj = msg.recv()
-                return ("stop",) if status.Get_tag() == TAG_STOP else ("task", obj)
+            got = probed.pop() if probed else probe()
+            if got is not None:
+                obj = got[0].recv()
+                return ("stop",) if got[1] == TAG_STOP else ("task", obj)
             backoff.wait()
 
     def send(msg):
         comm.send(msg, dest=0, tag=TAG_RESULT)
 
     def poll():
-        return comm.iprobe(source=0, tag=MPI.ANY_TAG)
+        # MPI moves a message into reach only as its progress engine runs: a single probe right
+        # after a receive can miss what is already on its way, so try for up to a millisecond
+        deadline = time.monotonic() + 1e-3
+        while not probed:
+            got = probe()
+            if got is not None:
+                probed.append(got)
+            elif time.monotonic() > deadline:
+                break
+        return bool(probed)
 
     gpus = int(context.get("gpus") or 0)
-    if gpus:  # one rank per GPU: the node's ranks share its GPUs in turn
-        local = comm.Split_type(MPI.COMM_TYPE_SHARED)
-        context = gpu_context(context, local.Get_rank() % gpus)
-        local.Free()
+    if gpus:  # one rank per GPU: the node's ranks share its GPUs in turn, by their rank on the node
+        context = gpu_context(context, node_rank(rank) % gpus)
     _worker.worker_loop(recv, send, context, rank, poll)
+
+
+def node_rank(rank: int) -> int:
+    """This process's rank among those of its node, as the launcher says (MPICH's hydra, Open
+    MPI, srun), else its world rank."""
+    for name in ("MPI_LOCALRANKID", "OMPI_COMM_WORLD_LOCAL_RANK", "SLURM_LOCALID", "PMI_LOCAL_RANK"):
+        value = os.environ.get(name, "")
+        if value.isdigit():
+            return int(value)
+    return rank

@@ -101,17 +101,25 @@ def _slot_add(cells, c):
 
 
 @lru_cache(maxsize=None)
-def _emulator():
-    """The block compiled for the CPU, and a loop over a batch's packings."""
+def emulated_block():
+    """The block's phases compiled for the CPU (``make_block``'s namespace)."""
     from numba import njit
 
-    block = make_block(njit, njit(_noop), njit(_slot_add))
+    return make_block(njit, njit(_noop), njit(_slot_add))
+
+
+@lru_cache(maxsize=None)
+def _emulator():
+    """A loop over a batch's packings with the block compiled for the CPU."""
+    from numba import njit
+
+    ohern = emulated_block().ohern
 
     @njit
     def run(nt, fl, nbr, ninv, iv, cells, prm, out):
         red = np.zeros((ROWS, nt))
         for b in range(fl.shape[0]):
-            block(0, nt, nt, fl[b], nbr[b], ninv[b], iv[b], cells[b], red, prm[b], out[b])
+            ohern(0, nt, nt, fl[b], nbr[b], ninv[b], iv[b], cells[b], red, prm[b], out[b])
 
     return run
 

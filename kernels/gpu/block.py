@@ -47,6 +47,7 @@ its results (``O_*``).
 """
 
 import math
+from types import SimpleNamespace
 
 from kernels import rules
 from kernels.potential import pair_energy_force_py
@@ -104,9 +105,10 @@ N_IV = 4
 
 def make_block(jit, sync, slot_add):
     """The block's phases and its O'Hern search compiled with ``jit`` (see the module
-    docstring). Returns ``ohern_block``, the search of one packing:
+    docstring). Returns them as a namespace: ``ohern``, the search of one packing,
 
-    ``ohern_block(t0, t1, nt, fl, nbr, ninv, iv, cells, red, prm, out)``; ``slot_add(cells, c)``
+    ``ohern(t0, t1, nt, fl, nbr, ninv, iv, cells, red, prm, out)``, and the phases it is made of
+    (``fire``, ``forces``, ``rebuild``, ``residual``); ``slot_add(cells, c)``
     takes the next slot of cell ``c`` (``cells[0, c] += 1``, returning the old count)."""
     pair = jit(pair_energy_force_py)
     near = jit(near_image_py)
@@ -630,4 +632,5 @@ def make_block(jit, sync, slot_add):
             out[O_FORCE_EVALS] = nforce
             out[O_STEPS] = steps
 
-    return ohern_block
+    return SimpleNamespace(ohern=ohern_block, fire=fire, forces=forces, rebuild=rebuild,
+                           residual=residual)

@@ -40,7 +40,7 @@ def kernel(nt, max_registers=None):
     fewer let more blocks share an SM, at the cost of spills). Registers never change the
     results."""
     device = cuda.jit(device=True)
-    block = make_block(device, device(_sync), device(_slot_add))
+    ohern = make_block(device, device(_sync), device(_slot_add)).ohern
     regs = max_registers or min(255, REGISTER_FILE // nt // 8 * 8)
 
     # (numba's CUDA simulator takes no register bound)
@@ -49,7 +49,7 @@ def kernel(nt, max_registers=None):
         b = cuda.blockIdx.x
         t = cuda.threadIdx.x
         red = cuda.shared.array((ROWS, nt), dtype=float64)
-        block(t, t + 1, nt, fl[b], nbr[b], ninv[b], iv[b], cells[b], red, prm[b], out[b])
+        ohern(t, t + 1, nt, fl[b], nbr[b], ninv[b], iv[b], cells[b], red, prm[b], out[b])
 
     return run
 

@@ -1,0 +1,324 @@
+"""The GPU block (kernels.gpu) on the CPU: its emulation for whole packings, numba's CUDA simulator
+for the kernel itself, the kernel compiled for a real GPU (sm_90 PTX), and GPU campaigns."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+from numba import njit
+
+import kernels
+from kernels import potential
+from kernels.fire import _residual_core
+from kernels.cells import _candidate_pairs_core
+from kernels.gpu import BlockOverflow, jam_batch
+from kernels.gpu import batch as gpu_batch
+from kernels.gpu.block import FX, FY, N_FL, N_IV, NNB, R, ROWS, X, Y
+
+ROOT = Path(__file__).resolve().parents[1]
+MPIEXEC = Path(sys.executable).parent / "mpiexec"
+
+
+def emulate(n, energies, seeds, threads=32, **kw):
+    return jam_batch(n, energies, seeds, backend="emulate", threads=threads, **kw)
+
+
+# --------------------------------------------------------------------------- whole packings
+
+@pytest.mark.parametrize("n, energies, kw", [
+    (64, [1e-3, 1e-7, 1e-11], {}),
+    (128, [1e-5], {"exponent": 2.5}),
+    (64, [1e-6], {"search": "halving", "sizes": ("lognormal", 0.2)}),
+])
+def test_block_packings_are_jammed_in_the_window(n, energies, kw):
+    """Every packing of the block: converged, E_G in [E, 1.1 E] recomputed from its positions,
+    force-balanced on its non-rattlers, the network identities hold, its scalars recomputed
+    by the CPU kernels."""
+    ps = emulate(n, energies, list(range(len(energies))), **kw)
+    alpha = kw.get("exponent", 2.0)
+    for p, e in zip(ps, energies):
+        assert p.status == "converged" and p.settings["device"] == "emulation"
+        e_cpu = potential.energy(p.positions, p.radii, p.box, alpha) / n
+        assert e <= e_cpu <= 1.1 * e and abs(e_cpu - p.energy) <= 1e-9 * e_cpu
+        assert abs(potential.pressure(p.positions, p.radii, p.box, alpha) - p.pressure) <= 1e-9 * p.pressure
+        pi, pj = _candidate_pairs_core(p.positions, p.radii, np.array([1.0, 1.0, 0.0]), 0.0)
+        res, ng, _ = _residual_core(p.positions, p.radii, np.array([1.0, 1.0, 0.0]), pi, pj, alpha,
+                                    np.empty((n, 2)))
+        assert res < 1e-6 and ng == p.n_nonrattlers
+        a = kernels.analyze(p.positions, p.radii, p.box, exponent=alpha)
+        assert a.scalars["identities_ok"]
+        assert np.all(p.positions >= 0) and np.all(p.positions < 1)
+
+
+def test_block_is_deterministic_and_independent_of_its_batch():
+    """The same packing gives the same bits alone, again, and inside a batch of others."""
+    alone = emulate(64, [1e-6], [5])[0]
+    again = emulate(64, [1e-6], [5])[0]
+    batch = emulate(64, [1e-3, 1e-6, 1e-9], [4, 5, 6])[1]
+    for p in (again, batch):
+        assert p.positions.tobytes() == alone.positions.tobytes()
+        assert p.radii.tobytes() == alone.radii.tobytes()
+        assert p.force_evaluations == alone.force_evaluations
+
+
+def test_block_starts_from_jams_random_start():
+    """The block starts from the seed's random start of ``kernels.jam`` (same radii at scale 1,
+    same species): only the trajectory differs."""
+    from kernels.jamming import initial_state, DEFAULT_SPECIES
+
+    p = emulate(64, [1e-4], [9])[0]
+    pos0, rad0, spc = initial_state(64, np.random.SeedSequence(9), (1.0, 1.0), DEFAULT_SPECIES, 0.86)
+    ratio = p.radii / rad0
+    assert np.allclose(ratio, ratio[0], rtol=1e-14) and np.array_equal(p.species, spc)
+
+
+def test_block_overflow_is_refused_not_wrong(monkeypatch):
+    """A neighbour row beyond its slots fails that packing with the reason; the others go on."""
+    monkeypatch.setattr(gpu_batch, "MAXNB", 4)
+    out = emulate(64, [1e-4], [1])
+    assert isinstance(out[0], BlockOverflow) and "neighbour row" in str(out[0])
+
+
+def test_block_refuses_what_it_does_not_run():
+    for kw in ({"minimizer": "cg"}, {"cell": "shear"}, {"endgame": "newton"}, {"route": "pressure"}):
+        with pytest.raises(ValueError, match="device 'gpu' runs FIRE"):
+            jam_batch(32, [1e-4], [0], backend="emulate", **kw)
+    with pytest.raises(ValueError, match="power of two"):
+        jam_batch(32, [1e-4], [0], backend="emulate", threads=3)
+    with pytest.raises(ValueError, match="energy"):
+        jam_batch(32, [1e-30], [0], backend="emulate")
+
+
+# --------------------------------------------------------------------------- the phases
+
+def _harness():
+    """njit drivers of the emulated block's phases on one packing."""
+    block = gpu_batch.emulated_block()
+    rebuild, forces, residual = block.rebuild, block.forces, block.residual
+
+    @njit
+    def run(nt, fl, nbr, ninv, iv, cells, box, skin, rmax, ncx, ncy, alpha, sin_tol):
+        red = np.zeros((ROWS, nt))
+        ok = rebuild(0, nt, nt, fl, nbr, ninv, iv, cells, red, box[0], box[1], box[2], skin, rmax,
+                     ncx, ncy)
+        e = forces(0, nt, nt, fl, nbr, ninv, iv, red, alpha, box[0], box[1], box[2] * box[1])
+        res = residual(0, nt, nt, fl, nbr, ninv, iv, red, alpha, box[0], box[1], box[2] * box[1],
+                       sin_tol)
+        return ok, e[0], res[0], res[1]
+
+    return run
+
+
+def _phases(pos, rad, box, skin, nt=8, maxnb=40, alpha=2.0):
+    n = len(rad)
+    fl = np.zeros((N_FL, n))
+    fl[X], fl[Y], fl[R] = pos[:, 0], pos[:, 1], rad
+    nbr = np.zeros((maxnb, n), np.int32)
+    ninv = np.zeros((maxnb, n))
+    iv = np.zeros((N_IV, n), np.int32)
+    cells = np.zeros((n + 1, 64), np.int32)
+    out = _harness()(nt, fl, nbr, ninv, iv, cells, np.asarray(box, float), skin, rad.max(), 8, 8,
+                     alpha, np.sin(kernels.network.HALF_PLANE_TOL))
+    return out, fl, nbr, iv
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(8, 60), st.integers(0, 2**32 - 1), st.floats(0.0, 0.4), st.sampled_from([1, 4, 16]))
+def test_rebuild_rows_are_the_brute_force_neighbours(n, seed, xy, nt):
+    """Each disk's row holds exactly the disks within r_i + r_j + skin (nearest image in the
+    tilted cell), in increasing index, whatever the thread count."""
+    rng = np.random.default_rng(seed)
+    box = np.array([1.0, 1.2, xy])
+    pos = rng.random((n, 2)) * box[:2]
+    rad = rng.uniform(0.02, 0.06, n)
+    skin = 0.03
+    (ok, *_), fl, nbr, iv = _phases(pos, rad, box, skin, nt=nt)
+    assert ok
+    for i in range(n):
+        want = []
+        for j in range(n):
+            if j == i:
+                continue
+            dx, dy = kernels.space.separation(fl[X, j] - fl[X, i], fl[Y, j] - fl[Y, i], box)
+            if dx * dx + dy * dy < (rad[i] + rad[j] + skin) ** 2:
+                want.append(j)
+        assert nbr[:iv[NNB, i], i].tolist() == want
+
+
+def test_phases_forces_and_residual_match_the_cpu_kernels():
+    """Forces, energy and the rattler-aware residual of the block equal the CPU kernels' on a
+    jammed packing (up to the summation order), with the same non-rattler count."""
+    p = kernels.jam(128, 1e-6, 3)
+    box = np.array([1.0, 1.0, 0.0])
+    (ok, e, res, ng), fl, *_ = _phases(p.positions, p.radii, box, 0.3 * np.mean(p.radii))
+    assert ok
+    f = potential.forces(p.positions, p.radii, (1.0, 1.0))
+    scale = np.abs(f).max()
+    assert np.allclose(np.stack([fl[FX], fl[FY]], 1), f, atol=1e-9 * scale)
+    assert abs(e - p.energy * 128) <= 1e-12 * e
+    pi, pj = _candidate_pairs_core(p.positions, p.radii, box, 0.0)
+    r_cpu, ng_cpu, _ = _residual_core(p.positions, p.radii, box, pi, pj, 2.0, np.empty((128, 2)))
+    assert ng == ng_cpu == p.n_nonrattlers
+    assert abs(res - r_cpu) <= 1e-6 * r_cpu + 1e-12
+
+
+def test_gpu_and_cpu_packings_agree_in_the_mean():
+    """GPU packings are other trajectories of the same protocol: cell means of A_G, Delta Z,
+    Psi_O and phi agree with the CPU's within 3 combined standard errors (N_G 64, 1e-4, 16
+    seeds each)."""
+    seeds = list(range(16))
+    gpu = emulate(64, [1e-4] * len(seeds), seeds)
+    cpu = [kernels.jam(64, 1e-4, s) for s in seeds]
+    for name in ("A_G", "delta_Z", "psi_O", "phi"):
+        a = np.array([kernels.analyze(p.positions, p.radii, p.box).scalars[name] for p in gpu])
+        b = np.array([kernels.analyze(p.positions, p.radii, p.box).scalars[name] for p in cpu])
+        err = np.hypot(a.std(ddof=1) / np.sqrt(len(a)), b.std(ddof=1) / np.sqrt(len(b)))
+        assert abs(a.mean() - b.mean()) <= 3 * err, (name, a.mean(), b.mean(), err)
+
+
+# --------------------------------------------------------------------------- the CUDA kernel
+
+def test_kernel_compiles_for_a_real_gpu():
+    """The batch kernel goes through numba-cuda's CUDA compiler to sm_90 PTX (libNVVM from the
+    test extra's numba-cuda[cu13]; no GPU needed: the device's compute capability is given)."""
+    code = """
+import numba.cuda.dispatcher as d
+class Hopper:
+    compute_capability = (9, 0)
+d.get_current_device = lambda: Hopper()
+from numba import cuda, float64, int32
+from kernels.gpu import device
+f3, f2, i3 = float64[:, :, ::1], float64[:, ::1], int32[:, :, ::1]
+ptx, _ = cuda.compile_ptx(device.kernel(256).py_func, (f3, i3, f3, i3, i3, f2, f2), device=False, cc=(9, 0))
+assert ".target sm_90" in ptx and "bar.sync" in ptx and "atom.global.add" in ptx, ptx[:400]
+print("ok", len(ptx))
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                       env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert r.returncode == 0 and r.stdout.startswith("ok"), r.stderr[-3000:]
+
+
+SIM_SPEC = """\
+name: gpu-tiny
+seed: 7
+grid: {N_G: [16], E_G: [1.0e-4], seeds: 1}
+protocol: {device: gpu, gpu_threads: 2}
+observables: [scalars]
+store: {configurations: true}
+"""
+
+
+def test_tiny_gpu_campaign_under_the_cuda_simulator_equals_the_emulation(tmp_path):
+    """A device: gpu campaign runs end to end with the CUDA kernel under numba's simulator, and
+    its packing is the emulation's bit for bit (the kernel and the emulation are one code)."""
+    spec = tmp_path / "gpu.yaml"
+    spec.write_text(SIM_SPEC)
+    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1", PYTHONPATH=str(ROOT))
+    r = subprocess.run([sys.executable, "-m", "campaign", "run", str(spec), "--out", str(tmp_path / "g.h5"),
+                        "--workers", "1", "--quiet"], env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    with h5py.File(tmp_path / "g.h5") as f:
+        assert f["tasks/status"][0] == 1
+        assert f["tasks/host"][0].decode().endswith(" cuda-simulator")
+        seed = f["tasks/seed"][0]
+        tid = f["tasks/id"][0].decode()
+        pos = f[f"configurations/{tid}/positions"][()]
+    from campaign.plan.spec import load_spec
+    from campaign.plan.tasks import expand
+
+    task = expand(load_spec(spec))[0]
+    p = jam_batch(16, [1e-4], [list(task.entropy)], backend="emulate", threads=2)[0]
+    assert task.id == tid and task.seed == seed
+    assert p.positions.tobytes() == np.asarray(pos, np.float64).tobytes()
+
+
+# --------------------------------------------------------------------------- campaigns
+
+def test_spec_device_keys_give_their_own_ids(tmp_path):
+    from campaign.errors import UserError
+    from campaign.plan.spec import load_spec
+    from campaign.plan.tasks import expand
+
+    def ids(protocol):
+        spec = tmp_path / "s.yaml"
+        spec.write_text(f"name: s\nseed: 1\ngrid: {{N_G: [16], E_G: [1.0e-3], seeds: 2}}\nprotocol: {protocol}\n")
+        return [t.id for t in expand(load_spec(spec))]
+
+    cpu = ids("{}")
+    assert ids("{device: cpu}") == cpu
+    gpu = ids("{device: gpu}")
+    assert set(gpu).isdisjoint(cpu)
+    assert ids("{device: gpu, gpu_threads: 256}") == gpu
+    assert set(ids("{device: gpu, gpu_threads: 64}")).isdisjoint(gpu)
+    for bad, msg in (("{device: gpu, gpu_threads: 48}", "power of two"),
+                     ("{gpu_threads: 64}", "device 'gpu'"),
+                     ("{device: gpu, cell: shear}", "device 'gpu' runs FIRE"),
+                     ("{device: gpu, minimizer: cg}", "device 'gpu' runs FIRE"),
+                     ("{device: gpu, start: ladder}", "device 'gpu' runs FIRE"),
+                     ("{device: tpu}", "unknown device")):
+        with pytest.raises(UserError, match=msg):
+            ids(bad)
+
+
+BATCH_SPEC = """\
+name: gpu-batch
+seed: 3
+grid: {N_G: [16, 32], E_G: [1.0e-3, 1.0e-6], seeds: 6}
+protocol: {device: gpu}
+observables: [scalars]
+"""
+
+
+def _stored(path):
+    """Scalars but the batch size (NaN for a task run alone), the batch sizes, the statuses."""
+    with h5py.File(path) as f:
+        names = sorted(k for k in f["scalars"] if k != "batch_size")
+        size = f["scalars/batch_size"][:] if "batch_size" in f["scalars"] else np.full(len(f["tasks/status"]), np.nan)
+        return {k: f["scalars"][k][:] for k in names}, size, f["tasks/status"][:]
+
+
+@pytest.mark.parametrize("launch", ["local", "mpi"])
+def test_gpu_workers_take_batches_and_store_the_same_bits(tmp_path, launch):
+    """GPU workers (--gpus) run tasks of one variant and N_G together; the store holds the same
+    values as a run without GPU workers (synthetic tasks: the batching, not the kernels)."""
+    spec = tmp_path / "b.yaml"
+    spec.write_text(BATCH_SPEC)
+    env = dict(os.environ, CAMPAIGN_TASK_FUNCTION="synthetic", CAMPAIGN_SYNTHETIC_DELAY="0.02",
+               PYTHONPATH=str(ROOT))
+    base = [sys.executable, "-m", "campaign", "run", str(spec), "--quiet"]
+    r = subprocess.run(base + ["--out", str(tmp_path / "one.h5"), "--workers", "2"], env=env,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    cmd = base + ["--out", str(tmp_path / "gpu.h5"), "--gpus", "1", "--gpu-batch", "6"]
+    if launch == "mpi":
+        cmd = [str(MPIEXEC), "-n", "3"] + cmd
+    else:
+        cmd += ["--workers", "2"]
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    one, size_one, status_one = _stored(tmp_path / "one.h5")
+    gpu, size_gpu, status_gpu = _stored(tmp_path / "gpu.h5")
+    assert np.all(status_one == 1) and np.all(status_gpu == 1)
+    assert np.all(np.isnan(size_one))  # without --gpus every task runs alone
+    assert np.nanmax(size_gpu) > 1 and np.nanmax(size_gpu) <= 6
+    for k in one:
+        if k in ("jam_seconds", "analyze_seconds"):
+            continue
+        assert one[k].tobytes() == gpu[k].tobytes(), k
+
+
+def test_run_refuses_bad_gpu_options(tmp_path):
+    spec = tmp_path / "b.yaml"
+    spec.write_text(BATCH_SPEC)
+    env = dict(os.environ, CAMPAIGN_TASK_FUNCTION="synthetic", PYTHONPATH=str(ROOT))
+    for args, msg in ((["--gpus", "3", "--workers", "2"], "--gpus 3 needs as many workers"),
+                      (["--gpu-batch", "0"], "--gpu-batch >= 1"),
+                      (["--gpus", "-1"], "--gpus must be >= 0")):
+        r = subprocess.run([sys.executable, "-m", "campaign", "run", str(spec), "--out", str(tmp_path / "x.h5"),
+                            *args], env=env, capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2 and msg in r.stderr and "Traceback" not in r.stderr, r.stderr
