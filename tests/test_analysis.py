@@ -341,7 +341,7 @@ def _check_identities(res, box):
     bad = [k for k, v in res.identities.items() if not v]
     assert not bad, bad
     assert s["identities_ok"] is True
-    # exact integer identities, restated here from PHYSICS.md
+    # exact integer identities, restated here from docs/PHYSICS.md
     assert s["N_C"] == 2 * s["N_G"] + 2 * s["N_V"]
     assert s["N_F"] == s["N_C"] - 3 * s["N_V"] == 2 * s["N_G"] - s["N_V"]
     assert s["N_F"] == int(np.sum(res.z_v - 3))

@@ -4,7 +4,7 @@ ordered fraction of crystallising packings, and degenerate configurations handed
 the analysis.
 
 Every packing test asserts what the packing promises (status, energy window, force
-balance recomputed here by brute force, the identities of PHYSICS.md); every bad
+balance recomputed here by brute force, the identities of docs/PHYSICS.md); every bad
 request asserts a clear refusal. ``pytest -m slow tests/test_extremes.py`` runs the
 long ones (N = 16384, full energy ladders).
 """

@@ -18,7 +18,7 @@ from kernels.network import contact_bonds, network, rattlers
 from kernels.triangulate import triangulate_polygon
 from reference import in_closed_half_plane, ref_nonrattlers
 
-RATIO = 1.4  # sigma_A / sigma_B (PHYSICS.md)
+RATIO = 1.4  # sigma_A / sigma_B (docs/PHYSICS.md)
 
 
 # ----------------------------------------------------------------------------- packings
@@ -429,7 +429,7 @@ def _angle_at(r, g):
     return math.acos((p * p + q * q - opp * opp) / (2 * p * q))
 
 
-# (cluster of three, grain looked at) -> PHYSICS.md table value (theta, alpha_e)
+# (cluster of three, grain looked at) -> docs/PHYSICS.md table value (theta, alpha_e)
 TABLE = {
     "B(AA)": (1.245653, 0.473803),
     "B(AB)": (1.141021, 0.454530),
