@@ -38,3 +38,98 @@ def test_relative_links_resolve(page):
         elif anchor and target.suffix == ".md" and anchor not in _anchors(target):
             bad.append(f"{link}: no heading #{anchor}")
     assert not bad, f"{page.relative_to(ROOT)}: {bad}"
+
+
+# --------------------------------------------------------------------------- documents named anywhere
+
+_SKIP_DIRS = {"__pycache__", "jamming_campaign.egg-info"}
+#: Files the reducer writes next to its output (campaign/results/writing.py), not documents of
+#: this repository: named in the docs and the code as outputs. Each must still be a name the
+#: results package writes (test_output_names_are_written), so that this list cannot outlive them.
+REDUCER_OUTPUTS = {"table.md", "systems.md"}
+_MD_NAME = re.compile(r"(?<![\w./-])((?:[\w.-]+/)*[\w.-]*\w\.md)\b")
+#: Addresses of other projects' files (a link to a URL is not a file of this repository).
+_URL = re.compile(r"[a-z][a-z0-9+.-]*://\S+")
+
+
+def _citing_files():
+    out = []
+    for p in sorted(ROOT.rglob("*")):
+        rel = p.relative_to(ROOT).parts
+        if p.suffix not in {".py", ".md", ".yaml", ".sbatch"} or not p.is_file():
+            continue
+        if any(part.startswith(".") or part in _SKIP_DIRS for part in rel):
+            continue  # .git, the virtual environment, caches, build metadata
+        out.append(p)
+    return out
+
+
+def _md_names(path):
+    return set(_MD_NAME.findall(_URL.sub(" ", path.read_text(errors="replace"))))
+
+
+def test_citing_files_are_found():
+    files = {p.relative_to(ROOT).as_posix() for p in _citing_files()}
+    for expected in ("README.md", "docs/CONTRACTS.md", "kernels/network.py", "tests/test_docs.py",
+                     "campaigns/ci.yaml"):
+        assert expected in files
+    assert not any(f.startswith((".venv/", ".git/")) for f in files)
+
+
+def test_md_name_pattern():
+    text = ("see ``docs/PHYSICS.md``, [STORE.md](STORE.md#x), ../CHANGELOG.md and "
+            "https://example.org/other/README.md; not PHYSICS.mdx")
+    found = set(_MD_NAME.findall(_URL.sub(" ", text)))
+    assert found == {"docs/PHYSICS.md", "STORE.md", "../CHANGELOG.md"}
+
+
+def test_output_names_are_written():
+    code = "".join(p.read_text() for p in (ROOT / "campaign" / "results").glob("*.py"))
+    for name in REDUCER_OUTPUTS:
+        assert f'"{name}"' in code or f"'{name}'" in code, name
+
+
+def test_every_named_document_exists():
+    """Every ``*.md`` named in code (.py) or docs (.md, .yaml, .sbatch) is a file of the
+    repository, relative to the naming file, to docs/ or to the repository root."""
+    bad = []
+    for path in _citing_files():
+        for name in sorted(_md_names(path) - REDUCER_OUTPUTS):
+            if not any((base / name).is_file() for base in (path.parent, ROOT / "docs", ROOT)):
+                bad.append(f"{path.relative_to(ROOT)}: {name}")
+    assert not bad, bad
+
+
+# --------------------------------------------------------------------------- the module table
+
+def _module_table():
+    """The module paths the first column of CONTRACTS.md's layout table names: a cell's
+    backticked ``dir/file.py`` sets the directory its following bare ``file.py`` names use."""
+    text = (ROOT / "docs" / "CONTRACTS.md").read_text()
+    section = text.split("## Package layout and ownership of names", 1)[1].split("\n## ", 1)[0]
+    named = set()
+    for line in section.splitlines():
+        if not line.startswith("| `") and not line.startswith("| **`"):
+            continue
+        folder = None
+        for token in re.findall(r"`([^`]+)`", line.split("|")[1]):
+            if "/" in token:
+                folder = token.rsplit("/", 1)[0]
+                name = token
+            elif folder is not None:
+                name = f"{folder}/{token}"
+            else:
+                continue
+            if name.endswith(".py"):
+                named.add(name)
+    return named
+
+
+def test_module_table_names_every_module():
+    on_disk = {p.relative_to(ROOT).as_posix()
+               for pkg in ("kernels", "campaign") for p in (ROOT / pkg).rglob("*.py")
+               if p.name not in {"__init__.py", "__main__.py"} and "__pycache__" not in p.parts}
+    table = _module_table()
+    assert {"kernels/space.py", "campaign/plan/tasks.py"} <= on_disk
+    assert not on_disk - table, f"modules missing from docs/CONTRACTS.md: {sorted(on_disk - table)}"
+    assert not table - on_disk, f"docs/CONTRACTS.md names modules that do not exist: {sorted(table - on_disk)}"
