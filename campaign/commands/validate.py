@@ -64,6 +64,11 @@ def _main(args, cal) -> int:
         parts = [f"{v.name} {estimate([t for t in tasks if t.variant == v.name], cal).seconds / 3600:.3g}"
                  for v in spec.variants]
         print(f"  per variant (core-hours): {', '.join(parts)}")
+    gpu = [v.name for v in spec.variants if dict(v.protocol).get("device") == "gpu"]
+    if gpu:
+        n_gpu = sum(t.variant in gpu for t in tasks)
+        print(f"  device gpu  {n_gpu} task(s) of {', '.join(gpu)}: priced above as CPU core-hours (the same "
+              "FIRE steps); no calibration measured on a GPU prices them in GPU-hours yet (docs/GPU.md)")
     for line in _auto_advice(spec, tasks, cal) + _fast_advice(spec, tasks, cal):
         print(line)
     learnt = _learnt_remaining(spec, tasks)
@@ -87,8 +92,9 @@ def _endgames(spec, tasks):
 
 
 def _takes_newton(proto) -> bool:
-    """Whether a protocol can take the Newton endgame: FIRE, the O'Hern route, the fixed cell."""
-    return proto.get("minimizer", "fire") == "fire" and not {"stop", "route", "cell"} & proto.keys()
+    """Whether a protocol can take the Newton endgame: FIRE, the O'Hern route, the fixed cell, the
+    CPU (the GPU block runs FIRE alone from random starts)."""
+    return proto.get("minimizer", "fire") == "fire" and not {"stop", "route", "cell", "device"} & proto.keys()
 
 
 def _repriced(mine, cal, key):
