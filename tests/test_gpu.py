@@ -231,6 +231,9 @@ def test_tiny_gpu_campaign_under_the_cuda_simulator_equals_the_emulation(tmp_pat
     from campaign.plan.spec import load_spec
     from campaign.plan.tasks import expand
 
+    st = subprocess.run([sys.executable, "-m", "campaign", "status", str(tmp_path / "g.h5")], env=env,
+                        capture_output=True, text=True, timeout=60)
+    assert st.returncode == 0 and "GPU packings: 1 on cuda-simulator" in st.stdout, st.stdout + st.stderr
     task = expand(load_spec(spec))[0]
     p = jam_batch(16, [1e-4], [list(task.entropy)], backend="emulate", threads=2)[0]
     assert task.id == tid and task.seed == seed
@@ -322,3 +325,34 @@ def test_run_refuses_bad_gpu_options(tmp_path):
         r = subprocess.run([sys.executable, "-m", "campaign", "run", str(spec), "--out", str(tmp_path / "x.h5"),
                             *args], env=env, capture_output=True, text=True, timeout=60)
         assert r.returncode == 2 and msg in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_slurm_writes_gpu_jobs(tmp_path):
+    """campaign slurm --gpus-per-task: SLURM gives every rank its GPU, every worker is a GPU worker;
+    without it the script has no GPU line."""
+    spec = tmp_path / "b.yaml"
+    spec.write_text(BATCH_SPEC)
+
+    def script(*extra):
+        r = subprocess.run([sys.executable, "-m", "campaign", "slurm", str(spec), "--no-estimate", "--nodes", "2",
+                            "--ntasks-per-node", "5", *extra], capture_output=True, text=True, timeout=60,
+                           env=dict(os.environ, PYTHONPATH=str(ROOT)))
+        assert r.returncode == 0, r.stderr
+        return r.stdout
+
+    gpu = script("--gpus-per-task", "1", "--partition", "gpu")
+    assert "#SBATCH --gpus-per-task=1\n" in gpu and "#SBATCH --partition=gpu\n" in gpu
+    assert [ln for ln in gpu.splitlines() if "campaign run" in ln][0].endswith(" --gpus 1")
+    cpu = script()
+    assert "--gpus" not in cpu and "#SBATCH --gpus" not in cpu
+
+
+def test_gpu_worker_keeps_to_the_devices_it_was_given(monkeypatch):
+    from campaign.run.worker import visible_device
+
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    assert [visible_device(k) for k in range(3)] == ["0", "1", "2"]
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "3")  # SLURM bound this rank to GPU 3
+    assert visible_device(0) == "3" and visible_device(1) == "3"
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "4,6")
+    assert [visible_device(k) for k in range(3)] == ["4", "6", "4"]

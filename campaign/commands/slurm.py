@@ -19,6 +19,9 @@ def configure(p):
     p.add_argument("--time", default="24:00:00", help="wall time per job, [D-]HH:MM:SS (default 24:00:00)")
     p.add_argument("--partition", help="SLURM partition")
     p.add_argument("--account", help="SLURM account")
+    p.add_argument("--gpus-per-task", type=int, default=0, metavar="G",
+                   help="GPU jobs: G GPUs per rank (#SBATCH --gpus-per-task), every worker a GPU worker "
+                        "(campaign run --gpus G); the master's rank gets its GPUs too (docs/GPU.md)")
     p.add_argument("--launcher", choices=("srun", "srun-pmix", "srun-site", "mpiexec"), default="srun",
                    help="start the ranks with srun --mpi=pmi2 (default; the MPICH the package installs), "
                         "srun --mpi=pmix, srun with the cluster's default MPI plugin (a site MPI), or the MPI "
@@ -76,7 +79,8 @@ def _main(args, cal) -> int:
     results = Path(args.results or spec.output or f"results/{spec.name}.h5")
     options = SlurmOptions(nodes=args.nodes, ntasks_per_node=args.ntasks_per_node, time=args.time,
                            partition=args.partition, account=args.account, launcher=args.launcher,
-                           warn_seconds=args.warn, margin_seconds=args.margin)
+                           warn_seconds=args.warn, margin_seconds=args.margin,
+                           gpus_per_task=args.gpus_per_task)
     text = render_script(name=spec.name, spec=Path(args.spec), out=results, tasks=spec.n_tasks, options=options)
     if (args.chain or args.submit) and not args.out:
         raise UserError("--chain and --submit need --out FILE: the jobs submit the script file")

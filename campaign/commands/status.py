@@ -53,7 +53,8 @@ def main(args) -> int:
                           "remaining_core_hours": remaining_hours,
                           "groups": [{"variant": k[0], "N": k[1], "E": k[2], "done": d, "failed": f, "pending": p}
                                      for k, d, f, p in groups],
-                          "failures": failures}, indent=1))
+                          "gpu_workers": live.get("gpu_workers") if active else None,
+                          "gpu_packings": s["devices"], "failures": failures}, indent=1))
         return 0
     print(f"{args.file}: campaign {attrs.get('name', '?')!s}, {totals['tasks']} tasks")
     print("  " + progress_text(state))
@@ -68,6 +69,11 @@ def main(args) -> int:
     if remaining_hours is not None and totals["pending"] + totals["failed"]:
         print(f"  estimated remaining work {remaining_hours:.3g} core-hours "
               f"(cost model learnt from {learnt_from} finished packing(s))")
+    gpu_now = live.get("gpu_workers") if active else None
+    if s["devices"] or gpu_now:
+        print("  " + "; ".join(([f"GPU workers now: {gpu_now}"] if gpu_now else []) +
+                               ([("GPU packings: " + ", ".join(f"{n} on {d}" for d, n in sorted(s["devices"].items())))]
+                                if s["devices"] else [])))
     width = max(7, max(len(k[0]) for k, *_ in groups)) if groups else 7
     print(f"  {'variant':<{width}} {'N':>7} {'E':>9} {'done':>6} {'failed':>6} {'pending':>7}")
     for (v, n, e), d, f, p in groups:
@@ -119,6 +125,9 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
     cells, failures = {}, []
     sample = {"N": [], "E": [], "wall": [], "variant": []}
     done_seen = 0
+    # GPU packings record what ran them beside the host ("node12 cuda:NVIDIA H100 ..."): counted per
+    # device, read only for a spec that asks for them
+    devices = {} if "gpu" in str(f.attrs.get("spec_yaml", "")) else None
     for lo in range(0, T, BLOCK):
         hi = min(lo + BLOCK, T)
         st = status_all[lo:hi]
@@ -132,6 +141,11 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
             c[1] += int(np.count_nonzero(part == FAILED))
             c[2] += int(np.count_nonzero(part == PENDING))
         done = np.flatnonzero(st == DONE)
+        if devices is not None and len(done):
+            for h in t["host"][lo:hi][done]:
+                device = h.decode(errors="replace").partition(" ")[2]
+                if device:
+                    devices[device] = devices.get(device, 0) + 1
         pick = done[(np.arange(done_seen, done_seen + len(done)) % stride) == 0]
         done_seen += len(done)
         if len(pick):
@@ -155,7 +169,7 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
               "pending": int(np.count_nonzero(status_all == PENDING)), "tasks": T}
     sample = {k: (np.concatenate(x) if x else np.zeros(0)) for k, x in sample.items()}
     return {"attrs": {k: f.attrs[k] for k in f.attrs}, "cells": cells, "totals": totals,
-            "failures": failures, "sample": sample, "status": status_all}
+            "failures": failures, "sample": sample, "status": status_all, "devices": devices or {}}
 
 
 def _journal_only(path, status):

@@ -260,6 +260,8 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
         else:
             comm = LocalComm(context, min(n_workers, max(1, todo)), gpus=context["gpus"])
         comm.dead = comm.wait_ready()  # workers have loaded (not compiled: see warm_up above) the kernels
+        if getattr(comm, "capacity", None):
+            progress.extra["gpu_workers"] = len(comm.capacity)  # campaign status shows them
         wall = None
         if args.deadline is not None:
             from campaign.run.walltime import Deadline

@@ -55,6 +55,7 @@ class SlurmOptions:
     launcher: str = "srun"
     warn_seconds: int | None = None  # SLURM's USR1 warning before the limit
     margin_seconds: int | None = None  # the master's safety margin before the limit
+    gpus_per_task: int = 0  # GPU jobs: every rank gets this many GPUs, every worker is a GPU worker
 
     def checked(self) -> "SlurmOptions":
         if self.nodes < 1:
@@ -69,6 +70,8 @@ class SlurmOptions:
         for flag, value in (("--partition", self.partition), ("--account", self.account)):
             if value is not None and not re.fullmatch(r"[A-Za-z0-9_.,:+-]+", value):
                 raise UserError(f"{flag} must be a plain SLURM name; got {value!r}")
+        if self.gpus_per_task < 0:
+            raise UserError(f"--gpus-per-task must be >= 0; got {self.gpus_per_task}")
         seconds = parse_time(self.time)
         for flag, value in (("--warn", self.warn_seconds), ("--margin", self.margin_seconds)):
             if value is not None and not 0 <= value < seconds:
@@ -102,7 +105,8 @@ def render_script(*, name: str, spec: Path, out: Path, tasks: int, options: Slur
     """The sbatch script text. Paths are made absolute: jobs start in other directories."""
     options = options.checked()
     optional = "".join(f"#SBATCH --{key}={value}\n" for key, value in
-                       (("partition", options.partition), ("account", options.account)) if value)
+                       (("partition", options.partition), ("account", options.account),
+                        ("gpus-per-task", options.gpus_per_task)) if value)
     return _template().format(
         name=name,
         job_name=re.sub(r"[^A-Za-z0-9_.-]", "_", name)[:64] or "campaign",
@@ -116,6 +120,8 @@ def render_script(*, name: str, spec: Path, out: Path, tasks: int, options: Slur
         spec=shlex.quote(str(Path(spec).resolve())),
         out=shlex.quote(str(Path(out).resolve())),
         launch=LAUNCHERS[options.launcher],
+        # GPU jobs: SLURM gives each rank its own GPUs (CUDA_VISIBLE_DEVICES); the workers use them
+        gpus=f" --gpus {options.gpus_per_task}" if options.gpus_per_task else "",
     )
 
 

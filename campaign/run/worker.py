@@ -151,6 +151,14 @@ class KernelTask:
         return scalars, hists, config
 
 
+def visible_device(k: int) -> str:
+    """``CUDA_VISIBLE_DEVICES`` for a worker's ``k``-th GPU: the k-th (cyclically) of the devices
+    the process may already see (SLURM's ``--gpus-per-task`` binds each rank to its own), else GPU
+    ``k`` of the node."""
+    seen = [d for d in os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",") if d.strip()]
+    return seen[k % len(seen)].strip() if seen else str(k)
+
+
 def batch_key(payload):
     """Tasks that can share one GPU launch have equal keys (a ``device: gpu`` task: its variant, N
     and protocol; energies and seeds may differ); None for a task that runs alone."""
@@ -331,7 +339,7 @@ def worker_loop(recv, send, context: dict, rank: int, poll=None) -> None:
         except (ValueError, OSError):
             pass
     if context.get("gpu_device") is not None:  # this worker's GPU, before anything starts CUDA
-        os.environ["CUDA_VISIBLE_DEVICES"] = str(context["gpu_device"])
+        os.environ["CUDA_VISIBLE_DEVICES"] = visible_device(context["gpu_device"])
     try:
         fn = resolve(context.get("task_function"))
     except Exception:  # noqa: BLE001 - report on the first task instead of dying silently

@@ -147,6 +147,7 @@ class Progress:
         self.done_now = 0          # finished in this run
         self.cost_done = 0.0       # estimated cost finished in this run
         self.state = {}
+        self.extra = {}  # facts of the run for campaign status (the number of GPU workers)
         self.phase = "starting"
         self.identity = writer_identity()
         self._lock = threading.Lock()
@@ -200,7 +201,7 @@ class Progress:
         if self.sidecar is None:
             return
         data = dict(self.state, updated=time.time(), active=not final, phase="ended" if final else self.phase,
-                    **self.identity)
+                    **self.extra, **self.identity)
         tmp = self.sidecar.with_name(self.sidecar.name + ".tmp")
         with self._lock:
             try:
