@@ -356,3 +356,29 @@ def test_gpu_worker_keeps_to_the_devices_it_was_given(monkeypatch):
     assert visible_device(0) == "3" and visible_device(1) == "3"
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "4,6")
     assert [visible_device(k) for k in range(3)] == ["4", "6", "4"]
+
+
+def test_validate_says_when_it_prices_for_another_machine(tmp_path):
+    """A calibration records the machine it was made on; validate says when this is another, and
+    that GPU tasks are priced as CPU core-hours."""
+    import json
+
+    from campaign.plan.calibration import machine
+
+    spec = tmp_path / "b.yaml"
+    spec.write_text(BATCH_SPEC)
+    packaged = json.loads((ROOT / "campaign/plan/cost_calibration.json").read_text())
+
+    def validate(info):
+        cal = tmp_path / "cal.json"
+        cal.write_text(json.dumps(dict(packaged, info=info)))
+        r = subprocess.run([sys.executable, "-m", "campaign", "validate", str(spec), "--calibration", str(cal)],
+                           capture_output=True, text=True, timeout=60, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+        assert r.returncode == 0, r.stderr
+        return r.stdout
+
+    other = validate({"machine": "Vax 11/780, 1 cores"})
+    assert "calibrated on another machine (Vax 11/780, 1 cores); this is " + machine() in other
+    assert "device gpu  24 task(s) of default: priced above as CPU core-hours" in other
+    assert "calibrated on another machine" not in validate({"machine": machine()})
+    assert "calibrated on another machine (Vax, 2 cores)" in validate({"host": "node7 (Vax, 2 cores)"})

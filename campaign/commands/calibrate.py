@@ -348,7 +348,9 @@ def main(args) -> int:
             got, share = _run_records(args, start)
             for k in records:
                 records[k] += got[k]
-        info = {"created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "host": _host(),
+        from campaign.plan.calibration import machine
+
+        info = {"created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "host": _host(), "machine": machine(),
                 "stores": list(args.store), "seeds": args.seeds or "all",
                 "run": bool(args.run or not args.store), "packings": len(records["N"])}
         if share is not None:  # the load the run's timings saw
@@ -380,10 +382,6 @@ def main(args) -> int:
 def _host() -> str:
     import platform
 
-    model = ""
-    try:
-        with open("/proc/cpuinfo") as fh:
-            model = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), "")
-    except OSError:
-        pass
-    return f"{platform.node()} ({model or platform.processor() or platform.machine()}, {os.cpu_count()} cores)"
+    from campaign.plan.calibration import machine
+
+    return f"{platform.node()} ({machine()})"

@@ -27,6 +27,7 @@ def _main(args, cal) -> int:
     from campaign.plan.spec import load_spec
     from campaign.errors import UserError
     from campaign.plan.tasks import energy_floor_problems, estimate, expand, task_cost
+    from campaign.plan.calibration import calibrated_on, machine
 
     spec = load_spec(args.spec)
     problems = energy_floor_problems(spec)
@@ -60,6 +61,11 @@ def _main(args, cal) -> int:
         print(line)
     print(f"  estimated cost {est.hours()}: {fmt_duration(est.seconds)} on one core; longest task "
           f"~{fmt_duration(longest)}; model calibrated by {cal.source} (campaign/plan/calibration.py)")
+    here, made_on = machine(), calibrated_on(cal)
+    if made_on is not None and made_on != here:
+        print(f"  note: the cost model was calibrated on another machine ({made_on}); this is {here}: its "
+              "prices are off by the ratio of their speeds. `campaign calibrate --run --quick` here (minutes) "
+              "makes a calibration for this machine (--calibration FILE)")
     if len(spec.variants) > 1:
         parts = [f"{v.name} {estimate([t for t in tasks if t.variant == v.name], cal).seconds / 3600:.3g}"
                  for v in spec.variants]

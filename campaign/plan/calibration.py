@@ -224,6 +224,33 @@ class Calibration:
 
 # ---------------------------------------------------------------------- reading and checking
 
+def machine() -> str:
+    """This machine as a calibration records it: the CPU model and the core count (the host name
+    left out: the nodes of a cluster are one machine for the cost model)."""
+    import os
+    import platform
+
+    model = ""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            model = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), "")
+    except OSError:
+        pass
+    return f"{model or platform.processor() or platform.machine()}, {os.cpu_count()} cores"
+
+
+def calibrated_on(cal) -> str | None:
+    """The machine a calibration was made on (its ``info``: ``machine``, or the part of ``host`` in
+    parentheses, as older calibrations wrote it), or None where it does not say."""
+    info = cal.info or {}
+    if info.get("machine"):
+        return str(info["machine"])
+    host = str(info.get("host", ""))
+    if "(" in host and host.endswith(")"):
+        return host[host.index("(") + 1:-1]
+    return None
+
+
 def _refuse(source, problem):
     raise UserError(f"{source}: not a usable cost calibration: {problem}. `campaign calibrate` writes one; "
                     f"without --calibration and {ENV} the packaged one is used")
