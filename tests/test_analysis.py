@@ -18,15 +18,8 @@ import kernels.analysis as analysis_module
 from kernels.analysis import DEFAULT_BINS, IDENTITY_KEYS, SCALAR_KEYS, analyze
 from kernels.names import DEFAULT_OBSERVABLES
 from kernels.observables import OBSERVABLES, histogram
-from test_network import (
-    _three_disks,
-    compressed_packing,
-    jittered_crystal,
-    random_configuration,
-    reference_fictitious,
-    reference_network,
-    triangular_crystal,
-)
+from helpers import compressed_packing, jittered_crystal, three_touching_disks, triangular_crystal
+from references import ref_fictitious, ref_network, ref_radial_counts
 
 ALL = tuple(OBSERVABLES)
 
@@ -99,7 +92,7 @@ def test_triangular_crystal(nx, ny, a):
 
 def test_three_disks_alone_are_all_rattlers():
     """Three touching disks: each has 2 contacts, so the network is empty; no exception."""
-    pos, r, box = _three_disks(np.array([1.4, 1.0, 1.0]) * 0.01)
+    pos, r, box = three_touching_disks(np.array([1.4, 1.0, 1.0]) * 0.01)
     res = analyze(pos, r, box)
     s = res.scalars
     assert s["N_G"] == 0 and s["N_R"] == 3 and s["N_C"] == 0 and s["N_V"] == 0
@@ -215,19 +208,6 @@ def test_voids_above_the_size_guard_are_not_triangulated_and_flagged():
 # ----------------------------------------------------------------------------- reference
 
 
-def _radial_reference(points, scales, edges, box, same):
-    """Brute-force ordered-pair counts of |p_j - p_i| / scale_i, i != j."""
-    counts = np.zeros(len(edges) - 1, dtype=np.int64)
-    for i in range(len(points)):
-        d = points - points[i]
-        d -= box * np.round(d / box)
-        r = np.hypot(d[:, 0], d[:, 1])
-        mask = np.array([not same(i, j) for j in range(len(points))])
-        for s in scales[i]:
-            counts += np.histogram(r[mask] / s, edges)[0]
-    return counts
-
-
 @pytest.mark.parametrize("which", ["packing", "random", "polydisperse"])
 def test_analysis_matches_reference(which):
     if which == "packing":
@@ -238,7 +218,7 @@ def test_analysis_matches_reference(which):
         pos, rad, box = jittered_crystal(6, 10, 3, box=(1.0, 1.3), poly=0.08)
     bins = {"radial_grains": np.linspace(0.0, 5.0, 51), "radial_contacts": np.linspace(0.0, 6.0, 61)}
     res = analyze(pos, rad, box, bins=bins)
-    ref = reference_network(pos, rad, box)
+    ref = ref_network(pos, rad, box)
     s = res.scalars
     area = box[0] * box[1]
     assert (s["N_G"], s["N_C"], s["N_V"]) == (ref["N_G"], ref["N_C"], len(ref["voids"]))
@@ -261,7 +241,7 @@ def test_analysis_matches_reference(which):
     # radial distributions by brute force
     alive = sorted(ref["alive"])
     gp = pos[alive]
-    counts = _radial_reference(gp, [[rad[g]] for g in alive], e["radial_grains"], box, lambda i, j: i == j)
+    counts = ref_radial_counts(gp, [[rad[g]] for g in alive], e["radial_grains"], box, lambda i, j: i == j)
     assert np.array_equal(h["radial_grains"], counts)
     cpts, cscales = [], []
     for i, j in ref["bonds"]:
@@ -270,11 +250,11 @@ def test_analysis_matches_reference(which):
             d -= box * np.round(d / box)
             cpts.append(pos[i] + d * rad[i] / (rad[i] + rad[j]))
             cscales.append([rad[i], rad[j]])
-    counts = _radial_reference(np.array(cpts), cscales, e["radial_contacts"], box, lambda i, j: i == j)
+    counts = ref_radial_counts(np.array(cpts), cscales, e["radial_contacts"], box, lambda i, j: i == j)
     assert np.array_equal(h["radial_contacts"], counts)
     if which == "packing":
         assert all(res.identities.values())
-        fl = reference_fictitious(ref, rad)
+        fl = ref_fictitious(ref, rad)
         assert s["N_F"] == len(fl)
         assert np.array_equal(h["fictitious_length"], np.histogram(fl - 1, e["fictitious_length"])[0])
 
@@ -295,14 +275,14 @@ def test_radial_counts_with_cells_match_brute_force(box, edges_kind):
                   bins={"radial_grains": edges, "radial_contacts": edges})
     alive = np.flatnonzero(~res.rattler)
     assert alive.size > 100
-    counts = _radial_reference(pos[alive], [[rad[g]] for g in alive], edges, b, lambda i, j: i == j)
+    counts = ref_radial_counts(pos[alive], [[rad[g]] for g in alive], edges, b, lambda i, j: i == j)
     assert np.array_equal(res.histograms["radial_grains"], counts)
     live = [(i, j) for i, j in res.contacts.tolist() if not (res.rattler[i] or res.rattler[j])]
     d = pos[[j for _, j in live]] - pos[[i for i, _ in live]]
     d -= b * np.round(d / b)
     fi = np.array([rad[i] / (rad[i] + rad[j]) for i, j in live])
     cpts = pos[[i for i, _ in live]] + fi[:, None] * d
-    counts = _radial_reference(cpts, [[rad[i], rad[j]] for i, j in live], edges, b, lambda i, j: i == j)
+    counts = ref_radial_counts(cpts, [[rad[i], rad[j]] for i, j in live], edges, b, lambda i, j: i == j)
     assert np.array_equal(res.histograms["radial_contacts"], counts)
 
 
@@ -538,7 +518,7 @@ def test_custom_bins_and_additivity():
     assert a.histograms["contact_angle"].sum() == a.scalars["N_C"]
     pos2, rad2, box2 = compressed_packing(40, 1, box=(1.0, 0.7))
     b = analyze(pos2, rad2, box2, ["contact_angles"], bins={"contact_angle": edges})
-    net = [reference_network(p, r, bx)["theta"] for p, r, bx in ((pos, rad, box), (pos2, rad2, box2))]
+    net = [ref_network(p, r, bx)["theta"] for p, r, bx in ((pos, rad, box), (pos2, rad2, box2))]
     both = np.histogram(np.concatenate(net), edges)[0]
     assert np.array_equal(a.histograms["contact_angle"] + b.histograms["contact_angle"], both)
 

@@ -14,7 +14,7 @@ from kernels.fire import _fire_core
 from kernels.jamming import DEFAULTS, initial_state
 from kernels.potential import energy, pressure
 from kernels.protocol import _dt_for
-from test_jam import ref_check
+from references import ref_packing_measures
 
 
 def _state(n, seed, phi=0.86):
@@ -66,7 +66,7 @@ def test_pressure_route_lands_in_window_with_balanced_forces(n, target):
     for seed in (0, 1, 2):
         p = kernels.jam(n, target, seed, route="pressure")
         assert p.status == "converged", (n, target, seed, p.status)
-        e, resid, n_g, n_c = ref_check(p)
+        e, resid, n_g, n_c = ref_packing_measures(p)
         assert target <= e <= target * 1.1
         assert e == pytest.approx(p.energy, rel=1e-9)
         assert resid < DEFAULTS["force_tolerance"] and p.force_residual < DEFAULTS["force_tolerance"]
@@ -78,11 +78,11 @@ def test_pressure_route_lands_in_window_with_balanced_forces(n, target):
 
 def test_pressure_route_other_box_and_exponent():
     p = kernels.jam(60, 1e-6, 3, box=(2.0, 0.75), route="pressure")
-    e, resid, *_ = ref_check(p)
+    e, resid, *_ = ref_packing_measures(p)
     assert p.status == "converged" and 1e-6 <= e <= 1.1e-6 and resid < 1e-6
     for alpha in (2.5, 3.0):
         p = kernels.jam(64, 1e-9, 3, exponent=alpha, route="pressure")
-        e, resid, *_ = ref_check(p)
+        e, resid, *_ = ref_packing_measures(p)
         assert p.status == "converged" and 1e-9 <= e <= 1.1e-9 and resid < 1e-6
 
 

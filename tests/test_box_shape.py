@@ -10,7 +10,7 @@ import pytest
 import kernels
 from campaign import cli
 from kernels.analysis import analyze
-from test_network import triangular_crystal
+from helpers import triangular_crystal
 
 
 @pytest.mark.parametrize("box", [(1.0, 1.0), (1.5, 1.0)])

@@ -9,10 +9,8 @@ import kernels
 from kernels import cg, fire
 from kernels.cg import E_ROUND
 from kernels.potential import energy, forces
-
-from reference import ref_nonrattlers
-from test_fire import random_dense
-from test_jam import ref_check, ref_contacts
+from helpers import random_dense
+from references import ref_contact_arrays, ref_energy_and_residual, ref_hessian_finite_differences, ref_nonrattlers
 
 EPS = np.finfo(float).eps
 
@@ -22,24 +20,9 @@ def _disp(pos, box, i, j):
     return d - box * np.round(d / box)
 
 
-def ref_hessian(pos, rad, box, alpha, keep, h):
-    """Central finite differences of the forces, restricted to the disks in ``keep``."""
-    idx = np.flatnonzero(keep)
-    m = 2 * len(idx)
-    hess = np.empty((m, m))
-    for a, i in enumerate(idx):
-        for k in range(2):
-            p, q = pos.copy(), pos.copy()
-            p[i, k] += h
-            q[i, k] -= h
-            df = (forces(q, rad, box, alpha) - forces(p, rad, box, alpha)) / (2 * h)
-            hess[:, 2 * a + k] = df[idx].ravel()
-    return 0.5 * (hess + hess.T)
-
-
 def energy_resolution(pos, rad, box, alpha):
     """The kernel's stated float64 resolution of a total energy (see kernels.cg)."""
-    _, _, r, s = ref_contacts(pos, rad, box)
+    _, _, r, s = ref_contact_arrays(pos, rad, box)
     return E_ROUND * EPS * box.max() * np.sum((1 - r / s) ** (alpha - 1) / s)
 
 
@@ -58,8 +41,8 @@ def test_cg_reaches_the_fire_minimum(seed, alpha):
     a = fire.minimize(start, rad, box, alpha, force_tolerance=1e-10)
     b = cg.minimize(start, rad, box, alpha, force_tolerance=1e-10)
     assert a.status == b.status == "converged" and a.residual < 1e-10 and b.residual < 1e-10
-    ia, ja, *_ = ref_contacts(a.positions, rad, box)
-    ib, jb, *_ = ref_contacts(b.positions, rad, box)
+    ia, ja, *_ = ref_contact_arrays(a.positions, rad, box)
+    ib, jb, *_ = ref_contact_arrays(b.positions, rad, box)
     keep = ref_nonrattlers(len(rad), ia, ja, _disp(a.positions, box, ia, ja))
     assert np.array_equal(keep, ref_nonrattlers(len(rad), ib, jb, _disp(b.positions, box, ib, jb)))
     assert keep.sum() > 30
@@ -70,7 +53,7 @@ def test_cg_reaches_the_fire_minimum(seed, alpha):
     dx = b.positions - a.positions
     dx -= box * np.round(dx / box)
     dx = dx[keep] - dx[keep].mean(axis=0)
-    hess = ref_hessian(a.positions, rad, box, alpha, keep, h=1e-7 * d)
+    hess = ref_hessian_finite_differences(a.positions, rad, box, alpha, keep, h=1e-7 * d)
     lam = np.linalg.eigvalsh(hess)
     assert abs(lam[1]) < 1e-6 * lam[-1] and lam[2] > 1e-6 * lam[-1]  # two translations only
     f_a = np.linalg.norm(forces(a.positions, rad, box, alpha)[keep])
@@ -192,17 +175,12 @@ def test_bad_jam_settings(kw, match):
         kernels.jam(32, 1e-6, 0, **kw)
 
 
-def ref_packing_check(p):
-    e, resid, _, _ = ref_check(p)
-    return e, resid
-
-
 @pytest.mark.parametrize("n, target, search", [(64, 1e-4, "secant"), (128, 1e-10, "secant"),
                                                (64, 1e-14, "halving"), (64, 1e-8, "paper")])
 def test_jam_with_cg(n, target, search):
     for seed in (0, 1):
         p = kernels.jam(n, target, seed, minimizer="cg", search=search)
-        e, resid = ref_packing_check(p)
+        e, resid = ref_energy_and_residual(p)
         assert p.status == "converged", (seed, p.status)
         assert target <= e <= 1.1 * target and e == pytest.approx(p.energy, rel=1e-9)
         assert resid < 1e-6 and p.force_residual < 1e-6
@@ -217,7 +195,7 @@ def test_paper_protocol_records_its_residual():
     # cg + energy stop + Delta halved after every minimisation: the window is reached,
     # the force residual is recorded (and is what the reference computes), not bounded
     p = kernels.jam(64, 1e-8, 2, minimizer="cg", stop="energy", search="paper")
-    e, resid = ref_packing_check(p)
+    e, resid = ref_energy_and_residual(p)
     assert p.status == "converged" and 1e-8 <= e <= 1.1e-8
     assert p.force_residual == pytest.approx(resid, rel=1e-6)
     q = kernels.jam(64, 1e-8, 2, minimizer="cg", stop="energy", search="paper")

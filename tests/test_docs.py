@@ -133,3 +133,39 @@ def test_module_table_names_every_module():
     assert {"kernels/space.py", "campaign/plan/tasks.py"} <= on_disk
     assert not on_disk - table, f"modules missing from docs/CONTRACTS.md: {sorted(on_disk - table)}"
     assert not table - on_disk, f"docs/CONTRACTS.md names modules that do not exist: {sorted(table - on_disk)}"
+
+
+# --------------------------------------------------------------------------- tests import no test module
+
+def _imported_modules(path):
+    import ast
+
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            out.add(node.module)
+        elif isinstance(node, ast.ImportFrom) and node.level:
+            out |= {f".{node.module or ''}.{a.name}".replace("..", ".") for a in node.names}
+    for text in re.findall(r"^\s*(?:from\s+(\S+)\s+import|import\s+(\S+))", path.read_text(), re.M):
+        out |= {t for t in text if t}  # also imports inside strings (subprocess harnesses)
+    return out
+
+
+def _is_test_module(name):
+    return re.fullmatch(r"(?:\.?tests\.|\.)?test_\w+", name) is not None
+
+
+def test_test_module_names_are_recognised():
+    assert _is_test_module("test_master") and _is_test_module("tests.test_master")
+    assert _is_test_module(".test_master")
+    assert not _is_test_module("tests.helpers") and not _is_test_module("references")
+    assert not _is_test_module("pytest") and not _is_test_module("kernels.test_x.y")
+
+
+def test_no_test_module_imports_another():
+    bad = {p.name: sorted(m for m in _imported_modules(p) if _is_test_module(m))
+           for p in sorted((ROOT / "tests").rglob("*.py"))}
+    bad = {k: v for k, v in bad.items() if v}
+    assert not bad, f"shared code belongs in tests/helpers.py or tests/references.py: {bad}"

@@ -6,6 +6,7 @@ must tile any window; the triangular crystal gives its analytic picture.
 """
 
 import matplotlib
+from helpers import clipped_area, polygon_area
 
 matplotlib.use("Agg")
 
@@ -34,11 +35,6 @@ def _n(arts, gid, what):
     if what == "paths":
         return sum(len(c.get_paths()) for c in cs)
     return sum(len(c.get_segments()) for c in cs)
-
-
-def _area(v):
-    x, y = v[:, 0], v[:, 1]
-    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
 
 
 @pytest.fixture(scope="module")
@@ -70,8 +66,8 @@ def test_counts_equal_the_analysis(packing32):
     assert z_g == sorted(a.z_g[~a.rattler].tolist())
     assert sorted(len(c) for c in draw._poly_list(sc.voids.primary)) == sorted(a.z_v.tolist())
     # the drawn polygons tile the box, in the analysis' proportion A_G : A_V
-    ga = sum(_area(v) for v in draw._poly_list(sc.grains.primary))
-    va = sum(_area(v) for v in draw._poly_list(sc.voids.primary))
+    ga = sum(polygon_area(v) for v in draw._poly_list(sc.grains.primary))
+    va = sum(polygon_area(v) for v in draw._poly_list(sc.voids.primary))
     area = float(p.box[0] * p.box[1])
     assert ga + va == pytest.approx(area, rel=1e-12)
     assert ga / (ga + va) == pytest.approx(s["A_G"] / (s["A_G"] + s["A_V"]), rel=1e-12)
@@ -108,38 +104,9 @@ def test_triangular_crystal_is_analytic():
     assert _n(arts, "fictitious", "segments") == 0
     assert all(len(v) == 3 for v in draw._poly_list(sc.voids.primary))
     assert all(len(v) == 6 for v in draw._poly_list(sc.grains.primary))
-    ga = sum(_area(v) for v in draw._poly_list(sc.grains.primary))
+    ga = sum(polygon_area(v) for v in draw._poly_list(sc.grains.primary))
     assert ga / (box[0] * box[1]) == pytest.approx(0.75, rel=1e-5)  # A_G = 3/4
     plt.close(fig)
-
-
-def _clip(poly, x0, y0, x1, y1):
-    """Sutherland-Hodgman clipping of a polygon by an axis-aligned rectangle."""
-    def edge(pts, inside, cut):
-        out = []
-        for k in range(len(pts)):
-            p, q = pts[k - 1], pts[k]
-            if inside(q):
-                if not inside(p):
-                    out.append(cut(p, q))
-                out.append(q)
-            elif inside(p):
-                out.append(cut(p, q))
-        return out
-
-    def at_x(x):
-        return lambda p, q: (x, p[1] + (q[1] - p[1]) * (x - p[0]) / (q[0] - p[0]))
-
-    def at_y(y):
-        return lambda p, q: (p[0] + (q[0] - p[0]) * (y - p[1]) / (q[1] - p[1]), y)
-
-    pts = [tuple(v) for v in poly]
-    for inside, cut in ((lambda p: p[0] >= x0, at_x(x0)), (lambda p: p[0] <= x1, at_x(x1)),
-                        (lambda p: p[1] >= y0, at_y(y0)), (lambda p: p[1] <= y1, at_y(y1))):
-        pts = edge(pts, inside, cut)
-        if not pts:
-            return 0.0
-    return abs(_area(np.array(pts)))
 
 
 @pytest.mark.parametrize("region", [None, (-0.3, 0.25, 1.5, 0.6), (0.5, -0.7, 0.4, 1.9), (0.9, 0.9, 0.9, 0.9)])
@@ -150,7 +117,7 @@ def test_periodic_images_tile_any_window(packing32, region):
     polys = []
     for prims in (sc.grains, sc.voids):
         polys += draw._poly_list(prims.primary) + draw._poly_list(prims.images)
-    covered = sum(_clip(v, x0, y0, x1, y1) for v in polys)
+    covered = sum(clipped_area(v, x0, y0, x1, y1) for v in polys)
     assert covered == pytest.approx((x1 - x0) * (y1 - y0), rel=1e-9)
     # every image of a disk that reaches into the window is drawn, once (brute force over shifts)
     Lx, Ly = p.box

@@ -13,15 +13,14 @@ import math
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 
 import kernels
 from campaign.cli import main as cli_main
 from kernels.analysis import analyze
 from kernels.network import network
 from kernels.jamming import species_counts
-from reference import ref_nonrattlers
-from test_network import triangular_crystal
+from helpers import triangular_crystal
+from references import ref_packing_measures_kdtree, ref_psi6_per_grain
 
 EPS = np.finfo(np.float64).eps
 TOL = 1e-6  # kernels.jam's default force_tolerance
@@ -29,33 +28,6 @@ BIDISPERSE = ((0.5, 1.4), (0.5, 1.0))
 
 
 # ----------------------------------------------------------------------------- references
-
-
-def ref_packing(p):
-    """Independent (E_G, force residual, N_G, contacts among non-rattlers, mean relative
-    overlap of those contacts) of a packing, with scipy's periodic k-d tree."""
-    pos, rad, box, a = np.asarray(p.positions), np.asarray(p.radii), np.asarray(p.box), p.exponent
-    n = len(pos)
-    tree = cKDTree(pos, boxsize=box)
-    pairs = tree.query_pairs(2 * rad.max(), output_type="ndarray")
-    i, j = pairs[:, 0], pairs[:, 1]
-    d = pos[j] - pos[i]
-    d -= box * np.round(d / box)
-    r = np.hypot(d[:, 0], d[:, 1])
-    s = rad[i] + rad[j]
-    keep_pair = r < s
-    i, j, d, r, s = i[keep_pair], j[keep_pair], d[keep_pair], r[keep_pair], s[keep_pair]
-    x = 1 - r / s
-    e = np.sum(x ** a / a) / n
-    f = x ** (a - 1) / s
-    fv = (f / r)[:, None] * d
-    net = np.zeros((n, 2))
-    np.add.at(net, i, -fv)
-    np.add.at(net, j, fv)
-    alive = ref_nonrattlers(n, i, j, d)
-    m = alive[i] & alive[j]
-    resid = np.max(np.hypot(net[alive, 0], net[alive, 1])) / np.mean(f[m])
-    return e, resid, int(alive.sum()), int(m.sum()), float(np.mean(x[m]))
 
 
 def floor_formula(n, alpha, tol, species=BIDISPERSE, phi_start=0.86, box=(1.0, 1.0)):
@@ -75,7 +47,7 @@ def assert_packing(p, target, window=0.1, tol=TOL, isostatic=None, may_fail=()):
     (except the flags named in ``may_fail``)."""
     assert p.status == "converged", p.status
     assert target <= p.energy <= target * (1 + window)
-    e, resid, n_g, n_c, mean_x = ref_packing(p)
+    e, resid, n_g, n_c, mean_x = ref_packing_measures_kdtree(p)
     assert e == pytest.approx(p.energy, rel=1e-9)
     assert p.force_residual <= tol
     # the recomputed residual differs by the float64 noise the floor is about:
@@ -224,31 +196,6 @@ def test_stiffer_exponents(alpha, target):
 # ----------------------------------------------------------------------------- ordered fraction
 
 
-def psi6_reference(pos, rad, box):
-    """|psi_6| per grain over its contacts among non-rattlers, the slow way."""
-    n = len(rad)
-    nbrs = {g: [] for g in range(n)}
-    for i in range(n):
-        for j in range(i + 1, n):
-            d = pos[j] - pos[i]
-            d = d - box * np.round(d / box)
-            if math.hypot(*d) < rad[i] + rad[j]:
-                nbrs[i].append((j, d))
-                nbrs[j].append((i, -d))
-    alive = set(range(n))
-    while True:
-        drop = {g for g in alive if sum(1 for h, _ in nbrs[g] if h in alive) < 3}
-        if not drop:
-            break
-        alive -= drop
-    out = {}
-    for g in alive:
-        ds = [d for h, d in nbrs[g] if h in alive]
-        out[g] = abs(sum(complex(math.cos(6 * math.atan2(d[1], d[0])),
-                                 math.sin(6 * math.atan2(d[1], d[0]))) for d in ds)) / len(ds)
-    return out
-
-
 def test_ordered_fraction_exact_cases():
     # triangular crystal: six contacts at multiples of 60 degrees, |psi_6| = 1
     pos, rad, box = triangular_crystal(8, 8, overlap=1e-7)
@@ -267,7 +214,7 @@ def test_ordered_fraction_exact_cases():
 def test_ordered_fraction_matches_reference():
     for species in (BIDISPERSE, ((1.0, 1.0),)):
         p = kernels.jam(96, 1e-9, 11, species=species)
-        ref = psi6_reference(p.positions, p.radii, p.box)
+        ref = ref_psi6_per_grain(p.positions, p.radii, p.box)
         a = analyze(p.positions, p.radii, p.box, ["scalars"])
         assert a.scalars["N_G"] == len(ref)
         expected = sum(v > 0.9 for v in ref.values()) / len(ref)
@@ -428,7 +375,7 @@ def test_energy_ladder_down_to_the_floor(n):
     for e in energies:
         p = kernels.jam(n, e, 0)
         assert_packing(p, e)
-        _, _, n_g, n_c, _ = ref_packing(p)
+        _, _, n_g, n_c, _ = ref_packing_measures_kdtree(p)
         if e <= 1e-12:
             extras.append(n_c - (2 * n_g - 1))
         elif e >= 1e-4:

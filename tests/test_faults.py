@@ -22,7 +22,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from test_kill_resume import SKIP_DATASETS, _contents, _durable
+from helpers import SKIP_DATASETS, durable_packings, mpich_segments, remove_segments_of_killed_jobs, store_data_and_attrs
 
 ROOT = Path(__file__).resolve().parents[1]
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
@@ -107,8 +107,8 @@ def reference(tmp_path_factory):
 
 
 def _assert_equal(out, ref, skip=()):
-    a, _ = _contents(out)
-    b, _ = _contents(ref)
+    a, _ = store_data_and_attrs(out)
+    b, _ = store_data_and_attrs(ref)
     assert sorted(a) == sorted(b)
     for name in a:
         if name not in SKIP_DATASETS and name not in skip:
@@ -116,13 +116,13 @@ def _assert_equal(out, ref, skip=()):
 
 
 def _assert_consistent(out):
-    """The store walks with h5py from top to bottom, the journal holds no task twice (_durable
+    """The store walks with h5py from top to bottom, the journal holds no task twice (durable_packings
     asserts it), and every task of the journal is one of the spec's."""
     with h5py.File(out, "r", locking=False) as f:
         names = []
         f.visititems(lambda name, obj: names.append(name) or (obj[()] if isinstance(obj, h5py.Dataset) else None))
         status = f["tasks/status"][:]
-    durable = _durable(out)
+    durable = durable_packings(out)
     assert all(0 <= i < len(status) for i in durable)
     return durable
 
@@ -139,37 +139,12 @@ def _assert_stop_paragraph(r, disk, kept=True):
         assert "kept everything it had finished" in err, err
 
 
-SHM = Path("/dev/shm")
-
-
 @contextlib.contextmanager
 def _removing_segments(before):
     try:
         yield
     finally:
         remove_segments_of_killed_jobs(before)
-
-
-def mpich_segments() -> set:
-    """The shared-memory segments of MPICH's jobs on this machine."""
-    return {p.name for p in SHM.glob("mpich_shm_*")} if SHM.is_dir() else set()
-
-
-def remove_segments_of_killed_jobs(before: set):
-    """A job killed with SIGKILL leaves MPICH's shared-memory segment in /dev/shm (a running job
-    keeps its own mapped): remove the ones that appeared since ``before`` and no process maps."""
-    new = mpich_segments() - before
-    if not new:
-        return
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                maps = (d / "maps").read_text()
-            except OSError:
-                continue
-            new = {n for n in new if n not in maps}
-    for n in new:
-        (SHM / n).unlink(missing_ok=True)
 
 
 # --------------------------------------------------------------------------- a full disk
@@ -240,7 +215,7 @@ def test_hdf5_itself_meets_the_full_disk(tmp_path, reference):
         r = _run(spec, out, env=_env(CAMPAIGN_SYNTHETIC_DELAY="0.002"))
         _assert_stop_paragraph(r, disk)  # the journal filled: finished tasks in the journal only
         journal = Path(str(out) + ".journal")
-        records = _durable(out)
+        records = durable_packings(out)
         assert records
         # a little room: less than the replay needs, more than the reservations would ask
         with open(filler, "r+b") as fh:
@@ -248,7 +223,7 @@ def test_hdf5_itself_meets_the_full_disk(tmp_path, reference):
         r = _run(spec, out, env=_env(CAMPAIGN_NO_RESERVE="1"))
         assert r.returncode == 3 and r.returncode != -signal.SIGSEGV, r.stderr
         assert "Traceback" not in r.stderr and "may be left damaged" in r.stderr, r.stderr
-        assert _durable(out).keys() >= records.keys()  # the journal still holds every finished task
+        assert durable_packings(out).keys() >= records.keys()  # the journal still holds every finished task
         state = out.read_bytes(), journal.read_bytes()
         r = _run(spec, out)  # still full: stops before writing (the reservations are back)
         assert r.returncode == 3 and "Traceback" not in r.stderr and "No task was started" in r.stderr, r.stderr
@@ -326,7 +301,7 @@ def _started(out, at_least=1):
 
 def _durable_quiet(out):
     try:
-        return _durable(out)
+        return durable_packings(out)
     except (OSError, AssertionError, KeyError):
         return {}
 

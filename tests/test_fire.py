@@ -4,63 +4,21 @@ import numpy as np
 import pytest
 
 from kernels.fire import STATUS_NAMES, minimize, nonrattlers
-from kernels.potential import energy, forces
-from reference import ref_nonrattlers
-from test_network import compressed_packing
-
-
-def ref_contacts(pos, rad, box):
-    out = []
-    for i in range(len(pos)):
-        for j in range(i + 1, len(pos)):
-            d = pos[j] - pos[i]
-            d = d - box * np.round(d / box)
-            if np.hypot(*d) < rad[i] + rad[j]:
-                out.append((i, j))
-    return out
-
-
-def ref_mask(n, contacts, pos, box):
-    i = [a for a, _ in contacts]
-    j = [b for _, b in contacts]
-    d = pos[j] - pos[i]
-    d = d - box * np.round(d / box)
-    return ref_nonrattlers(n, i, j, d)
-
-
-def ref_residual(pos, rad, box, alpha):
-    c = ref_contacts(pos, rad, box)
-    keep = ref_mask(len(pos), c, pos, box)
-    f = forces(pos, rad, box, alpha)
-    fc = []
-    for i, j in c:
-        if keep[i] and keep[j]:
-            d = pos[j] - pos[i]
-            d = d - box * np.round(d / box)
-            s = rad[i] + rad[j]
-            fc.append((1 - np.hypot(*d) / s) ** (alpha - 1) / s)
-    return np.max(np.hypot(f[keep, 0], f[keep, 1])) / np.mean(fc), keep
-
-
-def random_dense(seed, n=64, phi=0.9):
-    rng = np.random.default_rng(seed)
-    box = np.array([1.0, 1.0])
-    pos = rng.random((n, 2))
-    rel = np.where(np.arange(n) < n // 2, 1.4, 1.0)
-    rad = rel * np.sqrt(phi / (np.pi * np.sum(rel ** 2)))
-    return pos, rad, box
+from kernels.potential import energy
+from helpers import compressed_packing, random_dense
+from references import ref_contact_pairs, ref_force_residual, ref_nonrattler_mask
 
 
 def test_nonrattlers_match_reference():
     # random overlapping disks erode completely (no load-bearing core) ...
     for seed in range(3):
         pos, rad, box = random_dense(seed, n=80, phi=1.2)
-        ref = ref_mask(80, ref_contacts(pos, rad, box), pos, box)
+        ref = ref_nonrattler_mask(80, ref_contact_pairs(pos, rad, box), pos, box)
         assert np.array_equal(nonrattlers(pos, rad, box), ref)
     # ... force-balanced packings keep most disks, and lose a few by either rule
     for seed in range(3):
         pos, rad, box = compressed_packing(64, seed, phi=0.86)
-        ref = ref_mask(64, ref_contacts(pos, rad, box), pos, box)
+        ref = ref_nonrattler_mask(64, ref_contact_pairs(pos, rad, box), pos, box)
         got = nonrattlers(pos, rad, box)
         assert np.array_equal(got, ref)
         assert 48 < ref.sum() <= 64
@@ -82,7 +40,7 @@ def test_minimize_balances_forces(alpha):
     assert res.status == "converged"
     assert res.energy < e0 and res.energy > 0  # phi = 0.9 is above jamming
     assert np.all(res.positions >= 0) and np.all(res.positions < 1)
-    resid, keep = ref_residual(res.positions, rad, box, alpha)
+    resid, keep = ref_force_residual(res.positions, rad, box, alpha)
     assert resid < 1e-8 and resid == pytest.approx(res.residual, rel=1e-6, abs=1e-12)
     assert keep.sum() > 48
     assert res.energy == pytest.approx(energy(res.positions, rad, box, alpha), rel=1e-12)
@@ -150,7 +108,7 @@ def test_verlet_list_never_misses_a_pair():
     for r in runs:
         assert r.status == "converged"
         assert r.energy == pytest.approx(energy(r.positions, rad, box, 2.0), rel=1e-12)
-        resid, _ = ref_residual(r.positions, rad, box, 2.0)
+        resid, _ = ref_force_residual(r.positions, rad, box, 2.0)
         assert resid < 1e-10
     for r in runs[1:]:
         assert r.energy == pytest.approx(runs[0].energy, rel=1e-9)

@@ -7,28 +7,7 @@ import pytest
 import kernels
 from kernels import potential
 from kernels.hessian import hessian
-
-
-def _reference(positions, radii, box, alpha):
-    """Dense Hessian by the textbook formula, pair by pair (all pairs, minimum image)."""
-    n = len(radii)
-    h = np.zeros((2 * n, 2 * n))
-    for i in range(n):
-        for j in range(i + 1, n):
-            d = positions[j] - positions[i]
-            d -= box * np.round(d / box)
-            r = np.hypot(*d)
-            s = radii[i] + radii[j]
-            x = 1.0 - r / s
-            if x <= 0:
-                continue
-            v1 = -x ** (alpha - 1) / s  # V'
-            v2 = (alpha - 1) * x ** (alpha - 2) / s**2  # V''
-            nn = np.outer(d / r, d / r)
-            k = v2 * nn + v1 / r * (np.eye(2) - nn)
-            for a, b, sign in ((i, i, 1), (j, j, 1), (i, j, -1), (j, i, -1)):
-                h[2 * a:2 * a + 2, 2 * b:2 * b + 2] += sign * k
-    return h
+from references import ref_hessian_dense
 
 
 def _overlapping(seed, n=24, phi=1.0, box=(1.0, 1.0)):
@@ -64,7 +43,7 @@ def test_hessian_is_minus_the_force_derivative(alpha, seed):
         fm = potential.forces(pos - e, rad, box, alpha).ravel()
         fd[:, k] = -(fp - fm) / (2 * step)
     np.testing.assert_allclose(h, fd, atol=1e-6 * np.abs(h).max())
-    np.testing.assert_allclose(h, _reference(pos, rad, box, alpha), rtol=1e-12,
+    np.testing.assert_allclose(h, ref_hessian_dense(pos, rad, box, alpha), rtol=1e-12,
                                atol=1e-12 * np.abs(h).max())
 
 

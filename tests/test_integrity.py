@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from campaign import cli
+from helpers import assert_same_contents, store_contents
 
 ROOT = Path(__file__).resolve().parents[1]
 SPEC = """\
@@ -34,31 +35,6 @@ run: {retries: 0}
 """
 FAIL = "seed:1"  # the synthetic tasks of seed 1 fail: the store has failure records
 BLOCK = 4        # rows per chunk in these tests (256 in real stores): 24 tasks make 6 blocks
-SKIP = ("tasks/wall", "tasks/rank", "tasks/host", "scalars/jam_seconds", "scalars/analyze_seconds")
-
-
-def contents(path):
-    """Every dataset and attribute h5py reads (run-dependent ones left out)."""
-    out = {}
-    with h5py.File(path, "r") as f:
-        def visit(name, obj):
-            if isinstance(obj, h5py.Dataset):
-                out[name] = obj[()]
-            out.update({f"{name}@{k}": v for k, v in obj.attrs.items() if k not in ("rank", "host")})
-        f.visititems(visit)
-    return out
-
-
-def assert_same(a, b):
-    assert set(a) == set(b), sorted(set(a) ^ set(b))
-    for k in a:
-        if k in SKIP:
-            continue
-        x, y = np.asarray(a[k]), np.asarray(b[k])
-        assert x.dtype == y.dtype and x.shape == y.shape, k
-        assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), k
-
-
 def cli_run(capsys, *argv):
     code = cli.main([str(a) for a in argv])
     out, err = capsys.readouterr()
@@ -206,7 +182,7 @@ def test_damage_is_found_named_and_repaired(reference, blocks, tmp_path, capsys,
     code, _, err = synth_run(capsys, spec, path)
     assert code == 0 and f"this run: {sum(ref_st[r] == 1 for r in rows)} done" in err
     assert cli_run(capsys, "verify", path)[0] == 0
-    assert_same(contents(path), contents(ref))
+    assert_same_contents(store_contents(path), store_contents(ref))
 
 
 def test_checksums_are_written(reference):
@@ -260,7 +236,7 @@ def test_a_run_meeting_a_damaged_chunk_stops_and_loses_nothing(reference, blocks
     assert cli_run(capsys, "verify", path, "--repair")[0] == 0
     code, _, err = synth_run(capsys, spec_path, path)  # replays the journal (task i), recomputes the rest
     assert code == 0, err
-    assert_same(contents(path), contents(ref))
+    assert_same_contents(store_contents(path), store_contents(ref))
 
 
 def test_verify_refuses_while_a_run_writes_and_foreign_files(reference, tmp_path, capsys):
@@ -342,10 +318,10 @@ from campaign import cli
 sys.path.insert(0, os.path.dirname(os.path.abspath(sys.argv[1])))
 campaign.storage.store.BLOCK_ROWS = int(sys.argv[6])
 ref, spec, d, n, seed = sys.argv[2], sys.argv[3], sys.argv[4], int(sys.argv[5]), int(sys.argv[7])
-from test_integrity import assert_same, contents
+from helpers import assert_same_contents, store_contents
 with h5py.File(ref, "r") as f:
     tid = sorted(f["configurations"])[0]
-size, rng, want = os.path.getsize(ref), random.Random(seed), contents(ref)
+size, rng, want = os.path.getsize(ref), random.Random(seed), store_contents(ref)
 for k in range(n):
     p = os.path.join(d, f"t{k}.h5")
     shutil.copy(ref, p)
@@ -368,7 +344,7 @@ for k in range(n):
         res[name] = [code, err.getvalue()[-2000:], out.getvalue()[-2000:]]
     if res["verify2"][0] == 0:
         try:
-            assert_same(contents(p), want)
+            assert_same_contents(store_contents(p), want)
             res["same"] = True
         except AssertionError as exc:
             res["same"] = str(exc)
@@ -453,4 +429,4 @@ def test_real_campaign_damaged_found_by_every_reader_and_repaired(tmp_path):
     code, _, err = _campaign("run", "s.yaml", "--out", path, "--launcher", "inline", "--quiet", cwd=tmp_path)
     assert code == 0 and "this run: 4 done" in err
     assert _campaign("verify", path, cwd=tmp_path)[0] == 0
-    assert_same(contents(path), contents(ref))
+    assert_same_contents(store_contents(path), store_contents(ref))

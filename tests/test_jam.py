@@ -7,37 +7,8 @@ import numpy as np
 import pytest
 
 import kernels
-from reference import ref_nonrattlers
 from kernels.jamming import DEFAULTS, STATUS_CODES, Packing, species_counts
-
-
-def ref_contacts(pos, rad, box):
-    n = len(pos)
-    d = pos[None, :, :] - pos[:, None, :]
-    d -= box * np.round(d / box)
-    r = np.hypot(d[..., 0], d[..., 1])
-    s = rad[:, None] + rad[None, :]
-    i, j = np.nonzero(np.triu(r < s, 1))
-    return i, j, r[i, j], s[i, j]
-
-
-def ref_check(p):
-    """Independent E_G, force residual on non-rattlers, N_G and contacts among them."""
-    pos, rad, box, a = p.positions, p.radii, p.box, p.exponent
-    n = len(pos)
-    i, j, r, s = ref_contacts(pos, rad, box)
-    e = np.sum((1 - r / s) ** a / a) / n
-    f = (1 - r / s) ** (a - 1) / s
-    d = pos[j] - pos[i]
-    d -= box * np.round(d / box)
-    fv = (f / r)[:, None] * d
-    net = np.zeros((n, 2))
-    np.add.at(net, i, -fv)
-    np.add.at(net, j, fv)
-    keep = ref_nonrattlers(n, i, j, d)
-    m = keep[i] & keep[j]
-    resid = np.max(np.hypot(net[keep, 0], net[keep, 1])) / np.mean(f[m])
-    return e, resid, int(keep.sum()), int(m.sum())
+from references import ref_packing_measures
 
 
 CASES = [(n, e) for e in (1e-4, 1e-8, 1e-14) for n in (32, 64, 128, 256)]
@@ -48,7 +19,7 @@ def test_packing_in_window_with_balanced_forces(n, target):
     for seed in (0, 1):
         p = kernels.jam(n, target, seed)
         assert isinstance(p, Packing) and p.status == "converged" and p.status_code == 0
-        e, resid, n_g, n_c = ref_check(p)
+        e, resid, n_g, n_c = ref_packing_measures(p)
         assert target <= p.energy <= target * 1.1
         assert e == pytest.approx(p.energy, rel=1e-9)
         assert resid < DEFAULTS["force_tolerance"]
@@ -74,7 +45,7 @@ def test_isostatic_extras_are_rare_at_1e14():
     extras = []
     for seed in range(2, 12):
         p = kernels.jam(64, 1e-14, seed)
-        _, _, n_g, n_c = ref_check(p)
+        _, _, n_g, n_c = ref_packing_measures(p)
         extras.append(n_c - (2 * n_g - 1))
     assert min(extras) >= 0
     assert sum(x > 0 for x in extras) <= 1, extras
@@ -111,14 +82,14 @@ def test_species_layout_and_custom_distribution():
 
 def test_rectangular_box_hertz_and_halving_search():
     p = kernels.jam(60, 1e-6, 3, box=(2.0, 0.75))
-    e, resid, *_ = ref_check(p)
+    e, resid, *_ = ref_packing_measures(p)
     assert p.status == "converged" and 1e-6 <= e <= 1.1e-6 and resid < 1e-6
     assert np.all(p.positions < np.array([2.0, 0.75]))
     p = kernels.jam(64, 1e-7, 3, exponent=2.5)
-    e, resid, *_ = ref_check(p)
+    e, resid, *_ = ref_packing_measures(p)
     assert p.status == "converged" and 1e-7 <= e <= 1.1e-7 and resid < 1e-6
     p = kernels.jam(64, 1e-6, 3, search="halving")
-    e, resid, *_ = ref_check(p)
+    e, resid, *_ = ref_packing_measures(p)
     assert p.status == "converged" and 1e-6 <= e <= 1.1e-6 and resid < 1e-6
 
 
@@ -180,6 +151,6 @@ def test_float64_floor_is_refused_not_silently_missed():
 
 def test_deep_packing_at_1e16():
     p = kernels.jam(128, 1e-16, 5)
-    e, resid, n_g, n_c = ref_check(p)
+    e, resid, n_g, n_c = ref_packing_measures(p)
     assert p.status == "converged" and 1e-16 <= e <= 1.1e-16
     assert resid < 1e-6 and n_c == 2 * n_g - 1

@@ -24,8 +24,8 @@ import numpy as np
 import pytest
 
 from campaign.plan.spec import parse_spec
-from campaign.storage.store import read_journal
 from campaign.plan.tasks import expand
+from helpers import SKIP_DATASETS, durable_packings, store_data_and_attrs
 
 ROOT = Path(__file__).resolve().parents[1]
 SPEC = """\
@@ -36,10 +36,6 @@ variants: [{name: loose, force_tolerance: 1.0e-3}]
 observables: [scalars, connectivity, void_areas]
 store: {configurations: true}
 """
-SKIP_DATASETS = ("tasks/wall", "tasks/rank", "tasks/host")
-SKIP_ATTRS = ("runs", "start_time", "end_time", "hosts", "versions", "git_commit")
-
-
 DELAY = "0.005*N"
 
 
@@ -51,41 +47,6 @@ def _env():
 def _cmd(spec, out, inline):
     return [sys.executable, "-m", "campaign", "run", str(spec), "--out", str(out), "--quiet"] + (
         ["--launcher", "inline"] if inline else ["--workers", "2"])
-
-
-def _contents(path):
-    data, attrs = {}, {}
-    with h5py.File(path, "r") as f:
-        def visit(name, obj):
-            if isinstance(obj, h5py.Dataset):
-                data[name] = obj[()]
-            attrs.update({f"{name}@{k}": v for k, v in obj.attrs.items() if k not in ("rank", "host")})
-        f.visititems(visit)
-        attrs.update({k: v for k, v in f.attrs.items() if k not in SKIP_ATTRS})
-    return data, attrs
-
-
-def _durable(path):
-    """Every finished task of the durable record: ``{index: run id}`` for the journal's
-    records (run id of the run that computed it; a task twice in the journal fails), and
-    the store's committed rows (``None``: the store does not say which run)."""
-    out = {}
-    p = Path(str(path) + ".journal")
-    if p.exists():
-        recs, _ = read_journal(p.read_bytes())
-        for m, _ in recs:
-            if m.get("type") == "task":
-                assert m["index"] not in out, "a finished task was recorded twice in the journal"
-                out[m["index"]] = m["run_id"]
-    if Path(path).exists():
-        try:
-            with h5py.File(path, "r", locking=False) as f:
-                status = f["tasks/status"][:]
-        except OSError:
-            status = np.zeros(0)  # unreadable: the next start salvages it (counted below if rows are lost)
-        for i in np.flatnonzero(status != 0).tolist():
-            out.setdefault(i, None)
-    return out
 
 
 def _kill_rounds(tmp_path, rounds, seed, spec_text=SPEC):
@@ -122,7 +83,7 @@ def _kill_rounds(tmp_path, rounds, seed, spec_text=SPEC):
         except ProcessLookupError:
             pass
         p.wait(timeout=30)
-        durable = _durable(out)
+        durable = durable_packings(out)
         assert finished.keys() <= durable.keys(), "a finished task was lost"
         for i, run in durable.items():  # computed again by a later run: recorded twice
             assert i not in finished or run is None or finished[i] == run, "a finished task was recorded twice"
@@ -135,12 +96,12 @@ def _kill_rounds(tmp_path, rounds, seed, spec_text=SPEC):
             finished = {}
     r = subprocess.run(_cmd(spec, out, inline=False), env=_env(), capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
-    durable = _durable(out)
+    durable = durable_packings(out)
     assert len(durable) == total
     for i, run in durable.items():
         assert i not in finished or run is None or finished[i] == run, "a finished task was recorded twice"
-    a, a_attrs = _contents(ref)
-    b, b_attrs = _contents(out)
+    a, a_attrs = store_data_and_attrs(ref)
+    b, b_attrs = store_data_and_attrs(out)
     assert set(a) == set(b) and a_attrs.keys() == b_attrs.keys()
     for name in a:
         if name not in SKIP_DATASETS:

@@ -13,25 +13,13 @@ from campaign.plan.spec import parse_spec
 from campaign.storage.store import DONE, FAILED, PENDING, Store
 from campaign.plan.tasks import expand, task_cost
 from campaign.run.worker import SyntheticTask
-from tests.test_master import FakeComm
+from helpers import LADDER_SPEC, FakeComm, synthetic_run
 
-SPEC = """\
-name: lad
-seed: 3
-grid: {N_G: [16, 32], E_G: [1.0e-2, 1.0e-4, 1.0e-6, 1.0e-8], seeds: 3}
-variants: [{name: ladder, start: ladder}]
-observables: [scalars]
-"""
+SPEC = LADDER_SPEC
 
 
 def _setup(tmp_path, text=SPEC, name="s.h5"):
-    spec = parse_spec(text)
-    tasks = expand(spec)
-    ctx = {"task_function": "synthetic", "system": spec.system.canonical(), "observables": list(spec.observables),
-           "histograms": list(spec.histograms), "bins": {}, "configurations": False}
-    edges = SyntheticTask().histogram_edges(ctx)
-    ctx["edges"] = {h: list(e) for h, e in edges.items()}
-    return spec, tasks, ctx, Store(tmp_path / name, spec, tasks, edges)
+    return synthetic_run(tmp_path, text, name)
 
 
 # ---------------------------------------------------------------------------- spec and tasks

@@ -2,7 +2,6 @@
 
 import os
 import signal
-from collections import deque
 
 import h5py
 import numpy as np
@@ -10,10 +9,10 @@ import pytest
 
 from campaign.run.comm import InlineComm, LocalComm
 from campaign.run.master import Master
-from campaign.plan.spec import parse_spec
-from campaign.storage.store import DONE, FAILED, Store
-from campaign.plan.tasks import expand, task_cost
-from campaign.run.worker import SyntheticTask, run_task
+from campaign.storage.store import DONE, FAILED
+from campaign.plan.tasks import task_cost
+from campaign.run.worker import SyntheticTask
+from helpers import FakeComm, synthetic_run
 
 SPEC = """\
 name: m
@@ -25,62 +24,7 @@ observables: [scalars, connectivity, contact_angles]
 
 
 def _setup(tmp_path, name="s.h5"):
-    spec = parse_spec(SPEC)
-    tasks = expand(spec)
-    fn = SyntheticTask()
-    ctx = {"task_function": "synthetic", "system": spec.system.canonical(), "observables": list(spec.observables),
-           "histograms": list(spec.histograms), "bins": {}, "configurations": False}
-    edges = fn.histogram_edges(ctx)
-    ctx["edges"] = {h: list(e) for h, e in edges.items()}
-    store = Store(tmp_path / name, spec, tasks, edges)
-    return spec, tasks, ctx, store
-
-
-class FakeComm:
-    """n workers that run tasks in the master's process, answering in round-robin order."""
-
-    launcher = "fake"
-
-    def __init__(self, ctx, n, on_result=None, die=None, wall=1.0):
-        self.ctx, self.n_workers, self.wall = ctx, n, wall
-        self.max_queue = 0
-        self.queued_before = []
-        self.fn = SyntheticTask()
-        self.queues = {w: deque() for w in range(1, n + 1)}
-        self.sent = []
-        self.on_result, self.die = on_result, die or {}
-        self.turn = 0
-        self.received = 0
-
-    def send(self, w, payload):
-        self.sent.append((w, payload))
-        self.queued_before.append(len(self.queues[w]))
-        self.queues[w].append(payload)
-        self.max_queue = max(self.max_queue, len(self.queues[w]))
-
-    def recv(self, timeout=None):
-        busy = [w for w in sorted(self.queues) if self.queues[w]]
-        if not busy:
-            return None
-        w = busy[self.turn % len(busy)]
-        self.turn += 1
-        payload = self.queues[w].popleft()
-        if w in self.die and self.received >= self.die[w] and not hasattr(self, "lost"):
-            self.lost = [payload["index"]] + [p["index"] for p in self.queues[w]]
-            self.died_at = len(self.sent)
-            self.queues[w].clear()
-            self.received += 1
-            return w, ("dead", f"worker {w} died")
-        self.received += 1
-        if self.on_result:
-            self.on_result(self.received)
-        summary = run_task(self.fn, payload, self.ctx, w)
-        if self.wall is not None:
-            summary["wall"] = self.wall
-        return w, ("result", payload["index"], payload["attempt"], summary)
-
-    def close(self, abandon=False):
-        pass
+    return synthetic_run(tmp_path, SPEC, name)
 
 
 def _reference_scalars(task, ctx):

@@ -8,6 +8,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from helpers import mpich_segments, remove_segments_of_killed_jobs
 
 pytestmark = pytest.mark.mpi
 
@@ -112,7 +113,6 @@ def test_sigkill_of_the_whole_mpi_job_then_resume(runs, tmp_path):
     path = tmp_path / "killed.h5"
     env = _env(CAMPAIGN_SYNTHETIC_FAIL="seed:3", CAMPAIGN_SYNTHETIC_FLAKY="seed:1", CAMPAIGN_SYNTHETIC_DELAY="0.02")
     cmd = [str(MPIEXEC), "-n", "3", sys.executable, "-m", "campaign", "run", str(spec), "--out", str(path)]
-    from test_faults import mpich_segments
 
     segments = mpich_segments()  # the killed job's shared memory is removed below
     p = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
@@ -122,7 +122,6 @@ def test_sigkill_of_the_whole_mpi_job_then_resume(runs, tmp_path):
     time.sleep(0.3)
     os.killpg(p.pid, signal.SIGKILL)
     p.wait(timeout=30)
-    from test_faults import remove_segments_of_killed_jobs
 
     remove_segments_of_killed_jobs(segments)
     from campaign.storage.store import read_journal

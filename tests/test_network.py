@@ -1,12 +1,11 @@
 """Contact network kernels against a slow, obviously correct reference and analytic cases.
 
-The reference here (``reference_network``) is plain Python over all pairs, with
-dictionaries for the rotation system and scipy's Delaunay for the voids; the other
-analysis tests import it and the packing helpers from this file.
+The reference (``references.ref_network``) is plain Python over all pairs, with
+dictionaries for the rotation system and scipy's Delaunay for the voids; the packing
+makers are in ``helpers.py``.
 """
 
 import math
-from functools import lru_cache
 
 import numpy as np
 import pytest
@@ -16,214 +15,13 @@ from scipy.spatial import Delaunay
 
 from kernels.network import contact_bonds, network, rattlers
 from kernels.triangulate import triangulate_polygon
-from reference import in_closed_half_plane, ref_nonrattlers
-
-RATIO = 1.4  # sigma_A / sigma_B (docs/PHYSICS.md)
-
+from helpers import RATIO, compressed_packing, jittered_crystal, random_configuration, three_touching_disks, triangular_crystal
+from references import ref_network, ref_nonrattlers
 
 # ----------------------------------------------------------------------------- packings
 
 
-def _forces_energy(pos, rad, box):
-    d = pos[None, :, :] - pos[:, None, :]
-    d -= box * np.round(d / box)
-    r = np.sqrt((d**2).sum(-1))
-    np.fill_diagonal(r, np.inf)
-    s = rad[:, None] + rad[None, :]
-    x = np.clip(1.0 - r / s, 0.0, None)
-    f = x / s / r
-    return -(f[:, :, None] * d).sum(1), 0.25 * (x**2).sum()
-
-
-@lru_cache(maxsize=None)
-def compressed_packing(n, seed, phi=0.9, box=(1.0, 1.0)):
-    """A force-balanced bidisperse packing above jamming (FIRE on harmonic springs).
-
-    Independent of ``kernels.jam``: a small numpy FIRE over all pairs, stopped when
-    the largest net force is 1e-12 of the typical contact force. Returns read-only
-    ``(positions, radii, box)``.
-    """
-    rng = np.random.default_rng([n, seed])
-    box = np.asarray(box, dtype=float)
-    rel = np.r_[np.full(n // 2, RATIO), np.ones(n - n // 2)]
-    rad = rel * np.sqrt(phi * box.prod() / (np.pi * np.sum(rel**2)))
-    pos = rng.random((n, 2)) * box
-    v = np.zeros_like(pos)
-    dt = 0.05 * rad.min()
-    dtmax = 10 * dt
-    alpha = 0.1
-    npos = 0
-    F, _ = _forces_energy(pos, rad, box)
-    fscale = None
-    for _ in range(50000):
-        P = (F * v).sum()
-        if P > 0:
-            v = (1 - alpha) * v + alpha * F / np.linalg.norm(F) * np.linalg.norm(v)
-            npos += 1
-            if npos > 5:
-                dt = min(dt * 1.1, dtmax)
-                alpha *= 0.99
-        else:
-            npos = 0
-            dt *= 0.5
-            v[:] = 0
-            alpha = 0.1
-        v += dt * F
-        pos += dt * v
-        F, E = _forces_energy(pos, rad, box)
-        if fscale is None:
-            fscale = np.sqrt(2 * E / n) / rad.mean()
-        if np.abs(F).max() < 1e-12 * max(fscale, 1e-300) + 1e-300:
-            break
-    pos = pos % box
-    for a in (pos, rad, box):
-        a.setflags(write=False)
-    return pos, rad, box
-
-
-def random_configuration(n, seed, phi=0.85, box=(1.0, 1.0)):
-    """Uniformly random bidisperse disks (overlapping, not force balanced)."""
-    rng = np.random.default_rng([7, n, seed])
-    box = np.asarray(box, dtype=float)
-    rel = np.r_[np.full(n // 2, RATIO), np.ones(n - n // 2)]
-    rad = rel * np.sqrt(phi * box.prod() / (np.pi * np.sum(rel**2)))
-    return rng.random((n, 2)) * box, rad, box
-
-
-def jittered_crystal(nx, ny, seed, box=None, poly=0.05, jitter=0.03, overlap=0.15):
-    """A generic network with every grain load-bearing: a triangular crystal with its
-    centres moved by ``jitter`` lattice spacings (normal), radii ``0.5 a (1 + overlap)``
-    times ``1 + poly U(-1, 1)`` (all distinct), stretched into ``box`` if given. No two
-    contact angles coincide, and every grain keeps contacts all around (unlike random
-    overlapping disks, which erode completely under the half-plane rattler rule)."""
-    rng = np.random.default_rng([11, nx, ny, seed])
-    pos, rad, b = triangular_crystal(nx, ny, overlap=overlap)
-    pos = pos + jitter * (1.0 / nx) * rng.standard_normal(pos.shape)
-    rad = rad * (1.0 + poly * rng.uniform(-1.0, 1.0, rad.size))
-    if box is not None:
-        box = np.asarray(box, dtype=float)
-        pos = pos * (box / b)
-        rad = rad * np.sqrt(box.prod() / b.prod())
-        b = box
-    return pos % b, rad, b
-
-
-def triangular_crystal(nx, ny, overlap=1e-6, a=None):
-    """Triangular crystal of equal disks, nx per row, ny rows (even), fitting its box."""
-    assert ny % 2 == 0
-    a = 1.0 / nx if a is None else a
-    j, i = np.divmod(np.arange(nx * ny), nx)
-    pos = np.stack([(i + 0.5 * (j % 2)) * a, j * a * np.sqrt(3) / 2], axis=1)
-    box = np.array([nx * a, ny * a * np.sqrt(3) / 2])
-    rad = np.full(nx * ny, 0.5 * a * (1 + overlap))
-    return pos, rad, box
-
-
 # ----------------------------------------------------------------------------- reference
-
-
-def _shoelace(points):
-    x = np.array([p[0] for p in points])
-    y = np.array([p[1] for p in points])
-    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
-
-
-def reference_network(pos, rad, box, remove_rattlers=True, exponent=2.0):
-    """Everything about the contact network, the slow and obvious way."""
-    n = len(rad)
-    nbrs = {g: {} for g in range(n)}
-    energy = 0.0
-    virial = 0.0
-    for i in range(n):
-        for j in range(i + 1, n):
-            d = pos[j] - pos[i]
-            d = d - box * np.round(d / box)
-            r = math.hypot(d[0], d[1])
-            s = rad[i] + rad[j]
-            if r < s:
-                nbrs[i][j] = d
-                nbrs[j][i] = -d
-                energy += (1 - r / s) ** exponent / exponent
-                virial += r * (1 - r / s) ** (exponent - 1) / s
-    bonds = sorted((i, j) for i in range(n) for j in nbrs[i] if i < j)
-    alive = set(range(n))
-    if remove_rattlers:
-        changed = True
-        while changed:
-            changed = False
-            for g in sorted(alive):
-                ang = [math.atan2(d[1], d[0]) for h, d in nbrs[g].items() if h in alive]
-                if len(ang) < 3 or in_closed_half_plane(ang):
-                    alive.remove(g)
-                    changed = True
-    rot = {}
-    for g in alive:
-        rot[g] = sorted((math.atan2(d[1], d[0]), h) for h, d in nbrs[g].items() if h in alive)
-    # grains: polygon of contact points, relative angles, edge triangles
-    theta, alpha_e, a_g = [], [], {}
-    contact_len = []
-    for g in alive:
-        ring = [nbrs[g][h] * rad[g] / (rad[g] + rad[h]) for _, h in rot[g]]
-        a_g[g] = _shoelace(ring) if len(ring) >= 3 else 0.0
-        angles = [a for a, _ in rot[g]]
-        k = len(angles)
-        for t in range(k):
-            nxt = angles[(t + 1) % k] + (2 * math.pi if t + 1 == k else 0.0)
-            theta.append(nxt - angles[t])
-            u, v = ring[t], ring[(t + 1) % k]
-            alpha_e.append(0.5 * (u[0] * v[1] - u[1] * v[0]) / rad[g] ** 2)
-            contact_len.append(math.hypot(*ring[t]) / rad[g])
-    # faces: next(u -> v) = the half-edge clockwise of v -> u around v
-    seen = set()
-    faces = []
-    for g in sorted(alive):
-        for _, h in rot[g]:
-            if (g, h) in seen:
-                continue
-            face = []
-            u, v = g, h
-            while (u, v) not in seen:
-                seen.add((u, v))
-                face.append((u, v))
-                ring = [w for _, w in rot[v]]
-                k = ring.index(u)
-                u, v = v, ring[(k - 1) % len(ring)]
-            faces.append(face)
-    voids = []
-    for face in faces:
-        p = np.zeros(2)
-        centres, contacts = [], []
-        for u, v in face:
-            d = nbrs[u][v]
-            centres.append(p.copy())
-            contacts.append(p + d * rad[u] / (rad[u] + rad[v]))
-            p = p + d
-        voids.append(dict(grains=[u for u, _ in face], centres=np.array(centres),
-                          area=_shoelace(contacts), winding=p, z=len(face)))
-    return dict(n=n, bonds=bonds, alive=alive, N_G=len(alive),
-                N_C=sum(len(rot[g]) for g in alive), z_g={g: len(rot[g]) for g in alive},
-                theta=np.array(theta), alpha_e=np.array(alpha_e), contact_len=np.array(contact_len),
-                A_G=sum(a_g.values()), voids=voids, energy=energy, virial=virial)
-
-
-def reference_fictitious(ref, rad):
-    """Fictitious contacts of every void from scipy's Delaunay of its centre cycle."""
-    lengths = []
-    for v in ref["voids"]:
-        k = v["z"]
-        if k < 4:
-            continue
-        P = v["centres"]
-        sides = {frozenset((t, (t + 1) % k)) for t in range(k)}
-        edges = set()
-        for simplex in Delaunay(P).simplices:
-            for a in range(3):
-                edges.add(frozenset((int(simplex[a]), int(simplex[(a + 1) % 3]))))
-        for e in edges - sides:
-            i, j = sorted(e)
-            gi, gj = v["grains"][i], v["grains"][j]
-            lengths.append(np.linalg.norm(P[j] - P[i]) / (rad[gi] + rad[gj]))
-    return np.sort(lengths)
 
 
 # ----------------------------------------------------------------------------- tests
@@ -243,7 +41,7 @@ def _cases():
 def test_kernels_match_reference(case):
     name, pos, rad, box = _cases()[case]
     net = network(pos, rad, box)
-    ref = reference_network(pos, rad, box)
+    ref = ref_network(pos, rad, box)
     # contacts and rattlers
     assert list(zip(net["bi"].tolist(), net["bj"].tolist())) == ref["bonds"], name
     assert set(np.flatnonzero(~net["rattler"]).tolist()) == ref["alive"]
@@ -408,19 +206,6 @@ def test_finite_cluster_has_no_load_bearing_grain():
     assert rattlers(len(rad), bi, bj, dx, dy).all()
 
 
-def _three_disks(radii):
-    """Three mutually touching disks (relative overlap 1e-10) in a large box."""
-    r = np.asarray(radii, dtype=float)
-    s = 1 - 1e-10
-    a, b, c = (r[1] + r[2]) * s, (r[0] + r[2]) * s, (r[0] + r[1]) * s  # sides opposite 0, 1, 2
-    p0 = np.array([0.0, 0.0])
-    p1 = np.array([c, 0.0])
-    x = (b * b - a * a + c * c) / (2 * c)
-    p2 = np.array([x, math.sqrt(b * b - x * x)])
-    box = np.array([40.0, 40.0]) * r.max()
-    return np.array([p0, p1, p2]) + box / 2, r, box
-
-
 def _angle_at(r, g):
     """Interior angle of the centre triangle at grain g (law of cosines) = relative angle."""
     o = [k for k in range(3) if k != g]
@@ -445,7 +230,7 @@ VOID_TABLE = {"AAA": 0.433013, "AAB": 0.338430, "ABB": 0.270553, "BBB": 0.220925
 def test_three_disks_first_principles(cluster):
     size = {"A": RATIO, "B": 1.0}
     r = np.array([size[c] for c in cluster]) * 0.01
-    pos, rad, box = _three_disks(r)
+    pos, rad, box = three_touching_disks(r)
     net = network(pos, rad, box, remove_rattlers=False)
     assert net["sides"].tolist() in ([3, 3],)
     sigma_A = size["A"] * 0.01  # the A radius, whichever disks the cluster has

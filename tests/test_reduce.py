@@ -1,6 +1,7 @@
 """The reducer on synthetic campaign files (layout of docs/CONTRACTS.md)."""
 
 import json
+import math
 
 import h5py
 import numpy as np
@@ -205,11 +206,13 @@ def test_cli_reduce_json_and_output_files(full, tmp_path, capsys):
     assert len(obj["rows"]) == len(camp.N)
     for r in obj["rows"]:
         assert r["variant"] == "default"
-        for k in keys:
-            assert isinstance(r[k], float) and isinstance(r[f"{k}_err"], float)
+        for k in keys:  # numbers, finite (JSON's NaN would pass as a float)
+            assert isinstance(r[k], float) and math.isfinite(r[k]), (k, r[k])
+            assert isinstance(r[f"{k}_err"], float) and math.isfinite(r[f"{k}_err"]), (k, r[f"{k}_err"])
     for k in keys:
-        assert isinstance(obj["extrapolated"]["default"][k], float)
-        assert isinstance(obj["extrapolated"]["default"][f"{k}_err"], float)
+        got = obj["extrapolated"]["default"]
+        assert isinstance(got[k], float) and math.isfinite(got[k]), (k, got[k])
+        assert isinstance(got[f"{k}_err"], float) and math.isfinite(got[f"{k}_err"]), (k, got[f"{k}_err"])
     for name in ("table.md", "table.csv", "table.tex", "cells.csv", "fits.csv", "reduced.h5"):
         assert (out / name).stat().st_size > 0
     md = (out / "table.md").read_text()

@@ -16,8 +16,8 @@ import kernels.hessian
 from kernels import response
 from kernels.analysis import analyze
 from kernels.fire import minimize
-from reference import ref_nonrattlers
-from test_network import random_configuration, triangular_crystal
+from helpers import random_configuration, triangular_crystal
+from references import ref_kept_contacts, ref_moduli, ref_response
 
 
 @lru_cache(maxsize=None)
@@ -26,75 +26,6 @@ def jammed(n, energy, seed, exponent=2.0, box=(1.0, 1.0)):
 
 
 # ----------------------------------------------------------------------------- references
-
-def _pairs(pos, rad, box):
-    """Every overlapping pair ``(i, j, d = r_j - r_i)`` (minimum image), brute force."""
-    out = []
-    n = len(rad)
-    for i in range(n):
-        for j in range(i + 1, n):
-            d = pos[j] - pos[i]
-            d = d - box * np.round(d / box)
-            if np.hypot(*d) < rad[i] + rad[j]:
-                out.append((i, j, d))
-    return out
-
-
-def _kept(pos, rad, box):
-    pairs = _pairs(pos, rad, box)
-    alive = ref_nonrattlers(len(rad), [p[0] for p in pairs], [p[1] for p in pairs], [p[2] for p in pairs])
-    return alive, [p for p in pairs if alive[p[0]] and alive[p[1]]]
-
-
-def reference_response(pos, rad, box, alpha):
-    """Dense Hessian H, mixed derivatives Xi, affine term A and stress derivative of the
-    non-rattlers, pair by pair: the derivatives of ``V(|F d + u_j - u_i|)`` by the chain
-    rule on the distance, ``dr/de_a = n . g_a``, ``d2r/de_a de_b = (g_a . g_b - (n . g_a)
-    (n . g_b)) / r``, ``g_a = dF/de_a d``."""
-    pos, rad, box = (np.asarray(x, float) for x in (pos, rad, box))
-    alive, pairs = _kept(pos, rad, box)
-    idx = -np.ones(len(rad), int)
-    idx[alive] = np.arange(alive.sum())
-    m = int(alive.sum())
-    H = np.zeros((2 * m, 2 * m))
-    Xi = np.zeros((2 * m, 3))
-    A = np.zeros((3, 3))
-    dU = np.zeros(3)
-    for i, j, d in pairs:
-        a, b = idx[i], idx[j]
-        r = np.hypot(*d)
-        s = rad[i] + rad[j]
-        x = 1.0 - r / s
-        v1 = -x ** (alpha - 1) / s                    # V'
-        v2 = (alpha - 1) * x ** (alpha - 2) / s**2    # V''
-        n = d / r
-        g = [np.array([d[0], 0.0]), np.array([0.0, d[1]]), np.array([d[1], d[0]]) / 2]
-        dr = [n @ gg for gg in g]
-        for p in range(3):
-            dU[p] += v1 * dr[p]
-            for q in range(3):
-                A[p, q] += v2 * dr[p] * dr[q] + v1 * (g[p] @ g[q] - dr[p] * dr[q]) / r
-            # d/de_p of dV/dr_j = V' n
-            dg = v2 * dr[p] * n + v1 * (g[p] - n * dr[p]) / r
-            Xi[2 * b:2 * b + 2, p] += dg
-            Xi[2 * a:2 * a + 2, p] -= dg
-        nn = np.outer(n, n)
-        k = v2 * nn + v1 / r * (np.eye(2) - nn)
-        for u, w, sign in ((a, a, 1), (b, b, 1), (a, b, -1), (b, a, -1)):
-            H[2 * u:2 * u + 2, 2 * w:2 * w + 2] += sign * k
-    return H, Xi, A, dU, alive
-
-
-def reference_moduli(pos, rad, box, alpha):
-    """``C = (A - Xi^T H^+ Xi) / (Lx Ly)`` with numpy's pseudo-inverse (translations dropped
-    by their eigenvalues), Voigt (3, 3); the affine part; the stress; the spectrum."""
-    H, Xi, A, dU, _ = reference_response(pos, rad, box, alpha)
-    area = float(np.prod(box))
-    w, v = np.linalg.eigh(H)
-    nz = np.argsort(np.abs(w))[2:]
-    Hp = (v[:, nz] / w[nz]) @ v[:, nz].T
-    return (A - Xi.T @ Hp @ Xi) / area, A / area, dU / area, w
-
 
 def _voigt(m, prefix=""):
     c = {k: m[prefix + k] if prefix + k in m else np.nan for k in ("c11", "c22", "c12", "c66", "c16", "c26")}
@@ -141,7 +72,7 @@ CASES = [(64, 1e-4, 2.0, (1.0, 1.0), 1), (96, 1e-7, 2.5, (1.3, 0.8), 2), (64, 1e
 @pytest.mark.parametrize("n,energy,alpha,box,seed", CASES)
 def test_moduli_against_the_dense_reference(n, energy, alpha, box, seed):
     p = jammed(n, energy, seed, alpha, box)
-    C, A, stress, _ = reference_moduli(p.positions, p.radii, p.box, alpha)
+    C, A, stress, _ = ref_moduli(p.positions, p.radii, p.box, alpha)
     m = response.moduli(p.positions, p.radii, p.box, alpha)
     assert m["moduli_ok"] and m["moduli_residual"] < 1e-14
     scale = np.abs(C).max()
@@ -327,7 +258,7 @@ def test_an_unstable_network_gives_nan_and_a_flag():
     """A compressed square lattice: rows slide under their own prestress (negative modes);
     no disk is a rattler, the Hessian is not positive definite."""
     pos, rad, box = _square_lattice(8, 1e-4)
-    H, _, _, _, alive = reference_response(pos, rad, box, 2.0)
+    H, _, _, _, alive = ref_response(pos, rad, box, 2.0)
     assert alive.all() and np.linalg.eigvalsh(H)[0] < -1e-6
     m = response.moduli(pos, rad, box)
     assert m["moduli_ok"] is False and m["moduli_status"] == 2
@@ -344,7 +275,7 @@ def test_an_unrelaxed_configuration_is_flagged_not_trusted():
     network survives, its Hessian has negative eigenvalues; no constants come out."""
     pos, rad, box = random_configuration(64, 1, phi=1.0)
     pos = minimize(pos, rad, box, max_steps=100).positions
-    H, _, _, _, alive = reference_response(pos, rad, box, 2.0)
+    H, _, _, _, alive = ref_response(pos, rad, box, 2.0)
     w = np.linalg.eigvalsh(H)
     assert alive.sum() == 64 and w[0] < -1e-3 * w[-1]
     m = response.moduli(pos, rad, box)
@@ -366,12 +297,12 @@ def test_too_few_nonrattlers():
 @pytest.mark.parametrize("n,energy,alpha,box,seed", CASES[:3])
 def test_spectrum_against_the_dense_reference(n, energy, alpha, box, seed):
     p = jammed(n, energy, seed, alpha, box)
-    H, _, _, _, alive = reference_response(p.positions, p.radii, p.box, alpha)
+    H, _, _, _, alive = ref_response(p.positions, p.radii, p.box, alpha)
     w = np.linalg.eigvalsh(H)
     s, counts = response.modes(p.positions, p.radii, p.box, alpha)
     kmean = s["omega_scale"] ** 2
     # <k>: the mean V'' over the network's contacts
-    _, pairs = _kept(p.positions, p.radii, p.box)
+    _, pairs = ref_kept_contacts(p.positions, p.radii, p.box)
     ks = [(alpha - 1) * (1 - np.hypot(*d) / (p.radii[i] + p.radii[j])) ** (alpha - 2)
           / (p.radii[i] + p.radii[j]) ** 2 for i, j, d in pairs]
     assert kmean == pytest.approx(np.mean(ks), rel=1e-12)
@@ -389,7 +320,7 @@ def test_spectrum_against_the_dense_reference(n, energy, alpha, box, seed):
 
 def test_shift_invert_finds_the_lowest_eigenvalues():
     p = jammed(128, 1e-9, 8)
-    H, _, _, _, alive = reference_response(p.positions, p.radii, p.box, 2.0)
+    H, _, _, _, alive = ref_response(p.positions, p.radii, p.box, 2.0)
     w = np.linalg.eigvalsh(H)
     from kernels.network import network
 
@@ -407,7 +338,7 @@ def test_shift_invert_finds_the_lowest_eigenvalues():
 def test_gaps_and_forces_against_brute_force():
     p = jammed(128, 1e-10, 9)
     pos, rad, box = np.asarray(p.positions), np.asarray(p.radii), np.asarray(p.box)
-    alive, pairs = _kept(pos, rad, box)
+    alive, pairs = ref_kept_contacts(pos, rad, box)
     gaps = []
     n = len(rad)
     for i in range(n):

@@ -30,8 +30,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from test_faults import mpich_segments, remove_segments_of_killed_jobs
-from test_kill_resume import SKIP_DATASETS, _contents, _durable
+from helpers import SKIP_DATASETS, durable_packings, mpich_segments, remove_segments_of_killed_jobs, store_data_and_attrs
 
 pytestmark = pytest.mark.slurm
 
@@ -145,8 +144,8 @@ def _local_run(tmp_path, env):
 
 def _assert_equals_local_run(tmp_path, env):
     """The store equals one uninterrupted local run of the same spec: every dataset but the timings."""
-    got, got_attrs = _contents(tmp_path / "out.h5")
-    want, want_attrs = _contents(_local_run(tmp_path, env))
+    got, got_attrs = store_data_and_attrs(tmp_path / "out.h5")
+    want, want_attrs = store_data_and_attrs(_local_run(tmp_path, env))
     assert sorted(got) == sorted(want)
     for name in want:
         if name not in SKIP_DATASETS and not name.endswith("_seconds"):
@@ -391,12 +390,12 @@ def test_worker_rank_killed_then_resubmitted(tmp_path, jobs):
     log = _log(tmp_path, "onejob", jobs[0])
     assert job["JobState"] == "FAILED" and job["ExitCode"] != "0:0", (job, log)
     assert "task 1: Killed" in log and "Traceback" not in log, log
-    kept = _durable(out)
+    kept = durable_packings(out)
     assert 4 <= len(kept) < 20
     writer = _status(out, env)["writer"]
     assert writer["judged_by"] in ("pid", "age") and (writer["judged_by"] == "age" or writer["state"] == "dead")
     jobs.append(_submit(script, env))
     job = _wait(jobs[1:])[jobs[1]]
     assert (job["JobState"], job["ExitCode"]) == ("COMPLETED", "0:0"), _log(tmp_path, "onejob", jobs[1])
-    assert _durable(out).keys() == set(range(20))
+    assert durable_packings(out).keys() == set(range(20))
     _assert_equals_local_run(tmp_path, env)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from campaign.results import tradeoff
+from helpers import LADDER_SPEC, FakeComm, synthetic_run
 
 
 class _Fin(SimpleNamespace):
@@ -142,10 +143,8 @@ def test_reduce_and_plot_a_campaign_with_variants(tmp_path, capsys, monkeypatch)
     """End to end: a synthetic campaign with a ladder variant, reduced and plotted by the CLI."""
     from campaign.cli import main
     from campaign.run.master import Master
-    from tests.test_ladder import _setup
-    from tests.test_master import FakeComm
 
-    spec, tasks, ctx, store = _setup(tmp_path)
+    spec, tasks, ctx, store = synthetic_run(tmp_path, LADDER_SPEC)
     Master(FakeComm(ctx, 2), store, tasks).run()
     store.close()
     assert main(["reduce", str(tmp_path / "s.h5"), "--out", str(tmp_path / "red"), "--boot", "20"]) == 0

@@ -15,13 +15,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_kill_resume import SKIP_DATASETS, _contents
 
 from campaign.errors import UserError
 from campaign.plan.spec import parse_spec
 from campaign.storage.store import DONE
 from campaign.plan.tasks import expand
 from campaign.run.walltime import Deadline, deadline, parse_limit
+from helpers import SKIP_DATASETS, store_data_and_attrs
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -149,8 +149,8 @@ def test_slurm_script_body_runs_out_of_time_then_a_second_job_completes(tmp_path
     ref = tmp_path / "ref.h5"
     subprocess.run([sys.executable, "-m", "campaign", "run", str(spec), "--out", str(ref), "--launcher", "inline",
                     "--quiet"], env=_env(), check=True, capture_output=True, timeout=120)
-    got, got_attrs = _contents(out)
-    want, want_attrs = _contents(ref)
+    got, got_attrs = store_data_and_attrs(out)
+    want, want_attrs = store_data_and_attrs(ref)
     assert sorted(got) == sorted(want)
     for name in want:
         if name not in SKIP_DATASETS:

@@ -1,0 +1,331 @@
+"""Shared helpers of the tests: packing makers, a fake communicator, store readers.
+
+Test modules import these instead of importing each other (``tests/test_docs.py`` checks that
+none does). The oracles the kernels are compared with are in ``references.py``.
+"""
+
+import math
+from collections import deque
+from functools import lru_cache
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from campaign.plan.spec import parse_spec
+from campaign.plan.tasks import expand
+from campaign.run.worker import SyntheticTask, run_task
+from campaign.storage.store import Store, read_journal
+
+
+RATIO = 1.4  # sigma_A / sigma_B (docs/PHYSICS.md)
+
+
+def _forces_energy(pos, rad, box):
+    d = pos[None, :, :] - pos[:, None, :]
+    d -= box * np.round(d / box)
+    r = np.sqrt((d**2).sum(-1))
+    np.fill_diagonal(r, np.inf)
+    s = rad[:, None] + rad[None, :]
+    x = np.clip(1.0 - r / s, 0.0, None)
+    f = x / s / r
+    return -(f[:, :, None] * d).sum(1), 0.25 * (x**2).sum()
+
+
+@lru_cache(maxsize=None)
+def compressed_packing(n, seed, phi=0.9, box=(1.0, 1.0)):
+    """A force-balanced bidisperse packing above jamming (FIRE on harmonic springs).
+
+    Independent of ``kernels.jam``: a small numpy FIRE over all pairs, stopped when
+    the largest net force is 1e-12 of the typical contact force. Returns read-only
+    ``(positions, radii, box)``.
+    """
+    rng = np.random.default_rng([n, seed])
+    box = np.asarray(box, dtype=float)
+    rel = np.r_[np.full(n // 2, RATIO), np.ones(n - n // 2)]
+    rad = rel * np.sqrt(phi * box.prod() / (np.pi * np.sum(rel**2)))
+    pos = rng.random((n, 2)) * box
+    v = np.zeros_like(pos)
+    dt = 0.05 * rad.min()
+    dtmax = 10 * dt
+    alpha = 0.1
+    npos = 0
+    F, _ = _forces_energy(pos, rad, box)
+    fscale = None
+    for _ in range(50000):
+        P = (F * v).sum()
+        if P > 0:
+            v = (1 - alpha) * v + alpha * F / np.linalg.norm(F) * np.linalg.norm(v)
+            npos += 1
+            if npos > 5:
+                dt = min(dt * 1.1, dtmax)
+                alpha *= 0.99
+        else:
+            npos = 0
+            dt *= 0.5
+            v[:] = 0
+            alpha = 0.1
+        v += dt * F
+        pos += dt * v
+        F, E = _forces_energy(pos, rad, box)
+        if fscale is None:
+            fscale = np.sqrt(2 * E / n) / rad.mean()
+        if np.abs(F).max() < 1e-12 * max(fscale, 1e-300) + 1e-300:
+            break
+    pos = pos % box
+    for a in (pos, rad, box):
+        a.setflags(write=False)
+    return pos, rad, box
+
+
+def random_configuration(n, seed, phi=0.85, box=(1.0, 1.0)):
+    """Uniformly random bidisperse disks (overlapping, not force balanced)."""
+    rng = np.random.default_rng([7, n, seed])
+    box = np.asarray(box, dtype=float)
+    rel = np.r_[np.full(n // 2, RATIO), np.ones(n - n // 2)]
+    rad = rel * np.sqrt(phi * box.prod() / (np.pi * np.sum(rel**2)))
+    return rng.random((n, 2)) * box, rad, box
+
+
+def triangular_crystal(nx, ny, overlap=1e-6, a=None):
+    """Triangular crystal of equal disks, nx per row, ny rows (even), fitting its box."""
+    assert ny % 2 == 0
+    a = 1.0 / nx if a is None else a
+    j, i = np.divmod(np.arange(nx * ny), nx)
+    pos = np.stack([(i + 0.5 * (j % 2)) * a, j * a * np.sqrt(3) / 2], axis=1)
+    box = np.array([nx * a, ny * a * np.sqrt(3) / 2])
+    rad = np.full(nx * ny, 0.5 * a * (1 + overlap))
+    return pos, rad, box
+
+
+def jittered_crystal(nx, ny, seed, box=None, poly=0.05, jitter=0.03, overlap=0.15):
+    """A generic network with every grain load-bearing: a triangular crystal with its
+    centres moved by ``jitter`` lattice spacings (normal), radii ``0.5 a (1 + overlap)``
+    times ``1 + poly U(-1, 1)`` (all distinct), stretched into ``box`` if given. No two
+    contact angles coincide, and every grain keeps contacts all around (unlike random
+    overlapping disks, which erode completely under the half-plane rattler rule)."""
+    rng = np.random.default_rng([11, nx, ny, seed])
+    pos, rad, b = triangular_crystal(nx, ny, overlap=overlap)
+    pos = pos + jitter * (1.0 / nx) * rng.standard_normal(pos.shape)
+    rad = rad * (1.0 + poly * rng.uniform(-1.0, 1.0, rad.size))
+    if box is not None:
+        box = np.asarray(box, dtype=float)
+        pos = pos * (box / b)
+        rad = rad * np.sqrt(box.prod() / b.prod())
+        b = box
+    return pos % b, rad, b
+
+
+def three_touching_disks(radii):
+    """Three mutually touching disks (relative overlap 1e-10) in a large box."""
+    r = np.asarray(radii, dtype=float)
+    s = 1 - 1e-10
+    a, b, c = (r[1] + r[2]) * s, (r[0] + r[2]) * s, (r[0] + r[1]) * s  # sides opposite 0, 1, 2
+    p0 = np.array([0.0, 0.0])
+    p1 = np.array([c, 0.0])
+    x = (b * b - a * a + c * c) / (2 * c)
+    p2 = np.array([x, math.sqrt(b * b - x * x)])
+    box = np.array([40.0, 40.0]) * r.max()
+    return np.array([p0, p1, p2]) + box / 2, r, box
+
+
+def random_dense(seed, n=64, phi=0.9):
+    rng = np.random.default_rng(seed)
+    box = np.array([1.0, 1.0])
+    pos = rng.random((n, 2))
+    rel = np.where(np.arange(n) < n // 2, 1.4, 1.0)
+    rad = rel * np.sqrt(phi / (np.pi * np.sum(rel ** 2)))
+    return pos, rad, box
+
+
+def polygon_area(v):
+    x, y = v[:, 0], v[:, 1]
+    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+
+
+def clipped_area(poly, x0, y0, x1, y1):
+    """Sutherland-Hodgman clipping of a polygon by an axis-aligned rectangle."""
+    def edge(pts, inside, cut):
+        out = []
+        for k in range(len(pts)):
+            p, q = pts[k - 1], pts[k]
+            if inside(q):
+                if not inside(p):
+                    out.append(cut(p, q))
+                out.append(q)
+            elif inside(p):
+                out.append(cut(p, q))
+        return out
+
+    def at_x(x):
+        return lambda p, q: (x, p[1] + (q[1] - p[1]) * (x - p[0]) / (q[0] - p[0]))
+
+    def at_y(y):
+        return lambda p, q: (p[0] + (q[0] - p[0]) * (y - p[1]) / (q[1] - p[1]), y)
+
+    pts = [tuple(v) for v in poly]
+    for inside, cut in ((lambda p: p[0] >= x0, at_x(x0)), (lambda p: p[0] <= x1, at_x(x1)),
+                        (lambda p: p[1] >= y0, at_y(y0)), (lambda p: p[1] <= y1, at_y(y1))):
+        pts = edge(pts, inside, cut)
+        if not pts:
+            return 0.0
+    return abs(polygon_area(np.array(pts)))
+
+
+#: The ladder campaign of tests/test_ladder.py (also reduced by tests/test_tradeoff.py).
+LADDER_SPEC = """\
+name: lad
+seed: 3
+grid: {N_G: [16, 32], E_G: [1.0e-2, 1.0e-4, 1.0e-6, 1.0e-8], seeds: 3}
+variants: [{name: ladder, start: ladder}]
+observables: [scalars]
+"""
+
+
+def synthetic_run(tmp_path, text, name="s.h5"):
+    """(spec, tasks, context, store) of a campaign whose tasks are the synthetic task function's."""
+    spec = parse_spec(text)
+    tasks = expand(spec)
+    ctx = {"task_function": "synthetic", "system": spec.system.canonical(), "observables": list(spec.observables),
+           "histograms": list(spec.histograms), "bins": {}, "configurations": False}
+    edges = SyntheticTask().histogram_edges(ctx)
+    ctx["edges"] = {h: list(e) for h, e in edges.items()}
+    return spec, tasks, ctx, Store(tmp_path / name, spec, tasks, edges)
+
+
+class FakeComm:
+    """n workers that run tasks in the master's process, answering in round-robin order."""
+
+    launcher = "fake"
+
+    def __init__(self, ctx, n, on_result=None, die=None, wall=1.0):
+        self.ctx, self.n_workers, self.wall = ctx, n, wall
+        self.max_queue = 0
+        self.queued_before = []
+        self.fn = SyntheticTask()
+        self.queues = {w: deque() for w in range(1, n + 1)}
+        self.sent = []
+        self.on_result, self.die = on_result, die or {}
+        self.turn = 0
+        self.received = 0
+
+    def send(self, w, payload):
+        self.sent.append((w, payload))
+        self.queued_before.append(len(self.queues[w]))
+        self.queues[w].append(payload)
+        self.max_queue = max(self.max_queue, len(self.queues[w]))
+
+    def recv(self, timeout=None):
+        busy = [w for w in sorted(self.queues) if self.queues[w]]
+        if not busy:
+            return None
+        w = busy[self.turn % len(busy)]
+        self.turn += 1
+        payload = self.queues[w].popleft()
+        if w in self.die and self.received >= self.die[w] and not hasattr(self, "lost"):
+            self.lost = [payload["index"]] + [p["index"] for p in self.queues[w]]
+            self.died_at = len(self.sent)
+            self.queues[w].clear()
+            self.received += 1
+            return w, ("dead", f"worker {w} died")
+        self.received += 1
+        if self.on_result:
+            self.on_result(self.received)
+        summary = run_task(self.fn, payload, self.ctx, w)
+        if self.wall is not None:
+            summary["wall"] = self.wall
+        return w, ("result", payload["index"], payload["attempt"], summary)
+
+    def close(self, abandon=False):
+        pass
+
+
+SKIP_DATASETS = ("tasks/wall", "tasks/rank", "tasks/host", "checksums/tasks.wall", "checksums/tasks.rank",
+                 "checksums/tasks.host")
+
+SKIP_ATTRS = ("runs", "start_time", "end_time", "hosts", "versions", "git_commit")
+
+
+def store_data_and_attrs(path):
+    data, attrs = {}, {}
+    with h5py.File(path, "r") as f:
+        def visit(name, obj):
+            if isinstance(obj, h5py.Dataset):
+                data[name] = obj[()]
+            attrs.update({f"{name}@{k}": v for k, v in obj.attrs.items() if k not in ("rank", "host")})
+        f.visititems(visit)
+        attrs.update({k: v for k, v in f.attrs.items() if k not in SKIP_ATTRS})
+    return data, attrs
+
+
+def durable_packings(path):
+    """Every finished task of the durable record: ``{index: run id}`` for the journal's
+    records (run id of the run that computed it; a task twice in the journal fails), and
+    the store's committed rows (``None``: the store does not say which run)."""
+    out = {}
+    p = Path(str(path) + ".journal")
+    if p.exists():
+        recs, _ = read_journal(p.read_bytes())
+        for m, _ in recs:
+            if m.get("type") == "task":
+                assert m["index"] not in out, "a finished task was recorded twice in the journal"
+                out[m["index"]] = m["run_id"]
+    if Path(path).exists():
+        try:
+            with h5py.File(path, "r", locking=False) as f:
+                status = f["tasks/status"][:]
+        except OSError:
+            status = np.zeros(0)  # unreadable: the next start salvages it (counted below if rows are lost)
+        for i in np.flatnonzero(status != 0).tolist():
+            out.setdefault(i, None)
+    return out
+
+
+SKIP_RUN_DATASETS = ("tasks/wall", "tasks/rank", "tasks/host", "scalars/jam_seconds", "scalars/analyze_seconds")
+
+
+def store_contents(path):
+    """Every dataset and attribute h5py reads (run-dependent ones left out)."""
+    out = {}
+    with h5py.File(path, "r") as f:
+        def visit(name, obj):
+            if isinstance(obj, h5py.Dataset):
+                out[name] = obj[()]
+            out.update({f"{name}@{k}": v for k, v in obj.attrs.items() if k not in ("rank", "host")})
+        f.visititems(visit)
+    return out
+
+
+def assert_same_contents(a, b):
+    assert set(a) == set(b), sorted(set(a) ^ set(b))
+    for k in a:
+        if k in SKIP_RUN_DATASETS:
+            continue
+        x, y = np.asarray(a[k]), np.asarray(b[k])
+        assert x.dtype == y.dtype and x.shape == y.shape, k
+        assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), k
+
+
+SHM = Path("/dev/shm")
+
+
+def mpich_segments() -> set:
+    """The shared-memory segments of MPICH's jobs on this machine."""
+    return {p.name for p in SHM.glob("mpich_shm_*")} if SHM.is_dir() else set()
+
+
+def remove_segments_of_killed_jobs(before: set):
+    """A job killed with SIGKILL leaves MPICH's shared-memory segment in /dev/shm (a running job
+    keeps its own mapped): remove the ones that appeared since ``before`` and no process maps."""
+    new = mpich_segments() - before
+    if not new:
+        return
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                maps = (d / "maps").read_text()
+            except OSError:
+                continue
+            new = {n for n in new if n not in maps}
+    for n in new:
+        (SHM / n).unlink(missing_ok=True)
