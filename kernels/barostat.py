@@ -58,13 +58,13 @@ import numpy as np
 from numba import njit
 
 from kernels.fire import (_dt_for, _fire_adapt, _fire_core, _fire_kick, _fire_mix_move, _fire_power,
-                          _fire_retreat, _residual_core, _verlet_rows, _wrap_inplace)
+                          _fire_retreat, _residual_core, _verlet_rows)
 from kernels.potential import _energy_forces_rows_scaled
-from kernels.protocol import (ABORT_FRACTION, AIM, E_FIRST_GUESS, ST_CONVERGED, ST_MAX_SEARCH, ST_MAX_STEPS,
-                              ST_STALLED, ST_TOO_DENSE, _spatial_order)
-from kernels.rules import (A_START, BELOW, CHECK_EVERY, CONVERGED, DT_MAX_FACTOR, DT_MIN_FACTOR,
-                           MAX_STEPS, N_NEG_MAX, STALLED)
-from kernels.space import _wrap_core
+from kernels.protocol import (ST_CONVERGED, ST_MAX_SEARCH, ST_MAX_STEPS, ST_STALLED, ST_TOO_DENSE,
+                              _spatial_order)
+from kernels.rules import (A_START, ABORT_FRACTION, AIM, BELOW, CHECK_EVERY, CONVERGED, DT_MAX_FACTOR,
+                           DT_MIN_FACTOR, E_FIRST_GUESS, MAX_STEPS, N_NEG_MAX, STALLED)
+from kernels.space import _wrap_core, _wrap_inplace
 
 BARO_SCALE = 0.5  # barostat coordinate u = BARO_SCALE d sqrt(n) ln(lambda)
 PRESSURE_TOL = 1e-3  # relative pressure accuracy of an enthalpy minimum

@@ -38,11 +38,11 @@ import numpy as np
 from numba import njit
 
 from kernels.fire import (_fire_adapt, _fire_kick, _fire_mix_move, _fire_power, _fire_retreat,
-                          _verlet_rows, _wrap_inplace)
+                          _verlet_rows)
 from kernels.potential import pair_energy_force_inv
 from kernels.rules import (A_START, BELOW, CONVERGED, DT_MAX_FACTOR, DT_MIN_FACTOR, MAX_STEPS,
                            N_NEG_MAX, STALLED)
-from kernels.space import near_image
+from kernels.space import _wrap_inplace, near_image
 
 
 @njit(cache=True)

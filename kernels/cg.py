@@ -56,11 +56,12 @@ import numpy as np
 from numba import njit
 
 from kernels.fire import (_checked_minimize_inputs, _residual_core, _starting_timestep, _verlet_rows,
-                          _wrap_inplace, fire_result)
+                          fire_result)
 from kernels.linesearch import (C1, E_ROUND, LS_MAX, _dot, _line_search,  # noqa: F401 (C1, E_ROUND, LS_MAX: re-exported)
                                 _max_norm2, _wrap_with, energy_resolution)
 from kernels.potential import _energy_forces_rows
 from kernels.rules import BELOW, CHECK_EVERY, CONVERGED, DT_FACTOR, MAX_STEPS, STALLED
+from kernels.space import _wrap_inplace
 
 SIGMA = 0.1  # strong Wolfe curvature parameter
 RESTART_EVERY = 1000  # iterations between forced steepest-descent restarts

@@ -48,7 +48,7 @@ from kernels.potential import (_energy_forces_core, _energy_forces_rows, _pair_i
 from kernels import rules
 from kernels.rules import (A_START, BELOW, CHECK_EVERY, CONVERGED, DT_FACTOR, DT_MAX_FACTOR,
                            DT_MIN_FACTOR, MAX_STEPS, N_NEG_MAX, STALLED, STATUS_NAMES)
-from kernels.space import _as_box, _as_positions, _wrap_core, separation
+from kernels.space import _as_box, _as_positions, _wrap_core, _wrap_inplace, separation
 
 # FIRE's rules (constants, status codes, the time-step adaptation) are kernels.rules', compiled
 # here for the CPU minimisers; the GPU block compiles the same functions (kernels.gpu.block).
@@ -134,14 +134,6 @@ def _residual_alive(positions, radii, box, pi, pj, alpha, forces):
     if mean == 0.0:
         return 0.0, ng, 0.0, alive
     return np.sqrt(fmax2) / mean, ng, mean, alive
-
-
-@njit(cache=True)
-def _wrap_inplace(positions, box):
-    w = _wrap_core(positions, box)
-    for i in range(positions.shape[0]):
-        positions[i, 0] = w[i, 0]
-        positions[i, 1] = w[i, 1]
 
 
 @njit(cache=True)

@@ -63,14 +63,14 @@ analyses and Newton iterations).
 import numpy as np
 from numba import njit
 
-from kernels.fire import _fire_run, _fire_state, _residual_alive, _verlet_rows, _wrap_inplace
+from kernels.fire import _fire_run, _fire_state, _residual_alive, _verlet_rows
 from kernels.hessian import _hessian_rows
 from kernels.linesearch import _dot, _line_search, _max_disp2, _max_norm2, energy_resolution
 from kernels.potential import _energy_forces_rows
 from kernels.rules import BELOW, CONVERGED, MAX_STEPS, STALLED
 from kernels.sparse import (CUTS, _adjacency, _nd_order, _numeric_core, _solve_core,
                             _symbolic_core)
-from kernels.space import near_image
+from kernels.space import _wrap_inplace, near_image
 
 FAILED = 4  # the shifted Hessian was not positive definite even at MU_MAX
 NOT_READY = 5  # Newton did not start: the network is not rigid yet

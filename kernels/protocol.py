@@ -68,17 +68,11 @@ from kernels.cg import _cg_core
 from kernels.newton import PATTERN_SKIN, _fire_newton
 from kernels.fire import _dt_for, _fire_core
 from kernels import rules
-from kernels.rules import (BELOW, CONVERGED, DT_FACTOR, MAX_STEPS, SEARCH_HALVING,  # noqa: F401
-                           SEARCH_NAMES, SEARCH_PAPER, SEARCH_SECANT)
+from kernels.rules import (ABORT_FRACTION, AIM, BELOW, CONVERGED, DT_FACTOR,  # noqa: F401
+                           E_FIRST_GUESS, MAX_STEPS, SEARCH_HALVING, SEARCH_NAMES, SEARCH_PAPER,
+                           SEARCH_SECANT)
 from kernels.space import _wrap_core
 
-AIM = 0.5  # the secant rule aims at E_min (1 + AIM window)
-ABORT_FRACTION = 0.5  # stop a minimisation once E_G < ABORT_FRACTION E_min
-# The first minimisation relaxes the random start (overlaps up to x ~ 0.2): its time step is
-# sized for an energy of at least this much, not for the target. For alpha > 2 a step sized for
-# E_G ~ 1e-22 is ~1000 times too long there and FIRE never converges; for alpha = 2 the step does
-# not depend on the energy. Later minimisations use the energy of the latest jammed minimum.
-E_FIRST_GUESS = 1e-8
 
 #: The search's next radius scale (``kernels.rules.search_step``, the rule the GPU block shares).
 _search_step = njit(cache=True)(rules.search_step)

@@ -35,7 +35,14 @@ STALLED = 2
 BELOW = 3  # the energy fell below the caller's abort level (the minimum is lower still)
 STATUS_NAMES = ("converged", "max_steps", "stalled", "below")
 
-# the O'Hern search's rules for the next radius scale (kernels.protocol)
+# the O'Hern search's rules (kernels.protocol, kernels.barostat, the GPU block)
+AIM = 0.5  # the secant rule aims at E_min (1 + AIM window)
+ABORT_FRACTION = 0.5  # stop a minimisation once E_G < ABORT_FRACTION E_min
+# The first minimisation relaxes the random start (overlaps up to x ~ 0.2): its time step is
+# sized for an energy of at least this much, not for the target. For alpha > 2 a step sized for
+# E_G ~ 1e-22 is ~1000 times too long there and FIRE never converges; for alpha = 2 the step does
+# not depend on the energy. Later minimisations use the energy of the latest jammed minimum.
+E_FIRST_GUESS = 1e-8
 SEARCH_HALVING = 0
 SEARCH_SECANT = 1
 SEARCH_PAPER = 2

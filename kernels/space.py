@@ -23,7 +23,8 @@ Jitted functions usable from other numba code:
 * ``near_image(dx, dy, Lx, Ly, tilt, hx, hy)``: the same by single shifts, for the force loops.
 * ``_fold(x, y, Lx, Ly, tilt)``: one point folded into the fundamental domain.
 * ``widths(box) -> (wx, wy)``: distances between opposite sides of the cell.
-* ``_wrap_core(positions, box)``: positions folded into ``[0, Lx) x [0, Ly)`` (new array).
+* ``_wrap_core(positions, box)``: positions folded into ``[0, Lx) x [0, Ly)`` (new array);
+  ``_wrap_inplace(positions, box)`` the same in place.
 
 Checked wrappers: ``wrap(positions, box)``, ``_as_box(box)``.
 """
@@ -123,6 +124,15 @@ def _wrap_core(positions, box):
     for i in range(n):
         out[i, 0], out[i, 1] = _fold(positions[i, 0], positions[i, 1], Lx, Ly, tilt)
     return out
+
+
+@njit(cache=True)
+def _wrap_inplace(positions, box):
+    """``positions`` folded into the cell in place (``_wrap_core``'s values)."""
+    w = _wrap_core(positions, box)
+    for i in range(positions.shape[0]):
+        positions[i, 0] = w[i, 0]
+        positions[i, 1] = w[i, 1]
 
 
 def _as_positions(positions, name="positions"):

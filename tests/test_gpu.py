@@ -382,3 +382,22 @@ def test_validate_says_when_it_prices_for_another_machine(tmp_path):
     assert "device gpu  24 task(s) of default: priced above as CPU core-hours" in other
     assert "calibrated on another machine" not in validate({"machine": machine()})
     assert "calibrated on another machine (Vax, 2 cores)" in validate({"host": "node7 (Vax, 2 cores)"})
+
+
+def test_a_gpu_task_that_overflows_fails_with_its_reason(monkeypatch):
+    """One task through the worker's task function: a block whose lists overflow is a failed task
+    with the reason, not a crash of the worker."""
+    from campaign.run.worker import KernelTask, run_task
+
+    monkeypatch.setattr(gpu_batch, "MAXNB", 4)
+    monkeypatch.setenv("CAMPAIGN_GPU_BACKEND", "emulate")
+    context = {"system": {"box": [1.0, 1.0], "potential": {"exponent": 2.0},
+                          "species": [["A", 0.5, 1.4], ["B", 0.5, 1.0]]},
+               "observables": ["scalars"], "histograms": [], "edges": {}}
+    payload = {"id": "t", "index": 0, "N": 32, "E": 1e-4, "seed": 0, "entropy": [1, 2],
+               "protocol": {"device": "gpu", "gpu_threads": 8}}
+    s = run_task(KernelTask(), payload, context)
+    assert not s["ok"] and "BlockOverflow" in s["error"]["message"] and "neighbour row" in s["error"]["message"]
+    monkeypatch.setattr(gpu_batch, "MAXNB", 32)
+    s = run_task(KernelTask(), payload, context)
+    assert s["ok"] and s["scalars"]["identities_ok"] == 1.0 and s["host"].endswith(" emulation")

@@ -75,7 +75,10 @@ class KernelTask:
 
         system, exponent, protocol = self._setup(payload, context)
         if protocol.get("device") == "gpu":
-            return self.jam_batch([payload], context)[0]
+            got = self.jam_batch([payload], context)[0]
+            if isinstance(got, Exception):
+                raise got
+            return got
         start = payload.get("start")
         if start is not None:
             start = (start["positions"], start["radii"], start["species"], start["box"])
@@ -118,8 +121,6 @@ class KernelTask:
     def _analyse(self, payload, context, p, jam_seconds):
         import kernels
 
-        if isinstance(p, Exception):
-            raise p
         system, exponent, protocol = self._setup(payload, context)
         t1 = time.perf_counter()
         obs = [o for o in context["observables"]]

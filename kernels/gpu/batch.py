@@ -149,7 +149,7 @@ def _grid(job, n):
 def _params(job, ncx, ncy):
     from kernels.jamming import ENERGY_STEP
     from kernels.network import HALF_PLANE_TOL
-    from kernels.protocol import ABORT_FRACTION, AIM, E_FIRST_GUESS
+    from kernels.rules import ABORT_FRACTION, AIM, E_FIRST_GUESS
 
     prm = np.zeros(N_PARAMS)
     prm[P_E_MIN] = job.e_min
