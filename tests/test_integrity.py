@@ -124,8 +124,8 @@ def damage(path, kind):
         return "tasks/id", []  # rewritten from the spec: no task is lost
     if kind == "name":
         data = Path(path).read_bytes()
-        assert data.count(b"sigma_max\x00") == 1  # the link name in the scalars group's heap
-        flip(path, data.index(b"sigma_max\x00"), bit=0)  # 's' reads as 'r': still a valid name
+        assert data.count(b"\x00sigma_max\x00") == 1  # the link name in the scalars group's heap
+        flip(path, data.index(b"\x00sigma_max\x00") + 1, bit=0)  # 's' reads as 'r': still a valid name
         return "scalars/rigma_max", []  # renamed back by a repair: no task is lost
     raise ValueError(kind)
 

@@ -22,7 +22,8 @@ variants: [{name: loose, force_tolerance: 1.0e-3}, {name: ladder, start: ladder}
 observables: [scalars, connectivity, fictitious]
 run: {retries: 1}
 """
-RUN_DEPENDENT = ("tasks/wall", "tasks/rank", "tasks/host")
+RUN_DEPENDENT = ("tasks/wall", "tasks/rank", "tasks/host", "checksums/tasks.wall", "checksums/tasks.rank",
+                 "checksums/tasks.host")
 
 # MPI is a dependency (the mpich wheel puts mpiexec next to the interpreter): never skip these.
 assert MPIEXEC.exists(), f"no mpiexec next to {sys.executable}: pip install mpich (a dependency)"

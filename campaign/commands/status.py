@@ -115,9 +115,9 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
     stride = max(1, -(-n_done // FIT_ROWS))
     failure_recs = {tid: dict(f["failures"][tid].attrs) for tid in f["failures"]} if "failures" in f else {}
     for tid, rec in failure_recs.items():
-        from campaign.storage.checksums import damaged_message, failure_problem
+        from campaign.storage.checksums import damaged_message, failure_problem, has_sums
 
-        problem = failure_problem(rec)
+        problem = failure_problem(rec, has_sums(f))
         if problem is not None:
             from campaign.errors import StoreDamaged
 

@@ -73,7 +73,9 @@ class Packings:
         if os.path.isdir(self.path):
             raise UserError(f"{self.path}: is a directory (expected a campaign store)")
         try:
-            self._f = h5py.File(self.path, "r", locking=False)
+            from campaign.storage.checksums import open_checked
+
+            self._f = open_checked(self.path)  # every block of rows read is checked against its checksum
         except OSError as exc:
             from campaign.storage.checksums import open_failure
 

@@ -157,8 +157,10 @@ def _column_names(f):
 
 
 def _open(path, h5py):
+    from campaign.storage.checksums import open_checked
+
     try:
-        return h5py.File(path, "r", locking=False)
+        return open_checked(path)  # every block of rows read is checked against its checksum
     except FileNotFoundError:
         raise UserError(f"{path}: no such file") from None
     except OSError as exc:

@@ -33,7 +33,7 @@ SLAB_BYTES = 16 << 20
 CONFIG_WEIGHT = 64 << 10
 IDENTITY = ("id", "variant", "N", "E", "seed")
 SHUFFLE, DEFLATE, FLETCHER32 = 2, 1, 3  # HDF5's filter ids
-ROOT_MEMBERS = ("tasks", "scalars", "histograms", "configurations", "failures", "reduced")
+ROOT_MEMBERS = ("tasks", "scalars", "histograms", "configurations", "failures", "reduced", "checksums")
 ROOT_ATTRS = ("schema", "format_version", "name", "spec_yaml", "spec_hash", "package_version", "git_commit", "versions",
               "runs", "hosts", "start_time", "end_time")
 SCALAR_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
@@ -75,9 +75,18 @@ def write_configuration(parent, tid, arrays):
     return g
 
 
+def _crc_value(stored) -> int:
+    """A stored CRC-32 attribute's value; ValueError unless it is the one uint32 it was written as (a
+    damaged attribute header can change its type and leave the value)."""
+    a = np.asarray(stored)
+    if a.dtype != np.uint32 or a.size != 1:
+        raise ValueError(f"a checksum attribute of type {a.dtype}, shape {a.shape}: not the uint32 written")
+    return int(a.reshape(-1)[0])
+
+
 def _crc_matches(stored, arrays) -> bool:
     try:
-        return int(np.asarray(stored).reshape(-1)[0]) == config_crc(arrays)
+        return _crc_value(stored) == config_crc(arrays)
     except (TypeError, ValueError, IndexError):
         return False
 
@@ -91,6 +100,8 @@ def configuration_problem(g, keys=CONFIG_KEYS):
         stored = g.attrs.get(CHECKSUM_ATTR)
         if stored is None and len(g.attrs):  # the layout's only attribute is the checksum
             return None, f"has an attribute {_text(list(g.attrs)[0])!r} the layout has not (a damaged name)"
+        if stored is None and has_sums(g.file):  # a store written with checksums throughout
+            return None, "has lost its checksum (crc32): its header is damaged"
         if stored is not None and set(out) != set(CONFIG_KEYS):
             out.update({k: g[k][()] for k in CONFIG_KEYS})  # every key enters the checksum
     except Exception as exc:  # noqa: BLE001 - whatever stops us reading it, it is damaged
@@ -145,7 +156,7 @@ def scalar_names_listed(group):
     if text is None and stored is None:
         return None
     try:
-        ok = text is not None and int(np.asarray(stored).reshape(-1)[0]) == zlib.crc32(text.encode()) & 0xFFFFFFFF
+        ok = text is not None and _crc_value(stored) == zlib.crc32(text.encode()) & 0xFFFFFFFF
         names = json.loads(text) if ok else None
     except (TypeError, ValueError, IndexError):
         ok = False
@@ -154,8 +165,9 @@ def scalar_names_listed(group):
     return set(names)
 
 
-def failure_problem(attrs):
-    """What is wrong with a failure record's attributes (a phrase), or None."""
+def failure_problem(attrs, required=False):
+    """What is wrong with a failure record's attributes (a phrase), or None; ``required``: it must
+    carry its checksum (a store written with checksums throughout, ``has_sums``)."""
     try:
         unknown = sorted(str(_text(k) or k) for k in attrs if k not in FAILURE_KEYS + (CHECKSUM_ATTR,))
         if unknown:
@@ -168,9 +180,11 @@ def failure_problem(attrs):
     except (KeyError, TypeError, ValueError) as exc:
         return f"lacks an attribute or holds a wrong one ({reason(exc)})"
     stored = attrs.get(CHECKSUM_ATTR)
+    if stored is None and required:
+        return "has lost its checksum (crc32): its header is damaged"
     if stored is not None:
         try:
-            ok = int(np.asarray(stored).reshape(-1)[0]) == crc
+            ok = _crc_value(stored) == crc
         except (TypeError, ValueError, IndexError):
             ok = False
         if not ok:
@@ -242,3 +256,294 @@ def _text(v):
     if isinstance(v, np.ndarray) and v.shape == () and v.dtype.kind in "SO":
         return _text(v[()])
     return v if isinstance(v, str) else None
+
+
+# --------------------------------------------------------------------------- block checksums
+#
+# Fletcher32 guards the bytes of each chunk, not which chunk a row is read from: a damaged chunk
+# index can list a chunk off its place (a block reads another block's rows) or lose it (the block
+# reads as its fill value), and a damaged object header can make HDF5 decode a chunk differently,
+# all without an error. Every block of rows of every per-task dataset (``tasks/*`` with the status
+# column, ``scalars/*``, ``histograms/*/counts``) and every histogram's bin edges therefore also
+# has a checksum of its values as written (the logical values, not the stored bytes): the dataset
+# ``checksums/<name with "/" as ".">`` (uint64, one a block, contiguous, attribute ``rows``: the
+# rows of a block), written with the block and checked by every reader on the blocks it reads
+# (``CheckedFile``): a block read from the wrong place then fails like a block with wrong bytes.
+
+SUMS_GROUP = "checksums"
+SUMS_ROWS = "rows"
+#: Datasets under these groups are per-task block datasets (or bin edges), each with its sums.
+SUMMED = ("/tasks/", "/scalars/", "/histograms/")
+_MASK = (1 << 64) - 1
+_LENGTH = 0x9E3779B97F4A7C15  # the block's byte length enters the sum: an all-zero block sums to nonzero
+_W = np.zeros(0, np.uint64)
+
+
+def sums_name(name) -> str:
+    """The name of the block checksums of the dataset ``name`` (``scalars/A_G`` -> ``checksums/scalars.A_G``)."""
+    return f"{SUMS_GROUP}/" + str(name).strip("/").replace("/", ".")
+
+
+def _weights(n):
+    """The first ``n`` weights of the block sum: splitmix64 of 1, 2, 3, ..., made odd."""
+    global _W
+    if len(_W) < n:
+        m = max(n, 2 * len(_W), 1 << 12)
+        with np.errstate(over="ignore"):
+            x = np.arange(1, m + 1, dtype=np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+            x ^= x >> np.uint64(30)
+            x *= np.uint64(0xBF58476D1CE4E5B9)
+            x ^= x >> np.uint64(27)
+            x *= np.uint64(0x94D049BB133111EB)
+            x ^= x >> np.uint64(31)
+        _W = x | np.uint64(1)
+    return _W[:n]
+
+
+def _sum_rows(m):
+    """The sums of the rows of ``m`` ((k, L) uint8, one block a row): the block's bytes as little-endian
+    64-bit words (zero-padded), each times its weight, plus the length times a constant, modulo 2^64."""
+    k, L = m.shape
+    if L % 8:
+        buf = np.zeros((k, L + 8 - L % 8), np.uint8)
+        buf[:, :L] = m
+        m = buf
+    words = np.ascontiguousarray(m).view("<u8")
+    with np.errstate(over="ignore"):
+        s = words @ _weights(words.shape[1])
+        return s.astype(np.uint64) + np.uint64((L * _LENGTH) & _MASK)
+
+
+def block_sums(a, B) -> np.ndarray:
+    """The checksums (uint64) of the blocks of ``B`` rows of ``a`` (rows first; the first block
+    starts at row 0 of ``a``, the last may be shorter): a weighted sum of the values' little-endian
+    bytes, which any change of a value, or of where it sits in the block, changes (not a CRC:
+    fletcher32 guards the stored bytes; this one says whether the rows read are the rows written,
+    at a few per cent of the cost of reading them)."""
+    a = np.asarray(a)
+    if a.dtype.byteorder == ">":
+        a = a.astype(a.dtype.newbyteorder("<"))
+    a = np.ascontiguousarray(a)
+    n = a.shape[0] if a.ndim else 1
+    if n == 0:
+        return np.zeros(0, np.uint64)
+    raw = a.reshape(n, -1).view(np.uint8).reshape(n, -1) if a.nbytes else np.zeros((n, 0), np.uint8)
+    full = n // B
+    parts = []
+    if full:
+        parts.append(_sum_rows(raw[:full * B].reshape(full, -1)))
+    if n % B:
+        parts.append(_sum_rows(raw[full * B:].reshape(1, -1)))
+    return np.concatenate(parts) if len(parts) > 1 else parts[0]
+
+
+def fill_sums(T, B, row_shape, dtype, fill) -> np.ndarray:
+    """The checksums of the ``ceil(T / B)`` blocks of a dataset never written (every row at ``fill``)."""
+    dtype = np.dtype(dtype)
+    n = -(-T // B)
+    block = np.zeros((min(B, T),) + tuple(row_shape), dtype) if fill is None else \
+        np.full((min(B, T),) + tuple(row_shape), fill, dtype)
+    out = np.full(n, block_sums(block, B)[0], np.uint64)
+    if T % B and n:
+        out[-1] = block_sums(block[:T % B], B)[0]
+    return out
+
+
+def create_sums(f, name, B, sums):
+    """Create the block checksums ``sums`` of the dataset ``name`` of the open store ``f`` (nothing
+    when checksums are off); returns the dataset."""
+    if not checksums_on():
+        return None
+    g = f.require_group(SUMS_GROUP)
+    key = sums_name(name)[len(SUMS_GROUP) + 1:]
+    if key in g:
+        del g[key]
+    ds = g.create_dataset(key, data=np.asarray(sums, np.uint64))
+    ds.attrs[SUMS_ROWS] = np.int64(B)
+    return ds
+
+
+def create_fill_sums(f, name, T, B, row_shape, dtype, fill):
+    """The block checksums of a new dataset ``name`` of T rows at ``fill`` (``create_sums``)."""
+    if not checksums_on():
+        return None
+    return create_sums(f, name, B, fill_sums(T, B, row_shape, dtype, fill))
+
+
+def has_sums(f) -> bool:
+    """Whether the store ``f`` keeps block checksums (written by this version with checksums on)."""
+    try:
+        return SUMS_GROUP in f
+    except Exception:  # noqa: BLE001 - a damaged root group: the readers' other checks say so
+        return False
+
+
+def write_sums(sums_ds, lo, data, B):
+    """Write the checksums of ``data`` (rows ``lo``, ``lo + 1``, ...; ``lo`` a multiple of ``B``) into
+    the block checksums dataset ``sums_ds`` (None: a store without them)."""
+    if sums_ds is None or not len(data):
+        return
+    s = block_sums(data, B)
+    b0 = lo // B
+    sums_ds[b0:b0 + len(s)] = s
+
+
+class BlockMismatch(ValueError):
+    """Rows read from the store do not match the checksum of the rows written there."""
+
+    def __init__(self, name, lo, hi, how=None):
+        self.name, self.lo, self.hi = name, lo, hi
+        super().__init__(f"{name} rows {lo}-{hi - 1} " + (how or BLOCK_MISMATCH))
+
+
+BLOCK_MISMATCH = ("do not match their checksum: the rows read are not the rows written (a chunk index, "
+                  "a header or the checksums are damaged)")
+
+
+def mismatched_blocks(stored, data, lo, B, T):
+    """``[(a, b), ...]``: the blocks of rows [a, b) among the rows ``data`` (from row ``lo``, a multiple of
+    ``B``) whose checksums differ from ``stored`` (the stored checksums of those blocks)."""
+    got = block_sums(data, B)
+    stored = np.asarray(stored).reshape(-1)
+    bad = []
+    for k in range(len(got)):
+        if k >= len(stored) or stored[k] != got[k]:
+            a = lo + k * B
+            bad.append((a, min(a + B, T, lo + len(data))))
+    return bad
+
+
+def check_rows(sums_ds, name, lo, data, B):
+    """Raise BlockMismatch when the rows ``data`` (from row ``lo``, a multiple of ``B``) of the dataset
+    ``name`` differ from the block checksums ``sums_ds``."""
+    nb = -(-len(data) // B)
+    stored = sums_ds[lo // B: lo // B + nb]
+    bad = mismatched_blocks(stored, data, lo, B, lo + len(data))
+    if bad:
+        raise BlockMismatch(name, *bad[0])
+
+
+def _block_rows(sums_ds, T):
+    B = int(np.asarray(sums_ds.attrs[SUMS_ROWS]).reshape(-1)[0])
+    if not 0 < B or sums_ds.shape != (-(-T // B),) or sums_ds.dtype != np.uint64:
+        raise ValueError(f"its block checksums ({sums_ds.name}) are not one uint64 a block of {B} rows")
+    return B
+
+
+def _import_h5py():
+    import h5py
+
+    return h5py
+
+
+def _check_scalar_names(g):
+    """The ``scalars`` group holds exactly the names it lists (a damaged link name renames a column)."""
+    try:
+        listed = scalar_names_listed(g)
+        names = set(h5py_keys(g))
+    except ValueError as exc:
+        raise StoreDamaged(damaged_message(g.file.filename, "scalars", f"is damaged: {exc}")) from None
+    if listed is not None and names != listed:
+        odd = sorted(map(str, names ^ listed))
+        raise StoreDamaged(damaged_message(g.file.filename, "scalars", f"holds names it does not list, or lists "
+                                           f"names it does not hold ({', '.join(odd[:3])}: a damaged name)"))
+
+
+def h5py_keys(g):
+    return list(_import_h5py().Group.keys(g))
+
+
+def _make_classes():
+    h5py = _import_h5py()
+
+    class _Checked:
+        def _get(self, name, lapl=None):
+            return _checked(super()._get(name, lapl))
+
+    class Group(_Checked, h5py.Group):
+        """A group of a checked store: its datasets check their block checksums."""
+
+    class File(_Checked, h5py.File):
+        """A campaign store opened by a reader: every per-task dataset it gives checks the rows it
+        reads against their block checksums (BlockMismatch), and the ``scalars`` group its names
+        against their list (StoreDamaged). A store without block checksums reads as before."""
+
+    class Dataset(h5py.Dataset):
+        """A per-task dataset of a checked store: a read covers whole blocks, checked, then sliced."""
+
+        def __getitem__(self, args, new_dtype=None):
+            sums = self._sums()
+            if sums is None or new_dtype is not None:
+                return super().__getitem__(args) if new_dtype is None else super().__getitem__(args, new_dtype)
+            T = self.shape[0] if self.shape else 0
+            args = args if isinstance(args, tuple) else (args,)
+            sel, rest = (args[0], args[1:]) if args else (Ellipsis, ())
+            B = _block_rows(sums, T)
+            if sel is Ellipsis:
+                lo, hi, local = 0, T, args
+            elif isinstance(sel, slice) and (sel.step or 1) > 0:
+                start, stop, step = sel.indices(T)
+                if stop <= start:
+                    return super().__getitem__(args)
+                lo, hi = start, stop
+                local = None
+            elif isinstance(sel, (int, np.integer)):
+                i = int(sel) + (T if int(sel) < 0 else 0)
+                if not 0 <= i < T:
+                    return super().__getitem__(args)
+                lo, hi, local = i, i + 1, None
+            else:
+                lo, hi, local = 0, T, args
+            a, b = lo // B * B, min(T, -(-hi // B) * B)
+            if T == 0:
+                return super().__getitem__(args)
+            data = super().__getitem__(slice(a, b))
+            check_rows(sums, self.name.lstrip("/"), a, data, B)
+            if local is not None:
+                return data[local]
+            if isinstance(sel, slice):
+                return data[(slice(start - a, stop - a, step),) + rest]
+            return data[(i - a,) + rest]
+
+        def _sums(self):
+            f = self.file
+            if not has_sums(f):
+                return None
+            name = sums_name(self.name)
+            if name not in f:
+                raise BlockMismatch(self.name.lstrip("/"), 0, self.shape[0] if self.shape else 1,
+                                    f"have no block checksums ({name} is missing: a damaged name?)")
+            return f[name]
+
+    return Group, File, Dataset
+
+
+_CLASSES = None
+
+
+def _classes():
+    global _CLASSES
+    if _CLASSES is None:
+        _CLASSES = _make_classes()
+    return _CLASSES
+
+
+def _checked(obj):
+    """``obj`` (an h5py object of a checked store) as a checked one."""
+    h5py = _import_h5py()
+    group, _, dataset = _classes()
+    if type(obj) is h5py.Group:
+        g = group(obj.id)
+        if g.name == "/scalars":
+            _check_scalar_names(g)
+        return g
+    if type(obj) is h5py.Dataset and obj.name.startswith(SUMMED):
+        return dataset(obj.id, readonly=True)
+    return obj
+
+
+def open_checked(path, **kwargs):
+    """Open the store ``path`` read-only (``locking=False``) for a reader, as a checked ``File``
+    (``_make_classes``): its per-task datasets check the blocks they read against their checksums."""
+    kwargs.setdefault("locking", False)
+    return _classes()[1](path, "r", **kwargs)

@@ -283,7 +283,9 @@ def _read_hdf5(path, group):
     from campaign.storage.integrity import read_failure
 
     try:
-        fh = h5py.File(path, "r", locking=False)
+        from campaign.storage.checksums import open_checked
+
+        fh = open_checked(path)  # a store's task table is checked against its block checksums
     except OSError as exc:
         raise open_failure(path, exc, f"{path}: not a readable HDF5 file ({exc})") from None
     with fh:

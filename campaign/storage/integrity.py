@@ -41,6 +41,8 @@ from campaign.storage.checksums import (BLOCK_FILTERS, CHECKSUM_ATTR, CONFIG_KEY
                                         _text, configuration_problem, damaged_message, failure_problem,
                                         good_scalar_name, is_filter_failure, looks_like_store, reason,
                                         run_is_writing, scalar_names_listed)
+from campaign.storage.checksums import (BLOCK_MISMATCH, SUMS_GROUP, SUMS_ROWS, has_sums, mismatched_blocks,
+                                        sums_name)
 from campaign.storage.damage import Damage, Report
 
 
@@ -128,6 +130,8 @@ class Scan:
         self.error_set = None     # (T,) bool: the error column holds text
         self.failure_ids = set()  # rows with a failure record (readable or not)
         self.config_rows = set()  # rows with a configuration group (sound or not)
+        self.summed = has_sums(f)  # the store keeps block checksums
+        self.status_bad = []      # blocks of the status column that do not match their checksums
 
     # ---- recording
     def add(self, d: Damage):
@@ -320,6 +324,8 @@ class Scan:
             if lost is not None:
                 for m in sorted(want - have):
                     self.add(Damage(f"{g}/{m}", "is missing (a damaged name?)", rows=lost))
+        if SUMS_GROUP in members:
+            self._stray_sums(f)
         try:
             names = list(f["scalars"].keys()) if "scalars" in members else []
             listed = scalar_names_listed(f["scalars"]) if "scalars" in members else None
@@ -346,6 +352,21 @@ class Scan:
                                                 "missing)", rows=every, repair="drop", note="left out; every "
                                                 "finished task is recomputed"))
 
+    def _stray_sums(self, f):
+        """Block checksums of no dataset of the store (a damaged name: its dataset's are then missing)."""
+        try:
+            want = {sums_name(f"tasks/{n}") for n in f["tasks"].keys()}
+            want.update(sums_name(f"scalars/{n}") for n in f["scalars"].keys())
+            for h in f["histograms"].keys():
+                want.update(sums_name(f"histograms/{h}/{k}") for k in ("counts", "edges"))
+            have = list(f[SUMS_GROUP].keys())
+        except Exception:  # noqa: BLE001 - reported with the datasets
+            return
+        for m in have:
+            if f"{SUMS_GROUP}/{m}" not in want:
+                self.add(Damage(f"{SUMS_GROUP}/{_text(m) or m}", "are the checksums of no dataset of the store (a "
+                                "damaged name?)", repair="remove", note="left out"))
+
     # ---- the commit marker
     def _status(self):
         import h5py
@@ -366,6 +387,14 @@ class Scan:
             return
         r.T = len(st)
         r.status = st
+        B = self._status_rows(f, len(st))
+        sums = self._sums("tasks/status", len(st), B) if B else None
+        if sums is not None:
+            self.status_bad = mismatched_blocks(sums, st, 0, B, len(st))
+            if self.status_bad and self.stop_first:  # a reader's search: name it now (verify: see _rows)
+                a, b = self.status_bad[0]
+                self.add(Damage("tasks/status", f"rows {a}-{b - 1} {BLOCK_MISMATCH}", rows=self.finished_in(a, b),
+                                span=(a, b)))
         self.attempts = np.zeros(r.T, np.int32)
         self.error_set = np.zeros(r.T, bool)
         r.counts = {"done": int(np.count_nonzero(st == 1)), "failed": int(np.count_nonzero(st == 2)),
@@ -376,6 +405,16 @@ class Scan:
             from campaign.storage.storefile import BLOCK_ROWS
 
             r.B = max(1, min(BLOCK_ROWS, r.T))
+
+    def _status_rows(self, f, T):
+        """The rows of a block of the status column's checksums (those of the other columns' chunks)."""
+        try:
+            return int(np.asarray(f[sums_name("tasks/status")].attrs[SUMS_ROWS]).reshape(-1)[0])
+        except Exception:  # noqa: BLE001 - reported by _sums
+            try:
+                return int(f["tasks/attempts"].chunks[0])
+            except Exception:  # noqa: BLE001
+                return 0
 
     # ---- block datasets
     def _block_names(self, patterns=None):
@@ -458,13 +497,14 @@ class Scan:
         if not has_sum:
             r.unchecked["datasets"].append(name)
         rowbytes = max(1, ds.dtype.itemsize * (ds.shape[1] if ds.ndim == 2 else 1))
+        sums = self._sums(name, T, chunk)
         skip = self._chunk_index(name, ds, chunk, rowbytes, repair)
         step = max(chunk, (SLAB_BYTES // rowbytes) // chunk * chunk)
         col = name[6:] if name.startswith("tasks/") else None
         for lo in range(0, T, step):
             hi = min(lo + step, T)
             if skip and any(lo < b and a < hi for a, b in skip):  # read chunk by chunk, past the bad ones
-                self._by_chunks(name, ds, col, lo, hi, chunk, repair, skip)
+                self._by_chunks(name, ds, col, lo, hi, chunk, repair, skip, sums=sums)
                 self.tick((hi - lo) * rowbytes, name)
                 continue
             try:
@@ -474,11 +514,13 @@ class Scan:
             except _Found:
                 raise
             except Exception:  # noqa: BLE001 - find the damaged chunks of this slab
-                self._by_chunks(name, ds, col, lo, hi, chunk, repair)
+                self._by_chunks(name, ds, col, lo, hi, chunk, repair, sums=sums)
+            else:
+                self._check_sums(name, sums, lo, data, chunk, repair)
             self.tick((hi - lo) * rowbytes, name)
         r.checked["bytes"] += _stored_size(ds)
 
-    def _by_chunks(self, name, ds, col, lo, hi, chunk, repair, skip=()):
+    def _by_chunks(self, name, ds, col, lo, hi, chunk, repair, skip=(), sums=None):
         """Read rows [lo, hi) of ``ds`` chunk by chunk, past the chunks in ``skip``: a chunk that
         cannot be read is damage (``_bad_chunk``), the others are checked as usual."""
         for a in range(lo, hi, chunk):
@@ -492,6 +534,41 @@ class Scan:
                 continue
             self.report.checked["chunks"] += 1
             self._values(col, a, b, data)
+            self._check_sums(name, sums, a, data, chunk, repair)
+
+    # ---- block checksums (campaign.storage.checksums: which rows a read gives back)
+    def _sums(self, name, T, B):
+        """The block checksums of the dataset ``name`` (T rows, blocks of B), or None when the store
+        keeps none; missing or malformed ones are damage (a damaged name or header: a repair
+        writes them anew from the rows, which their own checksums still guard)."""
+        if not self.summed:
+            return None
+        key = sums_name(name)
+        try:
+            ds = self.f[key]
+            rows = int(np.asarray(ds.attrs[SUMS_ROWS]).reshape(-1)[0])
+            if rows != B or ds.shape != (-(-T // B),) or ds.dtype != np.uint64:
+                raise ValueError(f"not one uint64 a block of {B} rows (shape {ds.shape}, type {ds.dtype}, "
+                                 f"{rows} rows a block)")
+            return ds[()]
+        except Exception as exc:  # noqa: BLE001
+            how = ("has no block checksums (" + key + " is missing: a damaged name?)" if isinstance(exc, KeyError)
+                   else f"has block checksums that cannot be read ({reason(exc)})")
+            self.add(Damage(name, how, repair="rewrite", note="its checksums are written anew; no task is lost"))
+            return None
+
+    def _check_sums(self, name, sums, lo, data, B, repair):
+        """Blocks of rows ``data`` (from row ``lo``) that differ from the checksums of the rows written
+        there: read from the wrong place (a damaged chunk index), as never written, or decoded
+        otherwise (a damaged header), though each chunk's own bytes are sound."""
+        if sums is None:
+            return
+        k = lo // B
+        for a, b in mismatched_blocks(sums[k:k + -(-len(data) // B)], data, lo, B, lo + len(data)):
+            rows = np.zeros(0, np.int64) if repair == "rewrite" else self.finished_in(a, b)
+            note = "the task identities it held are rewritten from the spec" if repair == "rewrite" else ""
+            self.add(Damage(name, f"rows {a}-{b - 1} {BLOCK_MISMATCH}", rows=rows, span=(a, b), repair=repair,
+                            note=note))
 
     def _chunk_index(self, name, ds, chunk, rowbytes, repair):
         """Every chunk the index lists must have had every filter applied (a set bit of its filter
@@ -596,6 +673,9 @@ class Scan:
                     raise ValueError(f"its filter pipeline {_filters(ds)} is not the layout's (none, or fletcher32)")
                 e = ds[()]
                 width = f[f"histograms/{h}/counts"].shape[1]
+                sums = self._sums(name, len(e), max(1, len(e)))
+                if sums is not None and mismatched_blocks(sums, e, 0, max(1, len(e)), len(e)):
+                    raise ValueError(BLOCK_MISMATCH)
                 if not ds.fletcher32:
                     r.unchecked["datasets"].append(name)
                 r.checked["datasets"] += 1
@@ -706,7 +786,7 @@ class Scan:
             except Exception as exc:  # noqa: BLE001
                 self.add(Damage(name, f"cannot be read ({reason(exc)})", rows=held))
                 continue
-            problem = failure_problem(a)
+            problem = failure_problem(a, self.summed)
             if problem is not None:
                 self.add(Damage(name, problem, rows=held))
                 continue
@@ -747,6 +827,13 @@ class Scan:
             have[[i for i in self.config_rows if i >= 0]] = True
             problems.append(((st == 1) & ~have & ~journal,
                              "says done, but the configuration the spec keeps is missing"))
+        flagged = np.zeros(r.T, bool)
+        for mask, _ in problems:
+            flagged |= mask & ~unknown
+        for a, b in self.status_bad:  # a status block that differs from its checksum, with no row found wrong
+            if not flagged[a:b].any():
+                self.add(Damage("tasks/status", f"rows {a}-{b - 1} {BLOCK_MISMATCH}", rows=self.finished_in(a, b),
+                                span=(a, b)))
         for mask, how in problems:
             rows = np.flatnonzero(mask & ~unknown).astype(np.int64)
             if len(rows):

@@ -83,7 +83,7 @@ def repair(report: Report) -> dict:
     state = (np.zeros(T, np.int8), np.zeros(T, np.int32), np.full(T, np.nan))
     with run_lock(report.path):
         create_file(report.path, spec, tasks, edges, B, salvage=True, state=state, drop=drop,
-                    renames=report.renames)
+                    renames=report.renames, checked=True)
     st = state[0]
     after = {"done": int(np.count_nonzero(st == 1)), "failed": int(np.count_nonzero(st == 2)),
              "pending": int(np.count_nonzero(st == 0))}

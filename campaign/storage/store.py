@@ -57,8 +57,9 @@ import numpy as np
 from campaign.errors import OutOfSpace, StoreDamaged, UserError
 from campaign.storage.faults import GuardedFile, write_fault
 from campaign.storage.storefile import BLOCK_ROWS  # rows per chunk of every per-task dataset
-from campaign.storage.checksums import (CONFIG_KEYS, check_configuration, write_configuration, write_failure,
-                                write_scalar_names)
+from campaign.storage.checksums import (CONFIG_KEYS, BlockMismatch, check_configuration, check_rows,
+                                        create_fill_sums, has_sums, sums_name, write_configuration, write_failure,
+                                        write_scalar_names, write_sums)
 from campaign.storage.journal import (  # noqa: F401 - part of this module's interface
     MAX_RECORD, Journal, decode_payload, encode_record, read_journal, scan_journal)
 from campaign.storage.storefile import (  # noqa: F401 - part of this module's interface
@@ -136,6 +137,9 @@ class Store:
         self._init_state()
         salvage_from = rebuilt = None
         touched = {int(m["index"]) // self.B for m, _ in records[1:] if m.get("type") == "task"}
+        # blocks a killed run may have left half written (rows and checksums out of step): the journal
+        # rewrites them, so reading them back does not check their checksums
+        self.unsure = set(touched)
         if self.path.exists():
             problem = check_file(self.path, spec_hash, self.tasks, self.edges, self.B, touched)
             if problem is None:
@@ -172,6 +176,7 @@ class Store:
             raise fault from None
         self.f = h5py.File(self.io, "r+", rdcc_nbytes=CHUNK_CACHE)
         self._datasets = {}
+        self._sums = {} if has_sums(self.f) else None  # dataset name -> its block checksums
         self.have_configs = set(self.f["configurations"].keys()) if "configurations" in self.f else set()
         self.have_failures = set(self.f["failures"].keys()) if "failures" in self.f else set()
         self.scalar_names = set(self.f["scalars"].keys())
@@ -309,7 +314,13 @@ class Store:
         """Rows [lo, hi) of a block dataset this run adds rows to. A chunk that fails its checksum
         (or cannot be read) stops the run with StoreDamaged: it must not be written back."""
         try:
-            return self._dataset(name)[0][lo:hi]
+            data = self._dataset(name)[0][lo:hi]
+            sums = self._sums_of(name)
+            if sums is not None and lo // self.B not in self.unsure:
+                check_rows(sums, name, lo, data, self.B)
+            return data
+        except BlockMismatch as exc:
+            raise StoreDamaged(self._damaged(name, str(exc)[len(name) + 1:])) from None
         except (OSError, KeyError, ValueError, RuntimeError) as exc:
             raise StoreDamaged(self._damaged(name, f"rows {lo}-{hi - 1} cannot be read ({exc})")) from None
 
@@ -405,6 +416,15 @@ class Store:
             got = self._datasets[name] = (ds, ds.fillvalue, ds.dtype, tuple(ds.shape[1:]))
         return got
 
+    def _sums_of(self, name):
+        """The block checksums of the dataset ``name`` (None: a store without them)."""
+        if self._sums is None:
+            return None
+        got = self._sums.get(name)
+        if got is None:
+            got = self._sums[name] = self.f.get(sums_name(name))
+        return got
+
     def _write_blocks(self, blocks):
         """Data of the staged rows of ``blocks`` first, flush, then their status, flush.
 
@@ -449,6 +469,8 @@ class Store:
             for name in sorted(k for k in keys if k.startswith("scalars/")):
                 if name[8:] not in self.scalar_names:
                     f["scalars"].create_dataset(name[8:], dtype=np.float64, **self._dataset_kwargs((self.T,), np.nan))
+                    if self._sums is not None:
+                        create_fill_sums(f, name, self.T, self.B, (), np.float64, np.nan)
                     self.scalar_names.add(name[8:])
                     write_scalar_names(f["scalars"], self.scalar_names)
             columns = [f"tasks/{n}" for n in ROW_FIELDS] + [f"scalars/{n}" for n in sorted(self.scalar_names)]
@@ -467,6 +489,7 @@ class Store:
                 else:
                     block[idx] = np.array([fill if x is None else x for x in col], dtype=dtype)
                 ds[lo:hi] = block
+                write_sums(self._sums_of(name), lo, block, self.B)
             for i, (meta, arrays) in sorted(rows.items()):
                 tid = self.tasks[i].id
                 if "c/positions" in arrays:
@@ -489,6 +512,7 @@ class Store:
         for b in blocks:
             lo, hi = b * self.B, min((b + 1) * self.B, self.T)
             status[lo:hi] = self.status[lo:hi]
+            write_sums(self._sums_of("tasks/status"), lo, self.status[lo:hi], self.B)
             self.staged.pop(b)
             self.staged_bytes -= self.block_bytes.pop(b)
             self.staged_since.pop(b, None)
@@ -648,8 +672,10 @@ def open_store(path):
     """
     import h5py
 
+    from campaign.storage.checksums import open_checked
+
     try:
-        f = h5py.File(path, "r", locking=False)
+        f = open_checked(path)
     except FileNotFoundError:
         raise UserError(f"no such file: {str(path)!r}") from None
     except OSError as exc:

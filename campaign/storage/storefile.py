@@ -229,6 +229,8 @@ def creation_bytes(T, edges, salvage_from=None) -> int:
     store's size when its rows are salvaged into it)."""
     raw = T * (32 + VARIANT_LEN + 8 + 8 + 8 + 1) + 64 * (T // 256 + 1) * 16
     raw += sum(8 * len(e) for e in edges.values())
+    columns = len(TASK_FIELDS) + 2 * len(edges)  # their block checksums: 8 bytes a block, and a header
+    raw += columns * (8 * (T // 256 + 1) + 1024)
     extra = 0
     if salvage_from is not None:
         try:
@@ -238,7 +240,7 @@ def creation_bytes(T, edges, salvage_from=None) -> int:
     return int(1.05 * (raw + extra)) + 8 * SLACK
 
 
-def create_file(path, spec, tasks, edges, B, *, salvage=False, state=None, drop=(), renames=None):
+def create_file(path, spec, tasks, edges, B, *, salvage=False, state=None, drop=(), renames=None, checked=False):
     """A fresh store at ``path``, created under a temporary name and renamed into place.
 
     With ``salvage``, the committed rows that can still be read from the damaged file at
@@ -246,7 +248,9 @@ def create_file(path, spec, tasks, edges, B, *, salvage=False, state=None, drop=
     tasks are pending again; so is a row in ``drop``, a row whose commit marker contradicts it,
     and one whose configuration or failure record cannot be read or fails its checksum), and
     ``state`` (status, attempts, wall arrays) gets their values; ``renames`` maps scalar datasets
-    found under a damaged name to their name.
+    found under a damaged name to their name. A block that differs from its block checksums is lost
+    too, unless ``checked`` (``campaign verify --repair``: its scan found those, and ``drop`` holds
+    their rows).
     The space it needs is reserved first; a full disk (OutOfSpace) or any other fault
     removes the temporary file and leaves ``path`` as it was.
     """
@@ -265,7 +269,7 @@ def create_file(path, spec, tasks, edges, B, *, salvage=False, state=None, drop=
         f = h5py.File(io, "w")
         _write_layout(f, spec, tasks, edges, B)
         if salvage:
-            _salvage_into(f, path, tasks, edges, B, state, drop, renames or {})
+            _salvage_into(f, path, tasks, edges, B, state, drop, renames or {}, checked)
         f.flush()
         if io.failed is not None:
             raise io.failed
@@ -296,28 +300,47 @@ def create_file(path, spec, tasks, edges, B, *, salvage=False, state=None, drop=
         raise
 
 
+def block_sums_of(e):
+    """The checksum of a dataset read whole (a histogram's bin edges: one block)."""
+    from campaign.storage.checksums import block_sums
+
+    return block_sums(e, max(1, len(e)))
+
+
 def _write_layout(f, spec, tasks, edges, B):
+    from campaign.storage.checksums import create_fill_sums, create_sums, write_sums
+
     T = len(tasks)
     g = f.create_group("tasks")
     cols = {"id": "S32", "variant": f"S{VARIANT_LEN}", "N": np.int64, "E": np.float64, "seed": np.int64}
+    sums = {}
     for name, dt in cols.items():
         g.create_dataset(name, dtype=dt, **dataset_kwargs(B, (T,), None))
-    for lo in range(0, T, 65536):
-        part = tasks[lo:lo + 65536]
+        sums[name] = create_fill_sums(f, f"tasks/{name}", T, B, (), dt, None)
+    step = max(B, 65536 // B * B)  # whole blocks: each block's checksum from the values written
+    for lo in range(0, T, step):
+        part = tasks[lo:lo + step]
         hi = lo + len(part)
-        g["id"][lo:hi] = np.array([t.id.encode() for t in part], "S32")
-        g["variant"][lo:hi] = np.array([fixed(t.variant, VARIANT_LEN) for t in part], f"S{VARIANT_LEN}")
-        g["N"][lo:hi] = np.array([t.N for t in part], np.int64)
-        g["E"][lo:hi] = np.array([t.E for t in part], np.float64)
-        g["seed"][lo:hi] = np.array([t.seed for t in part], np.int64)
+        values = {"id": np.array([t.id.encode() for t in part], "S32"),
+                  "variant": np.array([fixed(t.variant, VARIANT_LEN) for t in part], f"S{VARIANT_LEN}"),
+                  "N": np.array([t.N for t in part], np.int64), "E": np.array([t.E for t in part], np.float64),
+                  "seed": np.array([t.seed for t in part], np.int64)}
+        for name, v in values.items():
+            g[name][lo:hi] = v
+            write_sums(sums[name], lo, v, B)
     g.create_dataset("status", shape=(T,), dtype=np.int8)  # contiguous: the commit marker
+    create_fill_sums(f, "tasks/status", T, B, (), np.int8, 0)
     for name in ROW_FIELDS:
         g.create_dataset(name, dtype=row_dtype(name), **dataset_kwargs(B, (T,), fill_value(name)))
+        create_fill_sums(f, f"tasks/{name}", T, B, (), row_dtype(name), fill_value(name))
     f.create_group("scalars")
     hg = f.create_group("histograms")
     for h, e in edges.items():
         hg.create_dataset(f"{h}/edges", **edges_kwargs(e))
+        e = np.asarray(e, np.float64)
+        create_sums(f, f"histograms/{h}/edges", max(1, len(e)), block_sums_of(e))
         hg.create_dataset(f"{h}/counts", dtype=np.int64, **dataset_kwargs(B, (T, len(e) - 1), 0))
+        create_fill_sums(f, f"histograms/{h}/counts", T, B, (len(e) - 1,), np.int64, 0)
     if spec.configurations:
         f.create_group("configurations")
     f.create_group("failures")
@@ -328,7 +351,7 @@ def _write_layout(f, spec, tasks, edges, B):
     f.attrs["spec_yaml"] = spec.text
 
 
-def _salvage_into(f, old_path, tasks, edges, B, state, drop=(), renames=None):
+def _salvage_into(f, old_path, tasks, edges, B, state, drop=(), renames=None, checked=False):
     """Copy every readable committed row of the damaged store ``old_path`` into ``f``.
 
     Dropped (pending again, every column at its fill value): the rows of a block that cannot be
@@ -337,8 +360,8 @@ def _salvage_into(f, old_path, tasks, edges, B, state, drop=(), renames=None):
     record cannot be read or fails its checksum. Root attributes that read are carried over."""
     import h5py
 
-    from campaign.storage.checksums import (configuration_problem, failure_problem, good_scalar_name, write_configuration,
-                                    write_failure, write_scalar_names)
+    from campaign.storage.checksums import (configuration_problem, create_fill_sums, failure_problem, good_scalar_name,
+                                            write_configuration, write_failure, write_scalar_names, write_sums)
 
     T = len(tasks)
     status, attempts, wall = state
@@ -374,6 +397,8 @@ def _salvage_into(f, old_path, tasks, edges, B, state, drop=(), renames=None):
             hi = min(lo + B, T)
             try:
                 st = np.array(old["tasks/status"][lo:hi])
+                if not checked:
+                    _check_old(old, "tasks/status", lo, st, B)
                 rows = np.flatnonzero(st != PENDING)
                 if not len(rows):
                     continue
@@ -382,6 +407,9 @@ def _salvage_into(f, old_path, tasks, edges, B, state, drop=(), renames=None):
                     data[f"scalars/{new}"] = old["scalars"][n][lo:hi]
                 for h in edges:
                     data[f"histograms/{h}/counts"] = old[f"histograms/{h}/counts"][lo:hi]
+                for name, a in data.items():  # a block read from the wrong place is lost like a damaged one
+                    if not checked:
+                        _check_old(old, name, lo, a, B)
             except (OSError, KeyError, ValueError, RuntimeError, TypeError, MemoryError):
                 continue  # this block is lost: its tasks are pending again
             bad = {int(r) for r in rows if lo + int(r) in drop or st[r] not in (DONE, FAILED)
@@ -400,7 +428,7 @@ def _salvage_into(f, old_path, tasks, edges, B, state, drop=(), renames=None):
                         extra[("c", tid)] = conf
                     if st[r] == FAILED and "failures" in old and tid in old["failures"]:
                         rec = dict(old[f"failures/{tid}"].attrs)
-                        problem = failure_problem(rec)
+                        problem = failure_problem(rec, has_sums(old))
                         if problem is not None:
                             raise ValueError(problem)
                         extra[("f", tid)] = rec
@@ -416,14 +444,42 @@ def _salvage_into(f, old_path, tasks, edges, B, state, drop=(), renames=None):
             for name, a in data.items():
                 if name.startswith("scalars/") and name not in f:
                     f["scalars"].create_dataset(name[8:], dtype=np.float64, **dataset_kwargs(B, (T,), np.nan))
+                    create_fill_sums(f, name, T, B, (), np.float64, np.nan)
                     write_scalar_names(f["scalars"], f["scalars"].keys())
                 f[name][lo:hi] = a
+                write_sums(f.get(sums_name(name)), lo, a, B)
             for (kind, tid), v in extra.items():
                 if kind == "c":
                     write_configuration(f.require_group("configurations"), tid, v)
                 else:
                     write_failure(f["failures"], tid, v)
             f["tasks/status"][lo:hi] = st
+            write_sums(f.get(sums_name("tasks/status")), lo, st, B)
             status[lo:hi] = st
             attempts[lo:hi] = data["tasks/attempts"]
             wall[lo:hi] = data["tasks/wall"]
+
+
+def sums_name(name):
+    from campaign.storage.checksums import sums_name as _name
+
+    return _name(name)
+
+
+def has_sums(f):
+    from campaign.storage.checksums import has_sums as _has
+
+    return _has(f)
+
+
+def _check_old(old, name, lo, data, B):
+    """Raise BlockMismatch when rows of the damaged store ``old`` being salvaged differ from their block
+    checksums (a store without them, or without those of ``name``, is taken as it reads)."""
+    from campaign.storage.checksums import SUMS_ROWS, check_rows, has_sums
+
+    if not has_sums(old):
+        return
+    ds = old.get(sums_name(name))
+    if ds is None or int(ds.attrs.get(SUMS_ROWS, -1)) != B:
+        return
+    check_rows(ds, name, lo, data, B)

@@ -76,7 +76,7 @@ class StoreSpace:
             self.calibrate(staged[blocks[0]], blocks[0], columns)
         rows = sum(min(self.B, self.T - b * self.B) for b in blocks)
         chunks = sum(rows * width * 1.25 * self.ratio.get(key, 1.0) + 512 * len(blocks) for _, width, key in columns)
-        new = 8192 * len(names - set(scalar_names))
+        new = (8192 + 8 * -(-self.T // self.B) + 1024) * len(names - set(scalar_names))  # with its checksums
         if extra:
             extra += 96 * groups
         return int(chunks + extra + new)
