@@ -191,7 +191,8 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     retries = spec.retries if args.retries is None else args.retries
     if retries < 0:
         raise UserError(f"--retries must be >= 0, got {retries}")
-    if (getattr(args, "gpus", 0) or 0) < 0 or (getattr(args, "gpu_batch", None) or 1) < 1:
+    gpu_batch = getattr(args, "gpu_batch", None)
+    if (getattr(args, "gpus", 0) or 0) < 0 or (gpu_batch is not None and gpu_batch < 1):
         raise UserError(f"--gpus must be >= 0 and --gpu-batch >= 1, got {args.gpus} and {args.gpu_batch}")
     if mpi_comm is not None:
         launcher, n_workers = "mpi", mpi_comm.Get_size() - 1
