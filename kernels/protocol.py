@@ -68,7 +68,7 @@ from kernels.cg import _cg_core
 from kernels.newton import PATTERN_SKIN, _fire_newton
 from kernels.fire import _dt_for, _fire_core
 from kernels import rules
-from kernels.rules import (ABORT_FRACTION, AIM, BELOW, CONVERGED, DT_FACTOR,  # noqa: F401
+from kernels.rules import (ABORT_FRACTION, AIM, BELOW, CONVERGED, DT_FACTOR,  # noqa: F401 (re-exported)
                            E_FIRST_GUESS, MAX_STEPS, SEARCH_HALVING, SEARCH_NAMES, SEARCH_PAPER,
                            SEARCH_SECANT)
 from kernels.space import _wrap_core
@@ -76,6 +76,8 @@ from kernels.space import _wrap_core
 
 #: The search's next radius scale (``kernels.rules.search_step``, the rule the GPU block shares).
 _search_step = njit(cache=True)(rules.search_step)
+_search_targets = njit(cache=True, inline="always")(rules.search_targets)
+_search_start = njit(cache=True, inline="always")(rules.search_start)
 
 MIN_FIRE = 0
 MIN_CG = 1
@@ -203,12 +205,7 @@ def _ohern_search(minimize, positions, radii0, box, alpha, e_min, window, tol, s
     the result is written back in the caller's order.
     """
     n = positions.shape[0]
-    e_max = e_min * (1.0 + window)
-    inv_a = 1.0 / alpha
-    # aim at the upper part of the window: decompression tends to undershoot
-    g_target = (e_min * (1.0 + AIM * window)) ** inv_a
-    # x = (alpha E / 2)^(1/alpha) is the typical relative overlap at energy E per disk
-    x_per_g = (0.5 * alpha) ** inv_a
+    e_max, inv_a, g_target, x_per_g = _search_targets(e_min, window, alpha)
     mean_d = 0.0
     rmax0 = 0.0
     for i in range(n):
@@ -223,15 +220,9 @@ def _ohern_search(minimize, positions, radii0, box, alpha, e_min, window, tol, s
     pos = positions.copy()
     rad0 = radii0.copy()
     radii = radii0.copy()
-    delta = delta0
-    last_dir = 0
-    # secant rule: the latest two jammed minima (E > 0) on the current branch
-    s1 = -1.0
-    g1 = 0.0
-    s2 = -1.0
-    g2 = 0.0
-    slope = 0.0  # d E^(1/alpha) / d scale of the linear model, 0 while unknown
-    n_below = 0
+    # the rules' state; secant: the latest two jammed minima (E > 0) on the current branch and
+    # the slope d E^(1/alpha) / d scale of the linear model
+    delta, last_dir, s1, g1, s2, g2, slope, n_below = _search_start(delta0)
     it = 0
     nforce = 0
     nfact = 0

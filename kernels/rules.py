@@ -86,6 +86,22 @@ def dt_from_diameter(s, alpha, e_per_disk):
     return DT_FACTOR / math.sqrt(k)
 
 
+def search_targets(e_min, window, alpha):
+    """The search's fixed numbers for the window ``[e_min, e_min (1 + window)]``: ``(e_max,
+    1 / alpha, g_target, x_per_g)``. The secant rule aims at the upper part of the window
+    (decompression tends to undershoot): ``g_target = (e_min (1 + AIM window))^(1/alpha)``;
+    ``x = (alpha E / 2)^(1/alpha)`` is the typical relative overlap at energy ``E`` per disk."""
+    inv_a = 1.0 / alpha
+    return (e_min * (1.0 + window), inv_a, (e_min * (1.0 + AIM * window)) ** inv_a,
+            (0.5 * alpha) ** inv_a)
+
+
+def search_start(delta0):
+    """The search state of ``search_step`` before the first minimisation: ``(delta, last_dir, s1,
+    g1, s2, g2, slope, n_below)`` (no jammed minimum yet: ``s1 = s2 = -1``; slope unknown: 0)."""
+    return delta0, 0, -1.0, 0.0, -1.0, 0.0, 0.0, 0
+
+
 def search_step(rule, jammed, below, eg, scale, delta, last_dir, s1, g1, s2, g2, slope, n_below,
                 delta0, g_target, x_per_g, inv_a, energy_step):
     """The O'Hern search's next radius scale after a minimisation (``kernels.protocol`` gives

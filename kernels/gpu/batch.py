@@ -26,12 +26,11 @@ import os
 
 import numpy as np
 
-from kernels.gpu.block import (N_OUT, N_PARAMS, O_ENERGY, O_FORCE_EVALS, O_ITERATIONS, O_RESIDUAL,
-                               O_SCALE, O_STATUS, O_STEPS, O_VIRIAL, P_ABORT, P_AIM, P_ALPHA,
-                               P_DELTA, P_E_FIRST, P_E_MIN, P_ENERGY_STEP, P_LX, P_LY, P_MAX_RADIUS,
-                               P_MAX_SEARCH, P_MAX_STEPS, P_MEAN_D, P_NCX, P_NCY, P_RMAX, P_RULE,
-                               P_SEARCH_TOL, P_SIN_TOL, P_SKIN, P_TOL, P_WINDOW, P_XY, ROWS,
-                               ST_OVERFLOW, N_FL, N_IV, R0, X, Y, make_block)
+from kernels.gpu.block import (N_FL, N_IV, N_OUT, N_PARAMS, O_ENERGY, O_FORCE_EVALS, O_ITERATIONS,
+                               O_RESIDUAL, O_SCALE, O_STATUS, O_VIRIAL, P_ALPHA, P_DELTA, P_E_MIN,
+                               P_ENERGY_STEP, P_LX, P_LY, P_MAX_RADIUS, P_MAX_SEARCH, P_MAX_STEPS,
+                               P_MEAN_D, P_NCX, P_NCY, P_RMAX, P_RULE, P_SEARCH_TOL, P_SIN_TOL, P_SKIN,
+                               P_TOL, P_WINDOW, P_XY, R0, ROWS, ST_OVERFLOW, X, Y, make_block)
 
 MAXNB = 32  # neighbour slots per disk (within r_i + r_j + skin: about 10-14 in a dense packing)
 CELL_CAP = 48  # slots per cell of the list's grid (about 2-3 disks per cell on average)
@@ -149,7 +148,6 @@ def _grid(job, n):
 def _params(job, ncx, ncy):
     from kernels.jamming import ENERGY_STEP
     from kernels.network import HALF_PLANE_TOL
-    from kernels.rules import ABORT_FRACTION, AIM, E_FIRST_GUESS
 
     prm = np.zeros(N_PARAMS)
     prm[P_E_MIN] = job.e_min
@@ -170,9 +168,6 @@ def _params(job, ncx, ncy):
     prm[P_SIN_TOL] = math.sin(HALF_PLANE_TOL)
     prm[P_NCX] = ncx
     prm[P_NCY] = ncy
-    prm[P_AIM] = AIM
-    prm[P_ABORT] = ABORT_FRACTION
-    prm[P_E_FIRST] = E_FIRST_GUESS
     return prm
 
 

@@ -74,10 +74,7 @@ P_RMAX = 16  # largest radius at scale 1
 P_SIN_TOL = 17  # the rattlers' half-plane slack, sin(HALF_PLANE_TOL)
 P_NCX = 18  # cells allocated along x and y (the grid used is never finer)
 P_NCY = 19
-P_AIM = 20
-P_ABORT = 21
-P_E_FIRST = 22
-N_PARAMS = 23
+N_PARAMS = 20
 
 # the results, one float64 row per packing (out)
 O_STATUS = 0
@@ -116,6 +113,8 @@ def make_block(jit, sync, slot_add):
     fire_adapt = jit(rules.fire_adapt)
     dt_from_diameter = jit(rules.dt_from_diameter)
     search_step = jit(rules.search_step)
+    search_targets = jit(rules.search_targets)
+    search_start = jit(rules.search_start)
 
     @jit
     def reduce(t0, t1, nt, red, nsum, nmax):
@@ -301,12 +300,16 @@ def make_block(jit, sync, slot_add):
 
     @jit
     def contact(i, k, fl, nbr, Lx, Ly, tilt):
-        """Slot ``k`` of disk ``i``'s row: its separation and whether the disks touch."""
+        """Slot ``k`` of disk ``i``'s row: the distance squared, whether the disks touch, and the
+        unit vector from ``i`` to the neighbour (zero for coincident centres)."""
         j = nbr[k, i]
         dx, dy = near(fl[X, j] - fl[X, i], fl[Y, j] - fl[Y, i], Lx, Ly, tilt, 0.5 * Lx, 0.5 * Ly)
         s = fl[R, i] + fl[R, j]
         d2 = dx * dx + dy * dy
-        return dx, dy, d2, d2 < s * s
+        d = math.sqrt(d2)
+        if d > 0.0:
+            return d2, d2 < s * s, dx / d, dy / d
+        return d2, d2 < s * s, 0.0, 0.0
 
     @jit
     def load_bearing(i, fl, nbr, iv, Lx, Ly, tilt, sin_tol):
@@ -314,29 +317,23 @@ def make_block(jit, sync, slot_add):
         contacts and no closed half-plane through its centre holding all of them."""
         z = 0
         for k in range(iv[NNB, i]):
-            if iv[ALIVE, nbr[k, i]] != 0 and contact(i, k, fl, nbr, Lx, Ly, tilt)[3]:
+            if iv[ALIVE, nbr[k, i]] != 0 and contact(i, k, fl, nbr, Lx, Ly, tilt)[1]:
                 z += 1
         if z < 3:
             return False
         for k in range(iv[NNB, i]):
             if iv[ALIVE, nbr[k, i]] == 0:
                 continue
-            dx, dy, d2, touch = contact(i, k, fl, nbr, Lx, Ly, tilt)
+            _, touch, ux, uy = contact(i, k, fl, nbr, Lx, Ly, tilt)
             if not touch:
                 continue
-            d = math.sqrt(d2)
-            ux = dx / d if d > 0.0 else 0.0
-            uy = dy / d if d > 0.0 else 0.0
             all_left = True
             for l in range(iv[NNB, i]):
                 if l == k or iv[ALIVE, nbr[l, i]] == 0:
                     continue
-                ex, ey, e2, touch2 = contact(i, l, fl, nbr, Lx, Ly, tilt)
+                _, touch2, vx, vy = contact(i, l, fl, nbr, Lx, Ly, tilt)
                 if not touch2:
                     continue
-                e = math.sqrt(e2)
-                vx = ex / e if e > 0.0 else 0.0
-                vy = ey / e if e > 0.0 else 0.0
                 if ux * vy - uy * vx < -sin_tol:
                     all_left = False
                     break
@@ -395,7 +392,7 @@ def make_block(jit, sync, slot_add):
                     j = nbr[k, i]
                     if j < i or not (use_all or (iv[ALIVE, i] != 0 and iv[ALIVE, j] != 0)):
                         continue
-                    dx, dy, d2, touch = contact(i, k, fl, nbr, Lx, Ly, tilt)
+                    d2, touch, _, _ = contact(i, k, fl, nbr, Lx, Ly, tilt)
                     if touch:
                         fs += pair(math.sqrt(d2), ninv[k, i], alpha)[1]
                         nc += 1.0
@@ -540,19 +537,9 @@ def make_block(jit, sync, slot_add):
         alpha = prm[P_ALPHA]
         mean_d = prm[P_MEAN_D]
         rmax0 = prm[P_RMAX]
-        e_max = e_min * (1.0 + window)
-        inv_a = 1.0 / alpha
-        g_target = (e_min * (1.0 + prm[P_AIM] * window)) ** inv_a
-        x_per_g = (0.5 * alpha) ** inv_a
+        e_max, inv_a, g_target, x_per_g = search_targets(e_min, window, alpha)
         scale = 1.0
-        delta = delta0
-        last_dir = 0
-        s1 = -1.0
-        g1 = 0.0
-        s2 = -1.0
-        g2 = 0.0
-        slope = 0.0
-        n_below = 0
+        delta, last_dir, s1, g1, s2, g2, slope, n_below = search_start(delta0)
         it = 0
         nforce = 0
         steps = 0
@@ -560,8 +547,8 @@ def make_block(jit, sync, slot_add):
         e_last = 0.0
         w_last = 0.0
         res_last = math.inf
-        e_guess = max(e_min, prm[P_E_FIRST])
-        abort = prm[P_ABORT] * e_min * n
+        e_guess = max(e_min, rules.E_FIRST_GUESS)
+        abort = rules.ABORT_FRACTION * e_min * n
         while True:
             it += 1
             for t in range(t0, t1):
