@@ -110,19 +110,16 @@ def check_kernel(backend, threads):
 
 
 def step_table(sizes, batches, steps, backend, threads):
+    from kernels.gpu.batch import time_steps
+
     rows = []
     for n in sizes:
-        cpu = _cpu_steps((n, 0, steps))
         for b in batches:
-            _gpu_batch(n, [1e-12], [0], backend, threads, max_search=1, max_steps=10)  # compile, warm
-            wall, out = _gpu_batch(n, [1e-12] * b, list(range(b)), backend, threads, max_search=1,
-                                   max_steps=steps)
-            done = sum(min(steps, p.force_evaluations - 1) for p in out if not isinstance(p, Exception))
-            us = 1e6 * wall / max(1, done)
-            rows.append({"N": n, "batch": b, "us_per_step_per_packing": us, "cpu_us_per_step": 1e6 * cpu,
-                         "cores_per_gpu": cpu * 1e6 / us})
-            print(f"  N_G {n:6d}  batch {b:4d}  {us:9.2f} us/step/packing   CPU core {1e6 * cpu:9.1f} us/step"
-                  f"   ratio {cpu * 1e6 / us:7.1f}", flush=True)
+            gpu, cpu = time_steps(n, b, steps, backend, threads)
+            rows.append({"N": n, "batch": b, "us_per_step_per_packing": 1e6 * gpu, "cpu_us_per_step": 1e6 * cpu,
+                         "cores_per_gpu": cpu / gpu})
+            print(f"  N_G {n:6d}  batch {b:4d}  {1e6 * gpu:9.2f} us/step/packing   CPU core {1e6 * cpu:9.1f} us/step"
+                  f"   ratio {cpu / gpu:7.1f}", flush=True)
     return rows
 
 

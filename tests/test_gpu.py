@@ -401,3 +401,38 @@ def test_a_gpu_task_that_overflows_fails_with_its_reason(monkeypatch):
     monkeypatch.setattr(gpu_batch, "MAXNB", 32)
     s = run_task(KernelTask(), payload, context)
     assert s["ok"] and s["scalars"]["identities_ok"] == 1.0 and s["host"].endswith(" emulation")
+
+
+def test_calibrate_gpu_prices_gpu_tasks_in_gpu_hours(tmp_path):
+    """campaign calibrate --gpu adds the block's measured step-time ratios to a calibration (here of
+    the emulation: a GPU is not at hand); validate then prices device: gpu tasks in GPU-hours as the
+    CPU's seconds times that ratio. Without a GPU, --gpu is refused."""
+    import json
+
+    from campaign.plan.calibration import load
+
+    spec = tmp_path / "b.yaml"
+    spec.write_text(BATCH_SPEC)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    out = tmp_path / "gcal.json"
+    r = subprocess.run([sys.executable, "-m", "campaign", "calibrate", "--gpu"], env=env, capture_output=True,
+                       text=True, timeout=120, cwd=tmp_path)
+    assert r.returncode == 2 and "needs a CUDA device" in r.stderr and "Traceback" not in r.stderr
+    r = subprocess.run([sys.executable, "-m", "campaign", "calibrate", "--gpu", "--quick", "--gpu-batch", "2",
+                        "--out", str(out)], env=dict(env, CAMPAIGN_GPU_BACKEND="emulate"), capture_output=True,
+                       text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    cal = load(out)
+    assert cal.gpu["device"] == "emulation" and cal.gpu["N"] == [256, 1024] and all(x > 0 for x in cal.gpu["ratio"])
+    ratio = {n: float(np.interp(np.log(n), np.log(cal.gpu["N"]), cal.gpu["ratio"])) for n in (16, 32)}
+    want = sum(cal.seconds(n, e, {}, 2.0) * ratio[n] for n in (16, 32) for e in (1e-3, 1e-6)) * 6 / 3600
+    r = subprocess.run([sys.executable, "-m", "campaign", "validate", str(spec), "--calibration", str(out)], env=env,
+                       capture_output=True, text=True, timeout=60)
+    line = [ln for ln in r.stdout.splitlines() if "device gpu" in ln][0]
+    assert f"about {want:.3g} GPU-hours on emulation in batches of 2" in line, line
+    bad = json.loads(out.read_text())
+    bad["gpu"]["ratio"] = [1.0]
+    out.write_text(json.dumps(bad))
+    r = subprocess.run([sys.executable, "-m", "campaign", "validate", str(spec), "--calibration", str(out)], env=env,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "'gpu' must give" in r.stderr

@@ -67,6 +67,12 @@ def configure(parser):
     parser.add_argument("--systematic", type=float, metavar="S",
                         help="the systematic scatter of ln(time) to record (default: the starting calibration's)")
     parser.add_argument("--quiet", action="store_true", help="no line per timed packing")
+    parser.add_argument("--gpu", action="store_true",
+                        help="on a machine with a GPU: time the GPU block against a CPU core (N_G 1024, 4096, "
+                             "8192; --quick: 256, 1024) and add the ratios to the starting calibration, so that "
+                             "validate prices device: gpu tasks in GPU-hours (docs/GPU.md)")
+    parser.add_argument("--gpu-batch", type=int, default=132, metavar="B",
+                        help="packings per launch for --gpu (default 132: one per SM of an H100)")
 
 
 # ---------------------------------------------------------------------- selecting seeds
@@ -312,6 +318,42 @@ def _print_comparison(records, cal, title):
 
 # ---------------------------------------------------------------------- main
 
+#: --gpu: the sizes timed and the FIRE steps of each timing
+GPU_PLAN = {"sizes": (1024, 4096, 8192), "steps": 1000}
+GPU_QUICK = {"sizes": (256, 1024), "steps": 300}
+
+
+def _gpu_ratios(args) -> dict:
+    """GPU seconds per FIRE step per packing (a batch of ``--gpu-batch`` random starts, their
+    first minimisation bounded at the plan's steps) over a CPU core's for the same starts, per size:
+    the ``gpu`` block of a calibration. Needs a CUDA device; ``CAMPAIGN_GPU_BACKEND=emulate``
+    times the CPU emulation instead (for tests: its ratios price nothing real)."""
+    import os
+
+    from kernels.gpu import describe, jam_batch, resolve_backend
+
+    backend = resolve_backend(None)
+    if backend != "cuda" and os.environ.get("CAMPAIGN_GPU_BACKEND") != "emulate":
+        raise UserError("calibrate --gpu times the GPU block: it needs a CUDA device and numba-cuda "
+                        "(pip install 'jamming-campaign[gpu]'); none is available here")
+    if args.gpu_batch < 1:
+        raise UserError(f"--gpu-batch must be at least 1, got {args.gpu_batch}")
+    from campaign.plan.calibration import machine
+    from kernels.gpu.batch import time_steps
+
+    plan = GPU_QUICK if args.quick else GPU_PLAN
+    sizes, ratios = [], []
+    for n in plan["sizes"]:
+        gpu, cpu = time_steps(n, args.gpu_batch, plan["steps"], backend)
+        sizes.append(int(n))
+        ratios.append(gpu / cpu)
+        if not args.quiet:
+            print(f"  N_G {n:6d}: {1e6 * gpu:9.2f} us per step per packing (batch {args.gpu_batch}) against "
+                  f"{1e6 * cpu:8.1f} on a CPU core: {cpu / gpu:7.1f} cores", flush=True)
+    return {"device": describe(backend), "batch": int(args.gpu_batch), "threads": 256,
+            "steps": plan["steps"], "N": sizes, "ratio": ratios, "machine": machine()}
+
+
 def main(args) -> int:
     from campaign.plan import calibration
 
@@ -322,6 +364,20 @@ def main(args) -> int:
         raise UserError("--check fits nothing and times nothing: drop --run")
     if args.systematic is not None and not (math.isfinite(args.systematic) and 0 <= args.systematic <= 5):
         raise UserError(f"--systematic must be between 0 and 5; got {args.systematic}")
+    if args.gpu:  # the GPU ratios added to the starting calibration; nothing refitted
+        if args.store or args.check or args.run:
+            raise UserError("--gpu times the GPU block alone: drop --store, --check and --run")
+        with calibration.using(args.calibration) as start:
+            gpu = _gpu_ratios(args)
+            cal = start.with_gpu(gpu)
+        out = Path(args.out)
+        try:
+            cal.save(out)
+        except OSError as exc:
+            raise UserError(f"cannot write the calibration to {str(out)!r}: {exc}") from None
+        print(f"wrote {out}: {start.source} with the GPU ratios of {gpu['device']}: use it with "
+              f"CAMPAIGN_COST_CALIBRATION={out} or campaign validate SPEC --calibration {out}")
+        return 0
     with calibration.using(args.calibration) as start:
         records = {k: [] for k in ("N", "E", "exponent", "endgame", "parent_E", "seconds", "group", "protocol")}
         skipped = 0

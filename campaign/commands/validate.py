@@ -72,9 +72,14 @@ def _main(args, cal) -> int:
         print(f"  per variant (core-hours): {', '.join(parts)}")
     gpu = [v.name for v in spec.variants if dict(v.protocol).get("device") == "gpu"]
     if gpu:
-        n_gpu = sum(t.variant in gpu for t in tasks)
-        print(f"  device gpu  {n_gpu} task(s) of {', '.join(gpu)}: priced above as CPU core-hours (the same "
-              "FIRE steps); no calibration measured on a GPU prices them in GPU-hours yet (docs/GPU.md)")
+        mine = [t for t in tasks if t.variant in gpu]
+        if cal.gpu:
+            hours = sum(cal.gpu_seconds(t.N, t.E, t.protocol, t.exponent) for t in mine) / 3600
+            print(f"  device gpu  {len(mine)} task(s) of {', '.join(gpu)}: about {hours:.3g} GPU-hours on "
+                  f"{cal.gpu['device']} in batches of {cal.gpu['batch']} (calibrate --gpu; above: as CPU core-hours)")
+        else:
+            print(f"  device gpu  {len(mine)} task(s) of {', '.join(gpu)}: priced above as CPU core-hours (the same "
+                  "FIRE steps); `campaign calibrate --gpu` on a GPU prices them in GPU-hours (docs/GPU.md)")
     for line in _auto_advice(spec, tasks, cal) + _fast_advice(spec, tasks, cal):
         print(line)
     learnt = _learnt_remaining(spec, tasks)

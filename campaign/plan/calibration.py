@@ -159,6 +159,9 @@ class Calibration:
     sigma_systematic: float      # beyond the constants' errors and the packings' scatter
     source: str = "<calibration>"
     info: dict = field(default_factory=dict)  # free-form: machine, date, data, load
+    # GPU workers (campaign calibrate --gpu): {"device", "threads", "batch", "N": [...], "ratio": [...]},
+    # a GPU packing's seconds in a full batch over a CPU core's for the same FIRE steps, per N_G
+    gpu: dict | None = None
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     # ------------------------------------------------------------------ the model
@@ -185,6 +188,22 @@ class Calibration:
         if t is None:
             t = self._cache[key] = math.exp(self.log_seconds(N, E, protocol, exponent, parent_E))
         return t
+
+    def gpu_seconds(self, N, E, protocol=None, exponent=2.0) -> float | None:
+        """GPU seconds of one ``device: gpu`` packing run in a full batch (the CPU's seconds for
+        the same FIRE steps times the measured ratio at N, interpolated in log N and held at the
+        ends), or None without a GPU calibration."""
+        if not self.gpu:
+            return None
+        cpu = {k: v for k, v in dict(protocol or {}).items() if k not in ("device", "gpu_threads")}
+        ratio = float(np.interp(math.log(N), np.log(self.gpu["N"]), self.gpu["ratio"]))
+        return self.seconds(N, E, cpu, exponent) * ratio
+
+    def with_gpu(self, gpu: dict) -> "Calibration":
+        """This calibration with the GPU ratios ``gpu`` (``campaign calibrate --gpu``)."""
+        return Calibration(L0=self.L0, blocks=self.blocks, sigma_task=self.sigma_task,
+                           sigma_systematic=self.sigma_systematic, source=self.source,
+                           info=self.info, gpu=gpu)
 
     def estimate(self, cells) -> Estimate:
         """The total of ``cells``: (count, N, E, protocol, exponent, parent_E) tuples."""
@@ -215,7 +234,7 @@ class Calibration:
                 "sigma_task": self.sigma_task, "sigma_systematic": self.sigma_systematic,
                 **{b: {"names": list(BLOCKS[b]), "values": [float(v) for v in self.blocks[b][0]],
                        "covariance": [[float(v) for v in row] for row in self.blocks[b][1]]} for b in BLOCKS},
-                "info": self.info}
+                "info": self.info, **({"gpu": self.gpu} if self.gpu else {})}
 
     def save(self, path) -> None:
         text = json.dumps(self.to_dict(), indent=1, allow_nan=False)
@@ -329,7 +348,23 @@ def from_dict(d, source="<calibration>") -> Calibration:
     if not isinstance(info, dict):
         _refuse(source, "'info' must be a mapping")
     return Calibration(L0=L0, blocks=blocks, sigma_task=sigma_task, sigma_systematic=sigma_sys,
-                       source=source, info=info)
+                       source=source, info=info, gpu=_gpu_block(source, d.get("gpu")))
+
+
+def _gpu_block(source, g):
+    """The optional GPU ratios, checked: a device name, sizes ascending, positive finite ratios."""
+    if g is None:
+        return None
+    if not isinstance(g, dict) or not isinstance(g.get("device"), str):
+        _refuse(source, "'gpu' must be a mapping with a 'device' name, 'N' and 'ratio'")
+    N, ratio = g.get("N"), g.get("ratio")
+    ok = (isinstance(N, list) and isinstance(ratio, list) and len(N) == len(ratio) >= 1
+          and all(isinstance(n, int) and not isinstance(n, bool) and n >= 2 for n in N)
+          and all(isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r) and r > 0
+                  for r in ratio) and N == sorted(set(N)))
+    if not ok:
+        _refuse(source, "'gpu' must give 'N' (ascending sizes) and 'ratio' (positive numbers) of equal length")
+    return dict(g)
 
 
 def load(path) -> Calibration:

@@ -251,5 +251,32 @@ def jam_batch(n, energies, seeds, starts=None, backend=None, threads=None, **set
     return results
 
 
-__all__ = ["jam_batch", "prepare", "simulated", "BlockOverflow", "resolve_backend", "describe", "cuda_available",
+def time_steps(n, batch, steps, backend=None, threads=None, energy=1e-12):
+    """Seconds per FIRE step: ``(block, cpu)``, the block's per packing in a launch of ``batch``
+    random starts (their first minimisation bounded at ``steps`` steps, rebuilds and residual
+    checks included; compiled before the clock) and the CPU kernel's (``kernels.fire._fire_core``)
+    on the first of those starts, one core. What ``benchmarks/bench_gpu.py`` and ``campaign
+    calibrate --gpu`` measure."""
+    import time
+
+    from kernels.fire import _fire_core, default_timestep
+
+    jam_batch(n, [energy], [0], backend=backend, threads=threads, max_search=1, max_steps=10)
+    t0 = time.perf_counter()
+    out = jam_batch(n, [energy] * batch, list(range(batch)), backend=backend, threads=threads,
+                    max_search=1, max_steps=steps)
+    wall = time.perf_counter() - t0
+    done = sum(min(steps, p.force_evaluations - 1) for p in out if not isinstance(p, Exception))
+    job = prepare(n, [energy], [0])[0]
+    box = job.cell_box
+    dt = default_timestep(job.radii0, job.alpha, 1e-8)
+    skin = job.skin * 2.0 * float(np.mean(job.radii0))
+    _fire_core(job.positions.copy(), job.radii0, box, job.alpha, 1e-6, 10, skin, dt, 0.0)
+    t0 = time.perf_counter()
+    r = _fire_core(job.positions, job.radii0, box, job.alpha, 1e-6, steps, skin, dt, 0.0)
+    cpu = (time.perf_counter() - t0) / max(1, r[1])
+    return wall / max(1, done), cpu
+
+
+__all__ = ["jam_batch", "time_steps", "prepare", "simulated", "BlockOverflow", "resolve_backend", "describe", "cuda_available",
            "threads_for", "MAXNB", "CELL_CAP", "DEFAULT_THREADS", "BACKENDS"]
