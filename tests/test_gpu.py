@@ -436,3 +436,35 @@ def test_calibrate_gpu_prices_gpu_tasks_in_gpu_hours(tmp_path):
     r = subprocess.run([sys.executable, "-m", "campaign", "validate", str(spec), "--calibration", str(out)], env=env,
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "'gpu' must give" in r.stderr
+
+
+MIXED_SPEC = """\
+name: mixed
+seed: 5
+grid: {N_G: [16, 32], E_G: [1.0e-3, 1.0e-6], seeds: 5}
+variants: [{name: gpu, device: gpu}]
+observables: [scalars]
+"""
+
+
+@pytest.mark.parametrize("launch", ["local", "mpi"])
+def test_gpu_tasks_go_to_gpu_workers(tmp_path, launch):
+    """With GPU workers, device: gpu tasks run only on them (never emulated beside them on a CPU
+    worker); CPU tasks run on the CPU workers, and on a GPU worker once no GPU task waits."""
+    spec = tmp_path / "m.yaml"
+    spec.write_text(MIXED_SPEC)
+    env = dict(os.environ, CAMPAIGN_TASK_FUNCTION="synthetic", CAMPAIGN_SYNTHETIC_DELAY="0.01",
+               PYTHONPATH=str(ROOT))
+    cmd = [sys.executable, "-m", "campaign", "run", str(spec), "--out", str(tmp_path / "m.h5"), "--quiet",
+           "--gpus", "1", "--gpu-batch", "4"]
+    cmd = [str(MPIEXEC), "-n", "3"] + cmd if launch == "mpi" else cmd + ["--workers", "2"]
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    with h5py.File(tmp_path / "m.h5") as f:
+        variant = f["tasks/variant"][:].astype(str)
+        rank = f["tasks/rank"][:]
+        assert np.all(f["tasks/status"][:] == 1)
+    if launch == "local":
+        assert set(rank[variant == "gpu"]) == {1} and 2 in set(rank[variant == "default"])
+    else:  # under mpiexec --gpus makes every worker rank a GPU worker
+        assert set(rank[variant == "gpu"]) <= {1, 2}

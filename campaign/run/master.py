@@ -62,19 +62,23 @@ class Master:
         waits = np.zeros(T, bool)
         waits[has_parent] = status[parent[has_parent]] != DONE
         self.blocked = set(np.flatnonzero(todo & waits).tolist())
-        # the queue: the ready tasks most expensive first (ties in canonical order), as one array,
-        # plus a small heap for retries and children that became ready
+        # the queues: the ready tasks most expensive first (ties in canonical order). With GPU
+        # workers (comm.capacity) device: gpu tasks have their own queue, which only GPU workers take
+        # from while one is alive; a GPU worker takes CPU tasks when no GPU task waits
         ready = np.flatnonzero(todo & ~waits)
-        self.order = ready[np.lexsort((ready, -self.costs[ready]))]
-        self.head = 0
-        self.extra = []
+        self.capacity = dict(getattr(comm, "capacity", {}))  # GPU workers: tasks per batch
+        self.on_gpu = np.zeros(T, bool)
+        if self.capacity:
+            self.on_gpu = np.fromiter((dict(t.protocol).get("device") == "gpu" for t in tasks), bool, T)
+        order = ready[np.lexsort((ready, -self.costs[ready]))]
+        self.queues = {False: _Queue(order[~self.on_gpu[order]], self.costs),
+                       True: _Queue(order[self.on_gpu[order]], self.costs)}
         self.cost_remaining = float(self.costs[todo].sum())
         self.attempts = np.zeros(T, np.int32)
         self.n_done = self.n_failed = 0
         self._orphans = [int(i) for i in sorted(self.blocked) if not todo[parent[i]]
                          and status[parent[i]] == FAILED]
         self.in_flight = {w: deque() for w in range(1, comm.n_workers + 1)}
-        self.capacity = dict(getattr(comm, "capacity", {}))  # GPU workers: tasks per batch
         self.alive = set(self.in_flight) - set(getattr(comm, "dead", ()))
         self.stop_reason = None      # why dispatching stopped early (signal name, wall time, ...)
         self.stop_since = None
@@ -110,27 +114,19 @@ class Master:
 
     # ---- the queue
     def _queued(self):
-        return len(self.order) - self.head + len(self.extra)
+        return self.queues[False].queued() + self.queues[True].queued()
 
-    def _peek(self):
-        """The next task to dispatch (index), or None."""
-        best = self.extra[0] if self.extra else None
-        if self.head < len(self.order):
-            i = int(self.order[self.head])
-            if best is None or (-self.costs[i], i) < best:
-                return i
-        return None if best is None else best[1]
-
-    def _pop(self):
-        i = self._peek()
-        if self.extra and self.extra[0][1] == i:
-            heapq.heappop(self.extra)
-        else:
-            self.head += 1
-        return i
+    def _queue_for(self, w):
+        """The queue worker ``w`` takes from now: a GPU worker its GPU tasks, then CPU tasks; a CPU
+        worker CPU tasks, and GPU tasks (emulated) only when no GPU worker is left."""
+        if w in self.capacity:
+            return self.queues[bool(self.queues[True].queued())]
+        if not self.queues[False].queued() and not (self.alive & set(self.capacity)):
+            return self.queues[True]
+        return self.queues[False]
 
     def _push(self, i):
-        heapq.heappush(self.extra, (-float(self.costs[i]), int(i)))
+        self.queues[bool(self.on_gpu[i])].push(i)
 
     # ---- scheduling
     def _depth(self):
@@ -149,8 +145,9 @@ class Master:
         q = self.in_flight[w]
         # a GPU worker keeps a batch in flight (it runs the tasks of one variant and N_G together)
         depth = max(self._depth(), self.capacity.get(w, 1))
-        while len(q) < depth and self._queued() and self.stop_reason is None:
-            i = self._peek()
+        queue = self._queue_for(w)
+        while len(q) < depth and queue.queued() and self.stop_reason is None:
+            i = queue.peek()
             task = self.tasks[i]
             if task.parent is not None and q:
                 # a ladder step carries its parent's packing (hundreds of kB at N_G 8192): only to a
@@ -162,7 +159,7 @@ class Master:
                 self.stop_reason = "wall time"
                 self.log("\ncampaign: the next task would not fit in the time left; no new tasks")
                 return
-            self._pop()
+            queue.pop()
             attempt = int(self.attempts[i]) + 1
             self.attempts[i] = attempt
             payload = task.payload()
@@ -302,3 +299,34 @@ class Master:
         finally:
             for sig, handler in old.items():
                 signal.signal(sig, handler)
+
+
+class _Queue:
+    """Tasks waiting to be dispatched, most expensive first (ties by index): a sorted array read
+    from its head, plus a small heap for retries and ladder steps that became ready."""
+
+    def __init__(self, order, costs):
+        self.order, self.costs, self.head, self.extra = order, costs, 0, []
+
+    def queued(self):
+        return len(self.order) - self.head + len(self.extra)
+
+    def peek(self):
+        """The next task to dispatch (index), or None."""
+        best = self.extra[0] if self.extra else None
+        if self.head < len(self.order):
+            i = int(self.order[self.head])
+            if best is None or (-self.costs[i], i) < best:
+                return i
+        return None if best is None else best[1]
+
+    def pop(self):
+        i = self.peek()
+        if self.extra and self.extra[0][1] == i:
+            heapq.heappop(self.extra)
+        else:
+            self.head += 1
+        return i
+
+    def push(self, i):
+        heapq.heappush(self.extra, (-float(self.costs[i]), int(i)))
