@@ -200,8 +200,15 @@ def jam_batch(n, energies, seeds, starts=None, backend=None, threads=None, **set
 
     Returns a list with, per packing, a ``Packing`` (``settings["device"]`` says what ran it;
     ``force_evaluations`` counts FIRE's force evaluations as on the CPU) or a
-    ``BlockOverflow`` for a packing whose lists outgrew their slots."""
-    from kernels.jamming import STATUS_NAMES, _packing
+    ``BlockOverflow`` for a packing whose lists outgrew their slots. ``start_batch`` and
+    ``finish_batch`` are its two halves: on a GPU the launch runs while the caller does other
+    work (a GPU worker analyses the previous batch meanwhile)."""
+    return finish_batch(start_batch(n, energies, seeds, starts, backend, threads, **settings))
+
+
+def start_batch(n, energies, seeds, starts=None, backend=None, threads=None, **settings):
+    """Prepare the batch and start it: on a GPU the kernel is launched and this returns at once;
+    the emulation runs it here. Returns the handle ``finish_batch`` takes."""
     from kernels.protocol import _spatial_order
 
     jobs = prepare(n, energies, seeds, starts, **settings)
@@ -227,10 +234,23 @@ def jam_batch(n, energies, seeds, starts=None, backend=None, threads=None, **set
               np.zeros((B, N_OUT))]
     if which == "emulate":
         _emulator()(nt, *arrays)
+        running = None
     else:
-        fl, arrays[-1] = _device().run_batch(nt, arrays)
-    out = arrays[-1]
-    device = describe(which)
+        running = _device().launch(nt, arrays)
+    return {"n": n, "jobs": jobs, "orders": orders, "cap": cap, "arrays": arrays, "backend": which,
+            "running": running}
+
+
+def finish_batch(handle):
+    """Wait for a batch ``start_batch`` started and make its packings (``jam_batch``'s list)."""
+    from kernels.jamming import STATUS_NAMES, _packing
+
+    n, jobs, orders, cap = handle["n"], handle["jobs"], handle["orders"], handle["cap"]
+    if handle["running"] is None:
+        fl, out = handle["arrays"][0], handle["arrays"][-1]
+    else:
+        fl, out = _device().collect(handle["running"])
+    device = describe(handle["backend"])
     results = []
     for b, job in enumerate(jobs):
         status = int(out[b, O_STATUS])
@@ -278,5 +298,5 @@ def time_steps(n, batch, steps, backend=None, threads=None, energy=1e-12):
     return wall / max(1, done), cpu
 
 
-__all__ = ["jam_batch", "time_steps", "prepare", "simulated", "BlockOverflow", "resolve_backend", "describe", "cuda_available",
+__all__ = ["jam_batch", "start_batch", "finish_batch", "time_steps", "prepare", "simulated", "BlockOverflow", "resolve_backend", "describe", "cuda_available",
            "threads_for", "MAXNB", "CELL_CAP", "DEFAULT_THREADS", "BACKENDS"]

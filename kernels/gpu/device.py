@@ -67,10 +67,16 @@ def name() -> str:
     return "cuda:" + (n.decode() if isinstance(n, bytes) else str(n))
 
 
-def run_batch(nt, arrays, max_registers=None):
-    """Copy the batch's arrays to the device, run one block per packing, and return ``fl`` and
-    the results (the first and last arrays) copied back."""
+def launch(nt, arrays, max_registers=None):
+    """Copy the batch's arrays to the device and launch one block per packing; returns at once
+    (``collect`` waits). The handle holds the device arrays."""
     dev = [cuda.to_device(a) for a in arrays]
     kernel(nt, max_registers)[arrays[0].shape[0], nt](*dev)
+    return dev
+
+
+def collect(dev):
+    """Wait for a launched batch and return ``fl`` and the results (the first and last arrays)
+    copied back."""
     cuda.synchronize()
     return dev[0].copy_to_host(), dev[-1].copy_to_host()
