@@ -102,8 +102,9 @@ class LocalComm:
         ctx = mp.get_context("spawn")
         self.n_workers = n_workers
         self.conns, self.procs = {}, {}
-        # workers 1..gpus own GPU 0..gpus-1 and take batches of gpu_batch tasks (the master's depth)
-        self.capacity = {w: int(context.get("gpu_batch") or 1) for w in range(1, min(gpus, n_workers) + 1)}
+        # workers 1..gpus own GPU 0..gpus-1 and take batches of gpu_batch tasks: the master keeps two
+        # batches in flight at each (one runs while the other's results are made: campaign.run.gpuworker)
+        self.capacity = {w: 2 * int(context.get("gpu_batch") or 1) for w in range(1, min(gpus, n_workers) + 1)}
         for w in range(1, n_workers + 1):
             parent, child = ctx.Pipe(duplex=True)
             wctx = gpu_context(context, w - 1 if w in self.capacity else None)
@@ -215,8 +216,9 @@ class MPIComm:
         return set()
 
     def set_capacity(self, gpu_batch: int):
-        """Every worker rank owns a GPU (``campaign run --gpus``) and takes batches of ``gpu_batch``."""
-        self.capacity = {w: int(gpu_batch) for w in range(1, self.n_workers + 1)}
+        """Every worker rank owns a GPU (``campaign run --gpus``) and takes batches of ``gpu_batch``;
+        two batches in flight at each (``LocalComm``)."""
+        self.capacity = {w: 2 * int(gpu_batch) for w in range(1, self.n_workers + 1)}
 
     def send(self, worker, payload):
         self.comm.send(payload, dest=worker, tag=TAG_TASK)

@@ -92,16 +92,30 @@ class KernelTask:
         (``kernels.gpu.jam_batch``: on this worker's GPU, else the block's CPU emulation). Returns
         ``(packing, seconds)`` per task (the batch's time shared equally), or the exception that
         failed it."""
-        from kernels.gpu import jam_batch
+        return self.finish_batch(self.start_batch(payloads, context))
+
+    def start_batch(self, payloads, context):
+        """Launch ``jam_batch``'s packings (on a GPU it returns at once): the handle of
+        ``finish_batch`` (``campaign.run.gpuworker``)."""
+        from kernels.gpu.batch import start_batch
 
         system, exponent, protocol = self._setup(payloads[0], context)
         protocol.pop("device")
         threads = protocol.pop("gpu_threads", None)
         t0 = time.perf_counter()
-        out = jam_batch(payloads[0]["N"], [p["E"] for p in payloads],
-                        [list(p["entropy"]) for p in payloads], threads=threads,
-                        box=tuple(system["box"]), exponent=exponent, **protocol)
-        share = (time.perf_counter() - t0) / len(payloads)
+        handle = start_batch(payloads[0]["N"], [p["E"] for p in payloads],
+                             [list(p["entropy"]) for p in payloads], threads=threads,
+                             box=tuple(system["box"]), exponent=exponent, **protocol)
+        return handle, t0, len(payloads)
+
+    def finish_batch(self, started):
+        """Wait for a batch ``start_batch`` launched: ``(packing, seconds)`` per task, or the
+        exception that failed it."""
+        from kernels.gpu.batch import finish_batch
+
+        handle, t0, n = started
+        out = finish_batch(handle)
+        share = (time.perf_counter() - t0) / n
         return [p if isinstance(p, Exception) else (p, share) for p in out]
 
     def run_batch(self, payloads, context):
@@ -113,10 +127,14 @@ class KernelTask:
                 out.append(got)
                 continue
             try:
-                out.append(self._analyse(payload, context, *got))
+                out.append(self.analyse(payload, context, *got))
             except Exception as exc:  # noqa: BLE001 - that task fails, the batch goes on
                 out.append(exc)
         return out
+
+    def analyse(self, payload, context, p, jam_seconds):
+        """The summary tuple of ``run`` for the packing ``p`` made in ``jam_seconds``."""
+        return self._analyse(payload, context, p, jam_seconds)
 
     def _analyse(self, payload, context, p, jam_seconds):
         import kernels
@@ -207,15 +225,25 @@ class SyntheticTask:
 
     def run_batch(self, payloads, context):
         """``run`` per task (the engine's tests of GPU batches), recording the batch's size."""
+        return [got if isinstance(got, Exception) else self.analyse(p, context, *got)
+                for p, got in zip(payloads, self.finish_batch(self.start_batch(payloads, context)))]
+
+    # a GPU worker's pipeline (campaign.run.gpuworker): the "packing" is the task's own outcome
+    def start_batch(self, payloads, context):
         out = []
         for p in payloads:
             try:
-                scalars, hists, config = self.run(p, context)
+                out.append((self.run(p, context), float(len(payloads))))
             except Exception as exc:  # noqa: BLE001 - that task fails, the batch goes on
                 out.append(exc)
-                continue
-            out.append((dict(scalars, batch_size=float(len(payloads))), hists, config))
         return out
+
+    def finish_batch(self, started):
+        return started
+
+    def analyse(self, payload, context, got, size):
+        scalars, hists, config = got
+        return dict(scalars, batch_size=size), hists, config
 
     def run(self, payload, context):
         env = os.environ
@@ -331,8 +359,9 @@ def worker_loop(recv, send, context: dict, rank: int, poll=None) -> None:
 
     Batches: with ``poll()`` (True when a message is waiting) and ``context["gpu_batch"]`` > 1, a
     ``device: gpu`` task is run together with the tasks already waiting behind it that share its
-    ``batch_key``, up to ``gpu_batch`` of them, in one call of the task function's ``run_batch``
-    (one GPU launch); a task of another key waits for the next round.
+    ``batch_key``, up to ``gpu_batch`` of them, in one launch; a task of another key waits for the
+    next round. A task function with ``start_batch``, ``finish_batch`` and ``analyse`` runs them
+    in a pipeline (``campaign.run.gpuworker``): a batch is analysed while the next one runs.
     """
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1):
         try:
@@ -354,9 +383,18 @@ def worker_loop(recv, send, context: dict, rank: int, poll=None) -> None:
     send(("ready", rank))
     limit = int(context.get("gpu_batch") or 1) if context.get("gpu_device") is not None else 1
     held = None  # a message read while filling a batch that belongs to the next round
+    pipeline = None
+    if limit > 1 and poll is not None and all(hasattr(fn, m) for m in ("start_batch", "finish_batch", "analyse")):
+        from campaign.run.gpuworker import Pipeline
+
+        pipeline = Pipeline(fn, context, rank, send, _summary)
     while True:
+        if pipeline is not None and held is None and not poll():
+            pipeline.flush()  # nothing more to launch now: the master waits for these results
         msg, held = (held, None) if held is not None else (recv(), None)
         if msg is None or msg[0] == "stop":
+            if pipeline is not None:
+                pipeline.flush()
             return
         payload = msg[1]
         if fn is None:
@@ -367,7 +405,7 @@ def worker_loop(recv, send, context: dict, rank: int, poll=None) -> None:
             continue
         key = batch_key(payload)
         batch = [payload]
-        if key is not None and limit > 1 and poll is not None and hasattr(fn, "run_batch"):
+        if key is not None and limit > 1 and poll is not None and (pipeline or hasattr(fn, "run_batch")):
             while len(batch) < limit and poll():
                 nxt = recv()
                 if nxt is not None and nxt[0] == "task" and batch_key(nxt[1]) == key:
@@ -375,6 +413,11 @@ def worker_loop(recv, send, context: dict, rank: int, poll=None) -> None:
                 else:
                     held = nxt if nxt is not None else ("stop",)
                     break
+        if pipeline is not None and key is not None:
+            pipeline.run(batch)
+            continue
+        if pipeline is not None:
+            pipeline.flush()
         summaries = (run_tasks(fn, batch, context, rank) if len(batch) > 1
                      else [run_task(fn, payload, context, rank)])
         for p, summary in zip(batch, summaries):
