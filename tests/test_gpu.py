@@ -34,6 +34,7 @@ def emulate(n, energies, seeds, threads=32, **kw):
     (64, [1e-3, 1e-7, 1e-11], {}),
     (128, [1e-5], {"exponent": 2.5}),
     (64, [1e-6], {"search": "halving", "sizes": ("lognormal", 0.2)}),
+    (1024, [1e-4], {}),
 ])
 def test_block_packings_are_jammed_in_the_window(n, energies, kw):
     """Every packing of the block: converged, E_G in [E, 1.1 E] recomputed from its positions,
@@ -430,6 +431,11 @@ def test_calibrate_gpu_prices_gpu_tasks_in_gpu_hours(tmp_path):
                        capture_output=True, text=True, timeout=60)
     line = [ln for ln in r.stdout.splitlines() if "device gpu" in ln][0]
     assert f"about {want:.3g} GPU-hours on emulation in batches of 2" in line, line
+    cpu_spec = tmp_path / "c.yaml"
+    cpu_spec.write_text(BATCH_SPEC.replace("protocol: {device: gpu}", "protocol: {}"))
+    r = subprocess.run([sys.executable, "-m", "campaign", "validate", str(cpu_spec), "--calibration", str(out)],
+                       env=env, capture_output=True, text=True, timeout=60)
+    assert f"'default' as `device: gpu` would take about {want:.3g} GPU-hours on emulation" in r.stdout, r.stdout
     bad = json.loads(out.read_text())
     bad["gpu"]["ratio"] = [1.0]
     out.write_text(json.dumps(bad))

@@ -80,6 +80,8 @@ def _main(args, cal) -> int:
         else:
             print(f"  device gpu  {len(mine)} task(s) of {', '.join(gpu)}: priced above as CPU core-hours (the same "
                   "FIRE steps); `campaign calibrate --gpu` on a GPU prices them in GPU-hours (docs/GPU.md)")
+    for line in _gpu_advice(spec, tasks, cal):
+        print(line)
     for line in _auto_advice(spec, tasks, cal) + _fast_advice(spec, tasks, cal):
         print(line)
     learnt = _learnt_remaining(spec, tasks)
@@ -99,6 +101,24 @@ def _endgames(spec, tasks):
         where = ", ".join(f"{n}/{e:g}" for n, e in newton[:8]) + (", ..." if len(newton) > 8 else "")
         out.append(f"  endgame: auto in {v.name!r}: Newton for {sum(dict(t.protocol).get('endgame') == 'newton' for t in mine)} "
                    f"of {len(mine)} packings" + (f" (N_G/E_G {where})" if newton else "") + ", FIRE alone elsewhere")
+    return out
+
+
+def _gpu_advice(spec, tasks, cal):
+    """With a GPU calibration: what each CPU variant the GPU block can run (FIRE on the O'Hern route
+    in a fixed cell from random starts) would take as ``device: gpu``, in GPU-hours."""
+    if not cal.gpu:
+        return []
+    out = []
+    for v in spec.variants:
+        proto = dict(v.protocol)
+        if "device" in proto or not _takes_newton(proto) or "start" in proto or "endgame" in proto:
+            continue
+        mine = [t for t in tasks if t.variant == v.name]
+        cpu = sum(cal.seconds(t.N, t.E, t.protocol, t.exponent) for t in mine) / 3600
+        gpu = sum(cal.gpu_seconds(t.N, t.E, t.protocol, t.exponent) for t in mine) / 3600
+        out.append(f"  advice: {v.name!r} as `device: gpu` would take about {gpu:.3g} GPU-hours on "
+                   f"{cal.gpu['device']} instead of {cpu:.3g} core-hours (its own task ids: docs/GPU.md)")
     return out
 
 
