@@ -165,8 +165,9 @@ class KernelTask:
         if context.get("configurations") or payload.get("return_configuration"):
             config = {"positions": np.asarray(p.positions, np.float64), "radii": np.asarray(p.radii, np.float64),
                       "box": np.asarray(p.box, np.float64), "species": np.asarray(p.species, np.int32)}
-        if "device" in p.settings:  # a GPU packing: what ran it, recorded beside the host
-            return scalars, hists, config, p.settings["device"]
+        device = getattr(p, "settings", {}).get("device")
+        if device:  # a GPU packing: what ran it, recorded beside the host
+            return scalars, hists, config, device
         return scalars, hists, config
 
 
