@@ -62,6 +62,12 @@ class InlineComm:
 
 
 def _local_main(conn, context, rank):
+    import multiprocessing
+
+    parent = multiprocessing.parent_process()
+    # a killed master must not leave this process computing: it ends with the master (SIGKILL by the
+    # kernel on Linux, else the watcher of the parent's sentinel), its task pending in the store
+    _worker.die_with_parent(parent.pid if parent is not None else None, getattr(parent, "sentinel", None))
     def recv():
         try:
             return conn.recv()
@@ -280,10 +286,32 @@ def mpi_worker(comm, context: dict) -> None:
                 break
         return bool(probed)
 
+    watch_master(context.get("master"))
     gpus = int(context.get("gpus") or 0)
     if gpus:  # one rank per GPU: the node's ranks share its GPUs in turn, by their rank on the node
         context = gpu_context(context, node_rank(rank) % gpus)
     _worker.worker_loop(recv, send, context, rank, poll)
+
+
+def watch_master(master, interval: float = 0.5) -> None:
+    """An MPI worker ends when its master does (its task stays pending in the store): with the
+    launcher's process that started it (``die_with_parent``: mpiexec's proxy, or srun's step daemon,
+    which end when the job does), and, on the master's host, as soon as the master's process is gone
+    (``master``: [pid, host], a thread that looks every ``interval`` seconds). On other hosts the
+    launcher ends the other ranks when one dies (Hydra's mpiexec and srun do)."""
+    import threading
+
+    _worker.die_with_parent()
+    pid, host = (list(master) + [None, None])[:2] if master else (None, None)
+    if not pid or host != socket.gethostname():
+        return
+
+    def watch():
+        while not _worker.master_gone(pid, host):
+            time.sleep(interval)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="campaign-master-watch", daemon=True).start()
 
 
 def node_rank(rank: int) -> int:

@@ -248,6 +248,7 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
                      f"{time.process_time() - cpu_warm:.1f} s of CPU: {_compiled()} "
                      f"(numba cache {os.environ.get('NUMBA_CACHE_DIR')})")
         if mpi_comm is not None:
+            context["master"] = [os.getpid(), socket.gethostname()]  # workers on its host watch it
             mpi_comm.bcast(context, root=0)
             state["sent"] = True
             hosts = mpi_comm.gather(socket.gethostname(), root=0)

@@ -347,6 +347,80 @@ def _summary(payload, context, rank, got, wall):
     return summary
 
 
+# --------------------------------------------------------------------------- dying with the master
+
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def _parent_death_signal(sig=signal.SIGKILL) -> bool:
+    """Ask Linux to send ``sig`` to this process when its parent dies (prctl PR_SET_PDEATHSIG):
+    the kernel delivers it even while a compiled kernel holds the interpreter. False elsewhere."""
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        return libc.prctl(PR_SET_PDEATHSIG, int(sig), 0, 0, 0) == 0
+    except (OSError, AttributeError, ValueError):
+        return False
+
+
+def die_with_parent(parent: int | None = None, sentinel=None, interval: float = 0.5) -> bool:
+    """End this worker process within moments of its parent's death (the master of a local run, the
+    launcher's proxy under mpiexec or srun), whatever it is doing: its task stays pending in the store
+    (only the master writes it) and the next run computes it.
+
+    On Linux the kernel kills it (``PR_SET_PDEATHSIG``, SIGKILL); besides, a watcher thread waits on
+    ``sentinel`` (a connection or file descriptor that ends with the parent, e.g. multiprocessing's
+    parent sentinel) or polls ``os.getppid()`` (a dead parent's children are handed to another
+    process), and ends the process (``os._exit``): for other systems, and for a parent that died
+    before the request. Returns whether the kernel will do it."""
+    import threading
+
+    parent = os.getppid() if parent is None else int(parent)
+    kernel = _parent_death_signal()
+    if os.getppid() != parent:  # it died before we asked
+        os._exit(0)
+
+    def watch():
+        if sentinel is not None:
+            try:
+                from multiprocessing.connection import wait
+
+                wait([sentinel])
+            except (OSError, ValueError):
+                pass
+            else:
+                os._exit(0)
+        while os.getppid() == parent:
+            time.sleep(interval)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="campaign-parent-watch", daemon=True).start()
+    return kernel
+
+
+def master_gone(pid: int | None, host: str | None) -> bool:
+    """Whether the master process ``pid`` on ``host`` is known to be gone (only on its own host;
+    elsewhere the launcher ends the job's ranks when one dies)."""
+    if not pid or host != _HOST:
+        return False
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return True
+    except OSError:
+        return False
+    try:  # a killed process its parent has not reaped yet (a zombie) is gone too
+        with open(f"/proc/{int(pid)}/stat", "rb") as fh:
+            return fh.read().rsplit(b")", 1)[-1].split()[0] in (b"Z", b"X")
+    except (OSError, IndexError):
+        return False
+
+
 # --------------------------------------------------------------------------- worker loop
 
 def worker_loop(recv, send, context: dict, rank: int, poll=None) -> None:
