@@ -1,0 +1,139 @@
+"""Workers end within seconds when their master dies (docs/STORE.md, "Workers die with their master").
+
+A real `campaign run` (synthetic tasks of several seconds each) is killed with SIGKILL while its workers
+compute; 10 s later no worker process is alive; a rerun completes the campaign with the bits of an
+uninterrupted run. Locally (two worker processes) and under `mpiexec -n 3`, there with Hydra's own
+clean-up disabled, so that the workers' watch of the master is what ends them.
+"""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+MPIEXEC = Path(sys.executable).parent / "mpiexec"
+SPEC = """\
+name: orphans
+seed: 11
+grid: {N_G: [16, 32], E_G: [1.0e-3], seeds: 3}
+observables: [scalars, connectivity]
+"""
+SKIP = ("tasks/wall", "tasks/rank", "tasks/host", "checksums/tasks.wall", "checksums/tasks.rank",
+        "checksums/tasks.host")
+
+
+def _env(delay):
+    env = dict(os.environ, CAMPAIGN_TASK_FUNCTION="synthetic", PYTHONPATH=str(ROOT))
+    env.pop("CAMPAIGN_SYNTHETIC_DELAY", None)
+    if delay:
+        env["CAMPAIGN_SYNTHETIC_DELAY"] = delay
+    return env
+
+
+def _alive(pids):
+    out = []
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/stat", "rb") as fh:
+                if fh.read().rsplit(b")", 1)[-1].split()[0] not in (b"Z", b"X"):
+                    out.append(pid)
+        except OSError:
+            pass
+    return out
+
+
+def _processes_of(out):
+    """pid -> environment's PMI_RANK (or None) of every process running `campaign run ... OUT`."""
+    got = {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            args = (d / "cmdline").read_bytes().split(b"\0")
+            env = (d / "environ").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"campaign" in b" ".join(args) and str(out).encode() in args or (
+                b"--multiprocessing-fork" in args and f"CAMPAIGN_ORPHAN_TAG={out}".encode() in env):
+            rank = next((e.split(b"=", 1)[1].decode() for e in env if e.startswith(b"PMI_RANK=")), None)
+            got[int(d.name)] = rank
+    return got
+
+
+def _datasets(path):
+    with h5py.File(path, "r") as f:
+        got = {}
+        f.visititems(lambda k, o: got.__setitem__(k, o[()]) if isinstance(o, h5py.Dataset) else None)
+    return got
+
+
+def _kill_and_resume(tmp_path, launch):
+    spec = tmp_path / "s.yaml"
+    spec.write_text(SPEC)
+    ref, out = tmp_path / "ref.h5", tmp_path / "o.h5"
+    base = [sys.executable, "-m", "campaign", "run", str(spec), "--quiet"]
+    r = subprocess.run(base + ["--out", str(ref), "--launcher", "inline"], env=_env(None), capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    env = dict(_env("20"), CAMPAIGN_ORPHAN_TAG=str(out))
+    p = subprocess.Popen(launch(base + ["--out", str(out)]), env=env, stdout=subprocess.DEVNULL,
+                         stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:  # until the workers compute (the progress file says so)
+            procs = _processes_of(out)
+            if len(procs) >= 3 and Path(str(out) + ".progress.json").exists():
+                break
+            time.sleep(0.5)
+        time.sleep(3)
+        procs = _processes_of(out)
+        masters = [pid for pid, rank in procs.items() if rank in (None, "0") and pid != p.pid
+                   and b"--multiprocessing-fork" not in Path(f"/proc/{pid}/cmdline").read_bytes()]
+        if not masters:
+            masters = [p.pid]
+        master = min(masters)
+        workers = [pid for pid in procs if pid != master]
+        assert len(workers) >= 2, procs
+        os.kill(master, signal.SIGKILL)
+        t0 = time.monotonic()
+        while _alive(workers) and time.monotonic() - t0 < 10:
+            time.sleep(0.2)
+        assert not _alive(workers), f"workers {_alive(workers)} still alive 10 s after the master's death"
+        gone = time.monotonic() - t0
+    finally:
+        try:
+            os.killpg(p.pid, signal.SIGKILL)
+        except OSError:
+            pass
+        p.wait(timeout=30)
+    r = subprocess.run(base + ["--out", str(out), "--workers", "2"], env=_env(None), capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stderr
+    a, b = _datasets(out), _datasets(ref)
+    assert set(a) == set(b)
+    for k in a:
+        if k not in SKIP:
+            assert a[k].dtype == b[k].dtype and np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == "f"), k
+    return gone
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_local_workers_die_with_a_killed_master(tmp_path):
+    gone = _kill_and_resume(tmp_path, lambda cmd: cmd + ["--workers", "2"])
+    print("workers gone", round(gone, 2), "s after the SIGKILL")
+    assert gone < 10
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or not MPIEXEC.exists(), reason="reads /proc; mpiexec")
+def test_mpi_workers_die_with_a_killed_master(tmp_path):
+    # Hydra's clean-up off: the workers' own watch of the master ends them
+    gone = _kill_and_resume(tmp_path, lambda cmd: [str(MPIEXEC), "-disable-auto-cleanup", "-n", "3"] + cmd)
+    print("workers gone", round(gone, 2), "s after the SIGKILL")
+    assert gone < 10
