@@ -1,0 +1,188 @@
+"""Readers refuse what does not match what was written (docs/STORE.md, "Block checksums").
+
+Two real small stores (synthetic tasks, blocks of 4 rows; one keeps configurations and has failed tasks).
+Damage: a bit of a chunk key's row offset in every chunk-index node of the file (HDF5's version-1
+B-trees: the chunk is then listed off its place, or its block reads as never written), and single-bit
+flips at random offsets (a fixed seed). After each: `status --json`, `reduce --json`, `export` (CSV; and
+XYZ, `analyze` of a configuration for the store that keeps them) and `verify`. No traceback, exit codes
+as documented (0 or 2 for the readers, 0 or 1 for verify), and no reader exits 0 with an output other
+than the clean store's.
+"""
+
+import contextlib
+import io
+import random
+import shutil
+import struct
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from campaign import cli
+
+BLOCK = 4
+SPECS = {
+    "plain": """\
+name: dmg
+seed: 21
+grid: {N_G: [16, 24, 32], E_G: [1.0e-3, 1.0e-5], seeds: 6}
+observables: [scalars, connectivity]
+bins: {z_g: {range: [-0.5, 12.5], count: 13}, z_v: {range: [2.5, 12.5], count: 10}}
+""",
+    "configs": """\
+name: dmgc
+seed: 5
+grid: {N_G: [16, 24], E_G: [1.0e-3, 1.0e-5], seeds: 3}
+variants: [{name: lad, start: ladder}]
+observables: [scalars, connectivity, void_areas]
+bins: {z_g: {range: [-0.5, 12.5], count: 13}, z_v: {range: [2.5, 12.5], count: 10}, alpha_v: {range: [0, 2], count: 40}}
+store: {configurations: true}
+run: {retries: 0}
+""",
+}
+
+
+def _cli(*argv):
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = cli.main([str(a) for a in argv])
+        except SystemExit as exc:
+            code = exc.code
+    return code, out.getvalue(), err.getvalue()
+
+
+@pytest.fixture(scope="module", params=list(SPECS))
+def store(request, tmp_path_factory):
+    import campaign.storage.store
+
+    d = tmp_path_factory.mktemp(request.param)
+    (d / "s.yaml").write_text(SPECS[request.param])
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(campaign.storage.store, "BLOCK_ROWS", BLOCK)
+        mp.setenv("CAMPAIGN_SYNTHETIC_FAIL", "seed:1" if request.param == "configs" else "none")
+        code, _, err = _cli("run", d / "s.yaml", "--out", d / "ref.h5", "--launcher", "inline", "--task-function",
+                            "synthetic", "--quiet")
+        assert code == 0, err
+    with h5py.File(d / "ref.h5", "r") as f:
+        group = "/configurations/" + sorted(f["configurations"])[0] if "configurations" in f else None
+    clean = _readers(d / "ref.h5", d / "clean", group)
+    assert all(code == 0 for code, _ in clean.values()), clean
+    return d / "ref.h5", group, clean
+
+
+def _readers(path, out, group):
+    """Exit code and output of every reader of ``path``."""
+    out = Path(out)
+    out.mkdir(exist_ok=True)
+    got = {}
+    code, text, err = _cli("status", path, "--json")
+    got["status"] = (code, text, err)
+    code, text, err = _cli("reduce", path, "--json", "--boot", "0", "--out", out / "red")
+    got["reduce"] = (code, text, err)
+    csv = out / "x.csv"
+    code, _, err = _cli("export", path, "--out", csv)
+    got["export"] = (code, csv.read_bytes() if code == 0 else b"", err)
+    if group is not None:
+        xyz = out / "x.xyz"
+        code, _, err = _cli("export", path, "--out", xyz)
+        got["xyz"] = (code, xyz.read_bytes() if code == 0 else b"", err)
+        code, text, err = _cli("analyze", path, "--group", group)
+        got["analyze"] = (code, text.replace(str(path), "STORE"), err)
+    for k, (code, value, err) in got.items():
+        assert "Traceback" not in err, (k, err)
+        assert code in (0, 2), (k, code, err)
+        assert code == 0 or "is damaged" in err or err.strip(), (k, err)
+    return {k: (code, value) for k, (code, value, _) in got.items()}
+
+
+def _status_figures(text):
+    import json
+
+    s = json.loads(text)
+    for k in ("writer", "file"):
+        s.pop(k, None)
+    return json.dumps({k: v for k, v in s.items() if "time" not in k and "ago" not in k and k != "progress"},
+                      sort_keys=True)
+
+
+def _silent(clean, got):
+    """Readers that exited 0 with another output than the clean store's."""
+    bad = []
+    for k, (code, value) in got.items():
+        if code != 0:
+            continue
+        want = clean[k][1]
+        if k == "status":
+            value, want = _status_figures(value), _status_figures(want)
+        if value != want:
+            bad.append(k)
+    return bad
+
+
+def chunk_keys(data):
+    """(offset of a chunk key's row offset, rank) of every key of every chunk-index node (v1 B-tree,
+    type 1) in the file's bytes: the first key of each node, and its middle one."""
+    out = []
+    pos = data.find(b"TREE")
+    while pos >= 0:
+        kind, level, used = data[pos + 4], data[pos + 5], struct.unpack_from("<H", data, pos + 6)[0]
+        if kind == 1 and used:
+            for rank in (1, 2):
+                key = 8 + 8 * (rank + 1)
+                first = pos + 24
+                offs = [first + i * (key + 8) + 8 for i in range(used + 1)]
+                if offs[-1] + 8 * (rank + 1) > len(data):
+                    continue
+                rows = [struct.unpack_from("<Q", data, o)[0] for o in offs[:-1]]
+                tail = [struct.unpack_from("<Q", data, o + 8 * rank)[0] for o in offs[:-1]]
+                if all(r % BLOCK == 0 and r < 1 << 20 for r in rows) and not any(tail) and rows == sorted(rows):
+                    out += sorted({offs[0], offs[used // 2]})
+                    break
+        pos = data.find(b"TREE", pos + 4)
+    return out
+
+
+def _trial(ref, group, clean, tmp, offset, bit):
+    p = tmp / "d.h5"
+    shutil.copy(ref, p)
+    with open(p, "r+b") as fh:
+        fh.seek(offset)
+        b = fh.read(1)
+        fh.seek(offset)
+        fh.write(bytes([b[0] ^ (1 << bit)]))
+    got = _readers(p, tmp / "o", group)
+    code, out, err = _cli("verify", p, "--quiet")
+    assert code in (0, 1) and "Traceback" not in err, (offset, bit, code, err)
+    return got, code
+
+
+def test_every_chunk_index_damaged(store, tmp_path):
+    ref, group, clean = store
+    keys = chunk_keys(Path(ref).read_bytes())
+    assert len(keys) >= 10
+    refused = 0
+    for off in keys:
+        for bit in (np.log2(BLOCK).astype(int), np.log2(BLOCK).astype(int) + 1):  # a block off its place
+            got, verify = _trial(ref, group, clean, tmp_path, off, int(bit))
+            assert not _silent(clean, got), (off, bit, _silent(clean, got), got)
+            refused += any(code == 2 for code, _ in got.values())
+            if any(code == 2 for code, _ in got.values()):
+                assert verify == 1, (off, bit)
+    print("chunk-index damage:", 2 * len(keys), "flips in", len(keys) // 1, "keys,", refused, "refused by a reader, 0 silent")
+    assert refused >= len(keys)  # most damage changes what a reader reads: all of it is refused
+
+
+def test_random_flips(store, tmp_path):
+    ref, group, clean = store
+    size = Path(ref).stat().st_size
+    rng = random.Random(45)
+    refused = 0
+    for _ in range(25):
+        off, bit = rng.randrange(size), rng.randrange(8)
+        got, verify = _trial(ref, group, clean, tmp_path, off, bit)
+        assert not _silent(clean, got), (off, bit, _silent(clean, got))
+        refused += any(code == 2 for code, _ in got.values())
+    print("random flips refused by a reader:", refused)
