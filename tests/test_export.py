@@ -20,6 +20,7 @@ import pytest
 import campaign
 from campaign import cli
 from campaign.errors import MissingExtra, UserError
+from helpers import reseal
 
 REAL_SPEC = """\
 name: exporttest
@@ -73,6 +74,7 @@ def synth(tmp_path_factory):
         js[done[[3, 9]]] = 2.0
         ok[done[5]] = 0.0
         f["scalars/jam_status"][:], f["scalars/identities_ok"][:] = js, ok
+        reseal(f, "tasks/status", "scalars/jam_status", "scalars/identities_ok")
     return out
 
 

@@ -412,7 +412,7 @@ def test_local_worker_killed_the_run_goes_on(tmp_path, reference):
             p.wait(timeout=30)
     assert p.returncode == 0, err
     assert "died (exit code -9)" in err and "240 done, 0 failed" in err, err
-    _assert_equal(out, ref, skip=("tasks/attempts",))
+    _assert_equal(out, ref, skip=("tasks/attempts", "checksums/tasks.attempts"))
     with h5py.File(out, "r") as f:
         attempts = f["tasks/attempts"][:]
     assert 1 <= (attempts == 2).sum() <= 16 and ((attempts == 1) | (attempts == 2)).all()  # the killed one's tasks
