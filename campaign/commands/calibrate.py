@@ -330,7 +330,7 @@ def _gpu_ratios(args) -> dict:
     times the CPU emulation instead (for tests: its ratios price nothing real)."""
     import os
 
-    from kernels.gpu import describe, jam_batch, resolve_backend
+    from kernels.gpu import describe, resolve_backend
 
     backend = resolve_backend(None)
     if backend != "cuda" and os.environ.get("CAMPAIGN_GPU_BACKEND") != "emulate":

@@ -498,7 +498,7 @@ def _store_exponent(attrs):
 def _store_ids_with_configurations(path):
     import h5py
 
-    from campaign.storage.integrity import read_failure
+    from campaign.storage.readerror import read_failure
 
     with h5py.File(path, "r", locking=False) as f:
         try:

@@ -96,7 +96,7 @@ class Packings:
             raise
 
     def _failure(self, exc, patterns):
-        from campaign.storage.integrity import read_failure
+        from campaign.storage.readerror import read_failure
 
         return read_failure(self.path, exc, self._f, patterns)
 

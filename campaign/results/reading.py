@@ -127,7 +127,7 @@ class Finished:
                         data = ds[s:e]
                         yield pos[m], np.asarray(data[rows[m] - s], dtype=np.int64)
                 except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
-                    from campaign.storage.integrity import read_failure
+                    from campaign.storage.readerror import read_failure
 
                     err = read_failure(path, exc, f, [f"histograms/{name}/counts"], what=f"histogram {name!r}")
                     if err is None:
@@ -214,7 +214,7 @@ def load_finished(paths) -> Finished:
                     for n in f["histograms"]:
                         hedges[n] = np.asarray(f[f"histograms/{n}/edges"][...], dtype=float)
             except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
-                from campaign.storage.integrity import read_failure
+                from campaign.storage.readerror import read_failure
 
                 err = read_failure(path, exc, f, ["tasks", "scalars", "histograms/*/edges"])
                 if err is None:

@@ -280,7 +280,7 @@ def _read_hdf5(path, group):
     except ImportError:  # pragma: no cover - h5py is a dependency
         raise UserError(f"{path}: reading HDF5 needs h5py") from None
     from campaign.storage.checksums import check_configuration, open_failure
-    from campaign.storage.integrity import read_failure
+    from campaign.storage.readerror import read_failure
 
     try:
         from campaign.storage.checksums import open_checked

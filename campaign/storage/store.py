@@ -146,7 +146,7 @@ class Store:
                 try:
                     load_state(self.path, self.status, self.attempts, self.wall)
                 except (OSError, KeyError, ValueError, RuntimeError) as exc:
-                    from campaign.storage.integrity import read_failure
+                    from campaign.storage.readerror import read_failure
 
                     raise read_failure(self.path, exc, None, ["tasks/attempts", "tasks/wall"],
                                        what="its task table") from None
@@ -689,7 +689,7 @@ def open_store(path):
         raise
     except Exception as exc:  # noqa: BLE001 - its root attributes cannot be read
         f.close()
-        from campaign.storage.integrity import read_failure
+        from campaign.storage.readerror import read_failure
 
         err = read_failure(path, exc, None, (), what="its root attributes")
         if err is None:
@@ -704,7 +704,7 @@ def open_store(path):
 def read_retrying(path, read, patterns=("tasks", "failures")):
     """``read(f)`` on the store opened read-only, retried a few times while a run writes it (the
     read may catch the file in the middle of a flush); a failure that is the file's becomes the
-    readers' error (``campaign.storage.integrity.read_failure``: damaged, naming ``patterns``' datasets)."""
+    readers' error (``campaign.storage.readerror.read_failure``: damaged, naming ``patterns``' datasets)."""
     last = None
     for _ in range(5):
         try:
@@ -714,7 +714,7 @@ def read_retrying(path, read, patterns=("tasks", "failures")):
             raise
         except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
             from campaign.storage.checksums import run_is_writing
-            from campaign.storage.integrity import read_failure
+            from campaign.storage.readerror import read_failure
 
             err = read_failure(path, exc, None, list(patterns))
             if err is None:
