@@ -1,11 +1,13 @@
 """GPU workers against the CPU kernels (docs/GPU.md), side by side in one run on one machine.
 
 1. FIRE steps: microseconds per FIRE step per packing for N_G in ``--sizes`` and batches of
-   ``--batches`` packings (one thread block each): the first minimisation of each packing's
-   search, bounded at ``--steps`` steps (``max_search 1``, list rebuilds and the residual checks
-   every 100 steps included), from random starts at E_G = 1e-12; the time of the launch divided
-   by steps x packings. The CPU kernel's step on one core (``kernels.fire._fire_core``, same
-   starts, same bound) beside it, and the ratio.
+   ``--batches`` packings (one thread block each): the kernel alone (arrays on the device before
+   the clock), steps ``--steps`` to ``2 --steps`` of the first minimisation of random starts at
+   E_G = 1e-12 (two launches bounded at ``max_search 1``, their difference: past the first steps,
+   which rebuild the lists at every step; list rebuilds and the residual checks every 100 steps
+   included), divided by steps x packings. The CPU kernel's step on one core
+   (``kernels.fire._fire_core``, same starts, same steps) beside it, and the ratio
+   (``kernels.gpu.batch.time_steps``).
 2. Whole packings at ``--full`` (N_G, E_G) cells: ``--full-batch`` packings (seeds 0, 1, ...) in
    one launch, the wall time to the last one, hence packings per hour of the GPU; the CPU's
    packings per hour on all of this machine's cores from the CPU step time measured with all
@@ -18,9 +20,12 @@
         [--threads 256] [--backend auto|cuda|emulate] [--check] [--json FILE]
 
 ``--check`` first runs the kernel and its CPU emulation on the same inputs (8 packings at N_G 256,
-E_G 1e-6 and at N_G 1024, E_G 1e-10) and reports how far their positions part.
+E_G 1e-6 and at N_G 1024, E_G 1e-10; the emulation one packing per core meanwhile) and reports
+how far their positions part.
 
-On one H100 the defaults take about 7-8 minutes (docs/GPU.md has the figures and the command).
+docs/GPU.md has the figures of one H200 and the command (164 s with ``--sizes 1024 4096 8192
+--batches 1 132 264 --steps 500 --full 4096:1e-12``; the defaults' whole packings at N_G 8192
+take longer: a batch of 132 at E_G 1e-12 did not finish in 150 s there).
 Without a GPU, ``--backend emulate`` runs the same block on the CPU (tiny sizes only: it shows that
 the script works, not how fast a GPU is).
 """
@@ -87,17 +92,33 @@ def _cpu_packing(args):
     return time.perf_counter() - t0, p.force_evaluations, p.status
 
 
+def _emulated(args):
+    n, e, seed, threads = args
+    return _gpu_batch(n, [e], [seed], "emulate", threads)[1][0]
+
+
 def check_kernel(backend, threads):
     """The kernel against the emulation on the same inputs: positions to round-off (the GPU
-    compiler fuses multiply-adds; the emulation does not), the same course of the search."""
+    compiler fuses multiply-adds; the emulation does not), the same course of the search. The
+    emulation runs one packing per core while the GPU runs its batches."""
+    cells = ((256, 1e-6), (1024, 1e-10))
+    seeds = list(range(8))
+    jobs = [(n, e, s, threads) for n, e in cells for s in seeds]
+    with mp.get_context("spawn").Pool(min(len(jobs), os.cpu_count() or 1)) as pool:
+        pending = pool.map_async(_emulated, jobs)
+        gpus = []
+        for n, e in cells:
+            wall, got = _gpu_batch(n, [e] * len(seeds), seeds, backend, threads)
+            gpus.append(got)
+            print(f"  the kernel: {len(seeds)} packings at N_G {n}, E_G {e:g} in {wall:.1f} s (the first "
+                  "launch compiles)", flush=True)
+        emus = pending.get()
     rows = []
-    for n, e in ((256, 1e-6), (1024, 1e-10)):
-        seeds = list(range(8))
-        _, gpu = _gpu_batch(n, [e] * 8, seeds, backend, threads)
-        _, emu = _gpu_batch(n, [e] * 8, seeds, "emulate", threads)
-        for s, g, m in zip(seeds, gpu, emu):
+    for k, (n, e) in enumerate(cells):
+        for s, g, m in zip(seeds, gpus[k], emus[k * len(seeds):(k + 1) * len(seeds)]):
             d = float(np.max(np.abs(((g.positions - m.positions) + 0.5) % 1.0 - 0.5)))
             rows.append({"N": n, "E": e, "seed": s, "max_position_difference": d,
+                         "gpu_status": g.status, "emulation_status": m.status,
                          "gpu_force_evaluations": g.force_evaluations,
                          "emulation_force_evaluations": m.force_evaluations,
                          "gpu_energy": g.energy, "emulation_energy": m.energy,
@@ -180,7 +201,8 @@ def main(argv=None) -> int:
     if a.check:
         print("the kernel against its CPU emulation, same inputs:", flush=True)
         check = check_kernel(backend, a.threads)
-    print("FIRE steps (first minimisation from random starts at E_G 1e-12):", flush=True)
+    print(f"FIRE steps (the kernel alone, steps {a.steps}-{2 * a.steps} of the first minimisation from random "
+          "starts at E_G 1e-12):", flush=True)
     steps = step_table(a.sizes, a.batches, a.steps, backend, a.threads)
     cells = [(int(c.split(":")[0]), float(c.split(":")[1])) for c in a.full]
     print("whole packings:", flush=True)

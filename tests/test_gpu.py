@@ -186,8 +186,13 @@ def test_gpu_and_cpu_packings_agree_in_the_mean():
 
 def test_kernel_compiles_for_a_real_gpu():
     """The batch kernel goes through numba-cuda's CUDA compiler to sm_90 PTX (libNVVM from the
-    test extra's numba-cuda[cu13]; no GPU needed: the device's compute capability is given)."""
+    test extra's numba-cuda[cu13]; no GPU needed: the device's compute capability is given), as
+    the launch compiles it: without contraction (every float64 multiply, add and subtract rounded
+    on its own, ``.rn``, which the assembler never fuses; fused multiply-adds left only inside
+    libdevice's functions, fewer than the default's) and without link-time optimisation (whose
+    code generation in nvJitLink would contract again)."""
     code = """
+import re
 import numba.cuda.dispatcher as d
 class Hopper:
     compute_capability = (9, 0)
@@ -195,8 +200,17 @@ d.get_current_device = lambda: Hopper()
 from numba import cuda, float64, int32
 from kernels.gpu import device
 f3, f2, i3 = float64[:, :, ::1], float64[:, ::1], int32[:, :, ::1]
-ptx, _ = cuda.compile_ptx(device.kernel(256).py_func, (f3, i3, f3, i3, i3, f2, f2), device=False, cc=(9, 0))
+sig = (f3, i3, f3, i3, i3, f2, f2)
+k = device.kernel(256)
+assert k.targetoptions.get("lto") is False, k.targetoptions
+plain, _ = cuda.compile_ptx(k.py_func, sig, device=False, cc=(9, 0))
+with device._uncontracted():
+    ptx, _ = cuda.compile_ptx(k.py_func, sig, device=False, cc=(9, 0))
 assert ".target sm_90" in ptx and "bar.sync" in ptx and "atom.global.add" in ptx, ptx[:400]
+loose = re.findall(r"\\b(?:mul|add|sub)\\.f64", ptx)
+assert not loose and re.findall(r"\\bmul\\.rn\\.f64", ptx), loose[:5]
+assert re.findall(r"\\b(?:mul|add|sub)\\.f64", plain), "the default contracts nothing: the check is void"
+assert ptx.count("fma.rn.f64") < plain.count("fma.rn.f64"), (ptx.count("fma.rn.f64"), plain.count("fma.rn.f64"))
 print("ok", len(ptx))
 """
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,

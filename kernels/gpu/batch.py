@@ -27,7 +27,7 @@ import os
 import numpy as np
 
 from kernels.gpu.block import (N_FL, N_IV, N_OUT, N_PARAMS, O_ENERGY, O_FORCE_EVALS, O_ITERATIONS,
-                               O_RESIDUAL, O_SCALE, O_STATUS, O_VIRIAL, P_ALPHA, P_DELTA, P_E_MIN,
+                               O_RESIDUAL, O_SCALE, O_STATUS, O_STEPS, O_VIRIAL, P_ALPHA, P_DELTA, P_E_MIN,
                                P_ENERGY_STEP, P_LX, P_LY, P_MAX_RADIUS, P_MAX_SEARCH, P_MAX_STEPS,
                                P_MEAN_D, P_NCX, P_NCY, P_RMAX, P_RULE, P_SEARCH_TOL, P_SIN_TOL, P_SKIN,
                                P_TOL, P_WINDOW, P_XY, R0, ROWS, ST_OVERFLOW, X, Y, make_block)
@@ -209,6 +209,16 @@ def jam_batch(n, energies, seeds, starts=None, backend=None, threads=None, **set
 def start_batch(n, energies, seeds, starts=None, backend=None, threads=None, **settings):
     """Prepare the batch and start it: on a GPU the kernel is launched and this returns at once;
     the emulation runs it here. Returns the handle ``finish_batch`` takes."""
+    handle = _stage(n, energies, seeds, starts, backend, threads, **settings)
+    if handle["backend"] == "emulate":
+        _emulator()(handle["nt"], *handle["arrays"])
+    else:
+        handle["running"] = _device().launch(handle["nt"], handle["arrays"])
+    return handle
+
+
+def _stage(n, energies, seeds, starts=None, backend=None, threads=None, **settings):
+    """The batch's host arrays (a handle for ``finish_batch``, nothing started yet)."""
     from kernels.protocol import _spatial_order
 
     jobs = prepare(n, energies, seeds, starts, **settings)
@@ -232,13 +242,8 @@ def start_batch(n, energies, seeds, starts=None, backend=None, threads=None, **s
     arrays = [fl, np.zeros((B, MAXNB, n), np.int32), np.zeros((B, MAXNB, n)),
               np.zeros((B, N_IV, n), np.int32), np.zeros((B, cap + 1, ncell), np.int32), prm,
               np.zeros((B, N_OUT))]
-    if which == "emulate":
-        _emulator()(nt, *arrays)
-        running = None
-    else:
-        running = _device().launch(nt, arrays)
     return {"n": n, "jobs": jobs, "orders": orders, "cap": cap, "arrays": arrays, "backend": which,
-            "running": running}
+            "nt": nt, "running": None}
 
 
 def finish_batch(handle):
@@ -271,31 +276,59 @@ def finish_batch(handle):
     return results
 
 
+def _kernel_seconds(handle, bound):
+    """Seconds of the batch's kernel alone (the arrays on the device before the clock, the
+    results after it) with every minimisation bounded at ``bound`` steps, and the steps done."""
+    import time
+
+    arrays = [a.copy() for a in handle["arrays"]]
+    arrays[5][:, P_MAX_STEPS] = bound
+    if handle["backend"] == "emulate":
+        t0 = time.perf_counter()
+        _emulator()(handle["nt"], *arrays)
+        wall = time.perf_counter() - t0
+        out = arrays[-1]
+    else:
+        dev = _device()
+        on = dev.upload(arrays)
+        dev.wait()
+        t0 = time.perf_counter()
+        dev.start(handle["nt"], on)
+        dev.wait()
+        wall = time.perf_counter() - t0
+        out = on[-1].copy_to_host()
+    return wall, float(out[:, O_STEPS].sum())
+
+
 def time_steps(n, batch, steps, backend=None, threads=None, energy=1e-12):
-    """Seconds per FIRE step: ``(block, cpu)``, the block's per packing in a launch of ``batch``
-    random starts (their first minimisation bounded at ``steps`` steps, rebuilds and residual
-    checks included; compiled before the clock) and the CPU kernel's (``kernels.fire._fire_core``)
-    on the first of those starts, one core. What ``benchmarks/bench_gpu.py`` and ``campaign
-    calibrate --gpu`` measure."""
+    """Seconds per FIRE step: ``(block, cpu)``. The block's per packing: a launch of ``batch``
+    random starts, the first minimisation of each bounded at ``steps`` and then at ``2 steps``
+    steps, the kernel's time alone (no host preparation or copies); the steps ``steps .. 2
+    steps`` are timed (their difference), past the first steps' list rebuilds at every step,
+    as in the long minimisations that make a packing's cost. The CPU kernel's
+    (``kernels.fire._fire_core``) the same way on the first of those starts, one core. What
+    ``benchmarks/bench_gpu.py`` and ``campaign calibrate --gpu`` measure."""
     import time
 
     from kernels.fire import _fire_core, default_timestep
 
     jam_batch(n, [energy], [0], backend=backend, threads=threads, max_search=1, max_steps=10)
-    t0 = time.perf_counter()
-    out = jam_batch(n, [energy] * batch, list(range(batch)), backend=backend, threads=threads,
-                    max_search=1, max_steps=steps)
-    wall = time.perf_counter() - t0
-    done = sum(min(steps, p.force_evaluations - 1) for p in out if not isinstance(p, Exception))
-    job = prepare(n, [energy], [0])[0]
+    handle = _stage(n, [energy] * batch, list(range(batch)), None, backend, threads, max_search=1,
+                    max_steps=steps)
+    (w1, d1), (w2, d2) = (_kernel_seconds(handle, b) for b in (steps, 2 * steps))
+    gpu = (w2 - w1) / (d2 - d1) if d2 > d1 else math.nan
+    job = handle["jobs"][0]
     box = job.cell_box
     dt = default_timestep(job.radii0, job.alpha, 1e-8)
     skin = job.skin * 2.0 * float(np.mean(job.radii0))
     _fire_core(job.positions.copy(), job.radii0, box, job.alpha, 1e-6, 10, skin, dt, 0.0)
-    t0 = time.perf_counter()
-    r = _fire_core(job.positions, job.radii0, box, job.alpha, 1e-6, steps, skin, dt, 0.0)
-    cpu = (time.perf_counter() - t0) / max(1, r[1])
-    return wall / max(1, done), cpu
+    cpu = []
+    for bound in (steps, 2 * steps):
+        t0 = time.perf_counter()
+        r = _fire_core(job.positions.copy(), job.radii0, box, job.alpha, 1e-6, bound, skin, dt, 0.0)
+        cpu.append((time.perf_counter() - t0, r[1]))
+    (c1, s1), (c2, s2) = cpu
+    return gpu, ((c2 - c1) / (s2 - s1) if s2 > s1 else math.nan)
 
 
 __all__ = ["jam_batch", "start_batch", "finish_batch", "time_steps", "prepare", "simulated", "BlockOverflow", "resolve_backend", "describe", "cuda_available",

@@ -5,8 +5,20 @@ the ``gpu`` extra; imported only when a CUDA backend runs).
 (``NUMBA_ENABLE_CUDASIM=1``) runs a kernel by swapping the ``cuda`` globals of its module for a
 simulated one. Some numba-cuda builds call ``np.row_stack``, removed in numpy 2.4; the alias it
 meant (``np.vstack``) is restored before the import.
+
+The kernel is compiled without floating-point contraction (NVVM's ``-fma=0``; numba-cuda's
+default contracts a multiply and an add into one fused multiply-add, which the CPU emulation
+does not do), so that the kernel does the emulation's operations with the same rounding: a
+search is a long chaotic sequence of steps, and one rounding apart is enough to end it in
+another minimum of the same energy window. It is compiled to PTX and linked without link-time
+optimisation (``lto=False``): numba-cuda's default where nvJitLink is installed hands NVVM's
+intermediate code to nvJitLink, which generates the machine code itself and contracts again.
+On an H200 with the LTO default, 0 of 16 whole searches (N_G 256 and 1024) ended with the
+emulation's bits (same statuses, energies within the window; positions apart as far as a 1-ulp
+change of the start moves them on the CPU); the PTX route is what ``tests/test_gpu.py`` checks.
 """
 
+import contextlib
 from functools import lru_cache
 
 import numpy as np
@@ -43,15 +55,16 @@ def kernel(nt, max_registers=None):
     ohern = make_block(device, device(_sync), device(_slot_add)).ohern
     regs = max_registers or min(255, REGISTER_FILE // nt // 8 * 8)
 
-    # (numba's CUDA simulator takes no register bound)
-    @cuda.jit(**({} if config.ENABLE_CUDASIM else {"max_registers": regs}))
     def run(fl, nbr, ninv, iv, cells, prm, out):
         b = cuda.blockIdx.x
         t = cuda.threadIdx.x
         red = cuda.shared.array((ROWS, nt), dtype=float64)
         ohern(t, t + 1, nt, fl[b], nbr[b], ninv[b], iv[b], cells[b], red, prm[b], out[b])
 
-    return run
+    if config.ENABLE_CUDASIM:  # (the simulator takes no register bound and links nothing)
+        return cuda.jit(run)
+    # (the function given to jit itself: numba-cuda 0.30's decorator form drops ``lto``)
+    return cuda.jit(run, max_registers=regs, lto=False)
 
 
 def available() -> bool:
@@ -67,12 +80,49 @@ def name() -> str:
     return "cuda:" + (n.decode() if isinstance(n, bytes) else str(n))
 
 
+@contextlib.contextmanager
+def _uncontracted():
+    """NVVM compiles without fused multiply-adds while this is open (the kernel compiles at its
+    first launch)."""
+    if config.ENABLE_CUDASIM:
+        yield
+        return
+    from numba.cuda.cudadrv import nvvm
+
+    compile_ir = nvvm.compile_ir
+
+    def no_fma(llvmir, **options):
+        options["fma"] = False
+        return compile_ir(llvmir, **options)
+
+    nvvm.compile_ir = no_fma
+    try:
+        yield
+    finally:
+        nvvm.compile_ir = compile_ir
+
+
+def upload(arrays):
+    """The batch's arrays copied to the device."""
+    return [cuda.to_device(a) for a in arrays]
+
+
+def start(nt, dev, max_registers=None):
+    """Launch one block of ``nt`` threads per packing on uploaded arrays; returns at once."""
+    with _uncontracted():
+        kernel(nt, max_registers)[dev[0].shape[0], nt](*dev)
+    return dev
+
+
 def launch(nt, arrays, max_registers=None):
     """Copy the batch's arrays to the device and launch one block per packing; returns at once
     (``collect`` waits). The handle holds the device arrays."""
-    dev = [cuda.to_device(a) for a in arrays]
-    kernel(nt, max_registers)[arrays[0].shape[0], nt](*dev)
-    return dev
+    return start(nt, upload(arrays), max_registers)
+
+
+def wait():
+    """Wait for the launched kernels."""
+    cuda.synchronize()
 
 
 def collect(dev):
