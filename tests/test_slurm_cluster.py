@@ -318,6 +318,26 @@ def _nodes():
     return sorted(set(_run(["sinfo", "-h", "-N", "-o", "%N"], _env()).stdout.split()))
 
 
+PMI2_FRAMING = "mpi/pmi2: value not properly terminated"
+
+
+def _watched_job(tmp_path, script, env, out, jobs):
+    """Submit the script and follow the job to its end, asking `campaign status` about ``out`` from
+    outside meanwhile: the job's final record, its log and the live writers status saw."""
+    job_id = _submit(script, env)
+    jobs.append(job_id)
+    _wait_running(job_id)
+    writers = []
+    while _job(job_id)["JobState"] not in FINAL:
+        if out.exists():
+            got = subprocess.run([sys.executable, "-m", "campaign", "status", str(out), "--json"], env=env,
+                                 capture_output=True, text=True, timeout=60)
+            if got.returncode == 0 and json.loads(got.stdout)["live"]:
+                writers.append(json.loads(got.stdout)["writer"])
+        time.sleep(0.3)
+    return _job(job_id), _log(tmp_path, "onejob", job_id), writers
+
+
 @pytest.mark.parametrize("launcher", ["srun", "mpiexec"])
 def test_one_mpi_world_across_two_nodes(tmp_path, jobs, launcher):
     """8. The generated script on two nodes of two ranks each: one MPI world (rank 0 the master on the
@@ -331,18 +351,17 @@ def test_one_mpi_world_across_two_nodes(tmp_path, jobs, launcher):
     options = () if launcher == "srun" else ("--launcher", "mpiexec")
     script, _ = _script(tmp_path, ONE_JOB_SPEC, env, *options, nodes=2, per_node=2)
     out = tmp_path / "out.h5"
-    jobs.append(_submit(script, env))
-    _wait_running(jobs[0])
-    writers = []
-    while _job(jobs[0])["JobState"] not in FINAL:
-        if out.exists():
-            got = subprocess.run([sys.executable, "-m", "campaign", "status", str(out), "--json"], env=env,
-                                 capture_output=True, text=True, timeout=60)
-            if got.returncode == 0 and json.loads(got.stdout)["live"]:
-                writers.append(json.loads(got.stdout)["writer"])
-        time.sleep(0.3)
-    job = _job(jobs[0])
-    log = _log(tmp_path, "onejob", jobs[0])
+    job, log, writers = _watched_job(tmp_path, script, env, out, jobs)
+    for _ in range(2):
+        if job["JobState"] == "COMPLETED" or PMI2_FRAMING not in log or launcher != "srun":
+            break
+        # Slurm's pmi2 server misread a rank's PMI request in MPI_Init (a business card of MPICH's,
+        # segmented over requests, on two nodes: in bursts of a few jobs, never with mpiexec's own
+        # PMI; docs/CLUSTERS.md), before any of the project's code used MPI: the job again, from an
+        # empty store
+        for f in tmp_path.glob("out.h5*"):
+            f.unlink()
+        job, log, writers = _watched_job(tmp_path, script, env, out, jobs)
     assert (job["JobState"], job["ExitCode"]) == ("COMPLETED", "0:0"), log
     assert job["NumNodes"] == "2" and "this run: 20 done" in log, (job, log)
     with h5py.File(out, "r") as f:
