@@ -1,12 +1,12 @@
 """What the store's checksums cost (docs/STORE.md, "Checksums, verify and repair").
 
-Every figure compares a store written with checksums (fletcher32 on every chunk, crc32 on every
-configuration and failure record) with one written without (``CAMPAIGN_NO_CHECKSUMS=1``, as
-stores before them), measured side by side in one run: the two are alternated ``--repeats``
-times and the ratios of the medians reported, so that a shared, loaded machine slows both alike.
-
-Since the block checksums (a uint64 of the values of each block of rows, checked by the readers),
-"with checksums" includes them: written by the master, checked by every read below.
+Every figure compares three stores written side by side in one run: with every checksum (the
+block checksums, a uint64 of the values of each block of rows, written by the master and checked
+by every read below; fletcher32 on every chunk; crc32 on every configuration and failure record),
+with all but the block checksums (the stores of 0.2.7, read as such: "before"), and without any
+(``CAMPAIGN_NO_CHECKSUMS=1``). The three are alternated ``--repeats`` times and the ratios of the
+medians reported, so that a shared, loaded machine slows them alike: "with / before" is what the
+block checksums cost, "with / without" what every checksum costs.
 
 1. Writing: the master's store path alone (``Store.record`` and the block writes, journal
    included), in this process, for ``--tasks`` synthetic tasks carrying every histogram at the
@@ -46,16 +46,21 @@ def _spec(n_tasks):
                       f"seeds: {seeds}}}\n")
 
 
-def write_store(path, n_tasks, checksums):
-    """Seconds of CPU the store path takes for n_tasks finished tasks; the file written."""
+def write_store(path, n_tasks, mode):
+    """Seconds of CPU the store path takes for n_tasks finished tasks, the store written with every
+    checksum (``mode`` "with"), without the block checksums ("before") or without any ("without")."""
+    from campaign.storage import checksums as cks
     from campaign.storage.store import Store
     from campaign.plan.tasks import expand
     from campaign.run.worker import SyntheticTask, run_task
 
-    if checksums:
-        os.environ.pop("CAMPAIGN_NO_CHECKSUMS", None)
-    else:
+    saved = cks.create_sums, cks.create_fill_sums
+    if mode == "without":
         os.environ["CAMPAIGN_NO_CHECKSUMS"] = "1"
+    else:
+        os.environ.pop("CAMPAIGN_NO_CHECKSUMS", None)
+    if mode == "before":  # a store without /checksums: its writer and readers skip the block checksums
+        cks.create_sums = cks.create_fill_sums = lambda *a, **k: None
     try:
         spec = _spec(n_tasks)
         tasks = expand(spec)
@@ -75,6 +80,7 @@ def write_store(path, n_tasks, checksums):
         return time.process_time() - t0
     finally:
         os.environ.pop("CAMPAIGN_NO_CHECKSUMS", None)
+        cks.create_sums, cks.create_fill_sums = saved
 
 
 def read_blocks(path):
@@ -131,26 +137,28 @@ def main(argv=None) -> int:
     ap.add_argument("--tmp", default=None, help="directory for the files (default: a temporary one)")
     ap.add_argument("--json", default=None, help="write the figures to this file")
     args = ap.parse_args(argv)
-    res = {"tasks": args.tasks, "repeats": args.repeats, "on": {"write": [], "read": [], "verify": []},
-           "off": {"write": [], "read": [], "verify": []}}
+    modes = ("with", "before", "without")
+    res = {"tasks": args.tasks, "repeats": args.repeats,
+           **{m: {"write": [], "read": [], "verify": []} for m in modes}}
     with tempfile.TemporaryDirectory(dir=args.tmp) as d:
-        paths = {"on": Path(d) / "on.h5", "off": Path(d) / "off.h5"}
+        paths = {m: Path(d) / f"{m}.h5" for m in modes}
         for k in range(args.repeats):
-            for key in (("on", "off") if k % 2 == 0 else ("off", "on")):
-                res[key]["write"].append(write_store(paths[key], args.tasks, key == "on"))
-            for key in (("on", "off") if k % 2 == 0 else ("off", "on")):
+            order = modes[k % 3:] + modes[:k % 3]
+            for key in order:
+                res[key]["write"].append(write_store(paths[key], args.tasks, key))
+            for key in order:
                 res[key]["read"].append(read_blocks(paths[key]))
                 res[key]["verify"].append(verify_seconds(paths[key]))
-        for key in ("on", "off"):
+        for key in modes:
             res[key]["file_bytes"] = paths[key].stat().st_size
         res["crc"] = crc_rate()
         if args.scale:
             import bench_master
 
-            res["scale"] = {"on": [], "off": []}
+            res["scale"] = {"with": [], "without": []}
             for k in range(args.repeats if args.scale <= 100000 else 1):
-                for key in (("on", "off") if k % 2 == 0 else ("off", "on")):
-                    if key == "off":
+                for key in (("with", "without") if k % 2 == 0 else ("without", "with")):
+                    if key == "without":
                         os.environ["CAMPAIGN_NO_CHECKSUMS"] = "1"
                     try:
                         tmp = Path(d) / f"scale-{key}-{k}"
@@ -162,22 +170,22 @@ def main(argv=None) -> int:
                             p.unlink() if p.is_file() else None
                     finally:
                         os.environ.pop("CAMPAIGN_NO_CHECKSUMS", None)
-    med = {key: {m: float(np.median(res[key][m])) for m in ("write", "read", "verify")} for key in ("on", "off")}
+    med = {key: {m: float(np.median(res[key][m])) for m in ("write", "read", "verify")} for key in modes}
     n = args.tasks
-    print(f"| {n} synthetic tasks, every histogram at the default bins; medians of {args.repeats} alternated pairs "
-          "| with checksums | without | ratio |")
-    print("|---|---|---|---|")
-    rows = [("store path, CPU per task (record, blocks, journal, close)", "write", 1e3 / n, "ms"),
-            ("reading every block back, per task", "read", 1e3 / n, "ms"),
-            ("campaign verify's whole scan, per task", "verify", 1e3 / n, "ms")]
-    for label, m, scale, unit in rows:
-        on, off = med["on"][m] * scale, med["off"][m] * scale
-        print(f"| {label} | {on:.3f} {unit} | {off:.3f} {unit} | {on / off:.3f} |")
-    on, off = res["on"]["file_bytes"], res["off"]["file_bytes"]
-    print(f"| file size, per task | {on / n:.1f} B | {off / n:.1f} B | {on / off:.4f} |")
+    print(f"| {n} synthetic tasks, every histogram at the default bins; medians of {args.repeats} alternated "
+          "triples | with every checksum | before (no block checksums) | without any | with / before | with / without |")
+    print("|---|---|---|---|---|---|")
+    rows = [("store path, CPU per task (record, blocks, journal, close)", "write"),
+            ("reading every block back, per task", "read"),
+            ("campaign verify's whole scan, per task", "verify")]
+    for label, m in rows:
+        a, b, c = (med[key][m] * 1e3 / n for key in modes)
+        print(f"| {label} | {a:.3f} ms | {b:.3f} ms | {c:.3f} ms | {a / b:.3f} | {a / c:.3f} |")
+    a, b, c = (res[key]["file_bytes"] for key in modes)
+    print(f"| file size, per task | {a / n:.1f} B | {b / n:.1f} B | {c / n:.1f} B | {a / b:.4f} | {a / c:.4f} |")
     for size, c in res["crc"].items():
         print(f"| crc32 of a configuration, N = {size} ({c['bytes'] / 1024:.0f} KiB) | {c['microseconds']:.1f} us "
-              f"| - | - |")
+              f"| - | - | - | - |")
     if args.scale:
         sc = res["scale"]
         keys = [("master_peak_rss_mb", "master peak RSS, MB"), ("tasks_per_second", "tasks per second, master loop"),
@@ -185,11 +193,11 @@ def main(argv=None) -> int:
                 ("status_seconds", "campaign status, s"), ("reduce_seconds", "campaign reduce, s"),
                 ("verify_seconds", "campaign verify (whole scan), s"),
                 ("reduce_peak_rss_mb", "campaign reduce peak RSS, MB")]
-        print(f"\n| scale: {args.scale} tasks (bench_master.py), medians | with checksums | without | ratio |")
+        print(f"\n| scale: {args.scale} tasks (bench_master.py), medians | with every checksum | without any | ratio |")
         print("|---|---|---|---|")
         for k, label in keys:
-            a = float(np.median([r[k] for r in sc["on"]]))
-            b = float(np.median([r[k] for r in sc["off"]]))
+            a = float(np.median([r[k] for r in sc["with"]]))
+            b = float(np.median([r[k] for r in sc["without"]]))
             print(f"| {label} | {a:,.2f} | {b:,.2f} | {a / b:.3f} |")
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=1, default=float))

@@ -309,7 +309,7 @@ def test_a_scalar_added_by_a_writer_keeping_no_list_is_not_damage(reference, tmp
     assert code == 1 and "lists 'psi_X', which it does not hold" in out
 
 
-TRIALS = 50
+TRIALS = 30
 HARNESS = r"""
 import contextlib, io, json, os, random, shutil, sys
 import h5py, numpy as np
@@ -356,7 +356,7 @@ for k in range(n):
 
 
 def test_random_byte_flips_never_crash_and_repair_restores(reference, tmp_path):
-    """50 single-bit flips at random offsets of a finished store. Every command exits 0, 1 or 2, with a
+    """30 single-bit flips at random offsets of a finished store. Every command exits 0, 1 or 2, with a
     message when not 0 and never a traceback; the process never dies (a segfault would end it early).
     Wherever verify finds the store repairable, --repair and a rerun give back the reference store."""
     spec, ref = reference
