@@ -58,7 +58,8 @@ def _gpu_batch(n, energies, seeds, backend, threads, **kw):
 def _cpu_steps(args):
     """Seconds per FIRE step of the CPU kernel on the first minimisation of a random start."""
     n, seed, steps = args
-    from kernels.fire import _fire_core, default_timestep
+    from kernels.fire import _fire_core
+    from kernels.minimiser import default_timestep
     from kernels.jamming import DEFAULTS, initial_state
 
     pos, rad, _ = initial_state(n, np.random.SeedSequence(seed), (1.0, 1.0), DEFAULTS["species"], 0.86)

@@ -45,9 +45,9 @@ def _timed(fn, repeats):
 
 def _matrix(n, seed):
     """A packing jammed at E_G = 1e-10 and its shifted Hessian on the endgame's pattern, built
-    by the endgame's own kernels (``kernels.fire._verlet_rows``, ``kernels.hessian``)."""
+    by the endgame's own kernels (``kernels.minimiser._verlet_rows``, ``kernels.hessian``)."""
     import kernels
-    from kernels.fire import _verlet_rows
+    from kernels.minimiser import _verlet_rows
     from kernels.hessian import _hessian_rows
     from kernels.newton import PATTERN_SKIN
     from kernels.space import _as_box

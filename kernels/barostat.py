@@ -57,8 +57,8 @@ counts one), ``max_steps`` the FIRE steps of each.
 import numpy as np
 from numba import njit
 
-from kernels.fire import (_dt_for, _fire_adapt, _fire_core, _fire_kick, _fire_mix_move, _fire_power,
-                          _fire_retreat, _residual_core, _verlet_rows)
+from kernels.fire import _fire_adapt, _fire_core, _fire_kick, _fire_mix_move, _fire_power, _fire_retreat
+from kernels.minimiser import _dt_for, _residual_core, _verlet_rows
 from kernels.potential import _energy_forces_rows_scaled
 from kernels.protocol import (ST_CONVERGED, ST_MAX_SEARCH, ST_MAX_STEPS, ST_STALLED, ST_TOO_DENSE,
                               _spatial_order)

@@ -37,8 +37,8 @@ place).
 import numpy as np
 from numba import njit
 
-from kernels.fire import (_fire_adapt, _fire_kick, _fire_mix_move, _fire_power, _fire_retreat,
-                          _verlet_rows)
+from kernels.fire import _fire_adapt, _fire_kick, _fire_mix_move, _fire_power, _fire_retreat
+from kernels.minimiser import _verlet_rows
 from kernels.potential import pair_energy_force_inv
 from kernels.rules import (A_START, BELOW, CONVERGED, DT_MAX_FACTOR, DT_MIN_FACTOR, MAX_STEPS,
                            N_NEG_MAX, STALLED)

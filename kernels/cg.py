@@ -55,8 +55,8 @@ Checked wrapper: ``minimize(...) -> FireResult``.
 import numpy as np
 from numba import njit
 
-from kernels.fire import (_checked_minimize_inputs, _residual_core, _starting_timestep, _verlet_rows,
-                          fire_result)
+from kernels.minimiser import (_checked_minimize_inputs, _residual_core, _starting_timestep, _verlet_rows,
+                               fire_result)
 from kernels.linesearch import (C1, E_ROUND, LS_MAX, _dot, _line_search,  # noqa: F401 (C1, E_ROUND, LS_MAX: re-exported)
                                 _max_norm2, _wrap_with, energy_resolution)
 from kernels.potential import _energy_forces_rows
@@ -243,6 +243,6 @@ def minimize(positions, radii, box, exponent=2.0, *, force_tolerance=1e-6, max_s
 
 def first_step(dt0):
     """First line-search step from a FIRE time step: ``dt0 = DT_FACTOR / sqrt(k)``
-    (``kernels.fire._dt_for``) gives ``1 / k``, the step that would relax one
+    (``kernels.minimiser._dt_for``) gives ``1 / k``, the step that would relax one
     contact of stiffness ``k`` exactly."""
     return (dt0 / DT_FACTOR) ** 2

@@ -156,7 +156,7 @@ def hessian(positions, radii, box, exponent=2.0, *, rattlers=True):
     contact = np.any(off != 0.0, axis=1)
     keep = np.ones(n, dtype=bool)
     if not rattlers:
-        from kernels.fire import nonrattlers
+        from kernels.minimiser import nonrattlers
 
         keep = nonrattlers(pos, rad, b)
         contact &= keep[pi] & keep[pj]

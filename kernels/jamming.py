@@ -493,7 +493,7 @@ def _packing(job, status, scale, e_tot, virial, residual, iterations, nforce, nf
     radii = job.radii0 * scale
     area = float(cell_box[0] * cell_box[1])
     pi, pj = _candidate_pairs_core(positions, radii, cell_box, 0.0)
-    # kernels.fire._nonrattler_mask_core written out: its kernels are loaded already (the search
+    # kernels.minimiser._nonrattler_mask_core written out: its kernels are loaded already (the search
     # calls them), while its wrappers, inlined into their jitted callers, would be compiled anew
     ci, cj, cdx, cdy = _overlapping_core(positions, radii, cell_box, pi, pj)
     n_g = int(np.count_nonzero(~_rattlers_core(n, ci, cj, cdx, cdy, HALF_PLANE_TOL)))

@@ -28,7 +28,7 @@ the list's reference positions ``ref``.
 import numpy as np
 from numba import njit
 
-from kernels.fire import _verlet_rows
+from kernels.minimiser import _verlet_rows
 from kernels.potential import _energy_forces_rows
 
 C1 = 1e-4  # Armijo parameter

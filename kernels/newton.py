@@ -63,7 +63,8 @@ analyses and Newton iterations).
 import numpy as np
 from numba import njit
 
-from kernels.fire import _fire_run, _fire_state, _residual_alive, _verlet_rows
+from kernels.fire import _fire_run, _fire_state
+from kernels.minimiser import _residual_alive, _verlet_rows
 from kernels.hessian import _hessian_rows
 from kernels.linesearch import _dot, _line_search, _max_disp2, _max_norm2, energy_resolution
 from kernels.potential import _energy_forces_rows

@@ -66,7 +66,8 @@ from numba import njit
 from kernels.cellrelax import _fire_cell_core
 from kernels.cg import _cg_core
 from kernels.newton import PATTERN_SKIN, _fire_newton
-from kernels.fire import _dt_for, _fire_core
+from kernels.fire import _fire_core
+from kernels.minimiser import _dt_for
 from kernels import rules
 from kernels.rules import (ABORT_FRACTION, AIM, BELOW, CONVERGED, DT_FACTOR,  # noqa: F401 (re-exported)
                            E_FIRST_GUESS, MAX_STEPS, SEARCH_HALVING, SEARCH_NAMES, SEARCH_PAPER,

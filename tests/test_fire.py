@@ -3,7 +3,9 @@
 import numpy as np
 import pytest
 
-from kernels.fire import STATUS_NAMES, minimize, nonrattlers
+from kernels.fire import minimize
+from kernels.minimiser import nonrattlers
+from kernels.rules import STATUS_NAMES
 from kernels.potential import energy
 from helpers import compressed_packing, random_dense
 from references import ref_contact_pairs, ref_force_residual, ref_nonrattler_mask

@@ -14,7 +14,7 @@ from numba import njit
 
 import kernels
 from kernels import potential
-from kernels.fire import _residual_core
+from kernels.minimiser import _residual_core
 from kernels.cells import _candidate_pairs_core
 from kernels.gpu import BlockOverflow, jam_batch
 from kernels.gpu import batch as gpu_batch

@@ -6,7 +6,8 @@ import pytest
 
 import kernels
 from kernels import newton
-from kernels.fire import _dt_for, _fire_core, _verlet_rows, nonrattlers
+from kernels.fire import _fire_core
+from kernels.minimiser import _dt_for, _verlet_rows, nonrattlers
 from kernels.hessian import hessian
 from kernels.linesearch import energy_resolution
 from kernels.network import network

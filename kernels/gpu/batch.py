@@ -310,7 +310,8 @@ def time_steps(n, batch, steps, backend=None, threads=None, energy=1e-12):
     ``benchmarks/bench_gpu.py`` and ``campaign calibrate --gpu`` measure."""
     import time
 
-    from kernels.fire import _fire_core, default_timestep
+    from kernels.fire import _fire_core
+    from kernels.minimiser import default_timestep
 
     jam_batch(n, [energy], [0], backend=backend, threads=threads, max_search=1, max_steps=10)
     handle = _stage(n, [energy] * batch, list(range(batch)), None, backend, threads, max_search=1,

@@ -343,7 +343,7 @@ def make_block(jit, sync, slot_add):
 
     @jit
     def residual(t0, t1, nt, fl, nbr, ninv, iv, red, alpha, Lx, Ly, tilt, sin_tol):
-        """The force residual on non-rattlers (``kernels.fire._residual_core``) from the
+        """The force residual on non-rattlers (``kernels.minimiser._residual_core``) from the
         current forces: rattlers removed in rounds (a disk goes when it is not load-bearing
         among the disks alive in the previous round; the surviving set does not depend on the
         order), then ``max |F|`` over non-rattlers over the mean force of their contacts.
