@@ -182,6 +182,20 @@ observables: [scalars]
 """
 
 
+#: A synthetic campaign with ladder children, configurations and (with CAMPAIGN_SYNTHETIC_FAIL=seed:1)
+#: failure records: the damaged stores of tests/test_integrity.py and tests/test_reader_damage.py.
+DAMAGE_SPEC = """\
+name: integ
+seed: 5
+grid: {N_G: [16, 24], E_G: [1.0e-3, 1.0e-5], seeds: 3}
+variants: [{name: lad, start: ladder}]
+observables: [scalars, connectivity, void_areas]
+bins: {z_g: {range: [-0.5, 12.5], count: 13}, z_v: {range: [2.5, 12.5], count: 10}, alpha_v: {range: [0, 2], count: 40}}
+store: {configurations: true}
+run: {retries: 0}
+"""
+
+
 def synthetic_run(tmp_path, text, name="s.h5"):
     """(spec, tasks, context, store) of a campaign whose tasks are the synthetic task function's."""
     spec = parse_spec(text)
@@ -305,6 +319,20 @@ def assert_same_contents(a, b):
         x, y = np.asarray(a[k]), np.asarray(b[k])
         assert x.dtype == y.dtype and x.shape == y.shape, k
         assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), k
+
+
+def processes():
+    """``(pid, argv, env)`` of every process of this machine whose command line and environment
+    can be read: argv a list of bytes, env a dict of bytes (for finding a campaign's processes)."""
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            argv = (d / "cmdline").read_bytes().split(b"\0")
+            env = dict(kv.split(b"=", 1) for kv in (d / "environ").read_bytes().split(b"\0") if b"=" in kv)
+        except OSError:
+            continue
+        yield int(d.name), argv, env
 
 
 SHM = Path("/dev/shm")

@@ -22,7 +22,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from helpers import SKIP_DATASETS, durable_packings, mpich_segments, remove_segments_of_killed_jobs, store_data_and_attrs
+from helpers import (SKIP_DATASETS, durable_packings, mpich_segments, processes, remove_segments_of_killed_jobs,
+                     store_data_and_attrs)
 
 ROOT = Path(__file__).resolve().parents[1]
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
@@ -348,18 +349,8 @@ def test_status_tells_a_live_writer_from_a_dead_one(tmp_path, reference):
 
 def _ranks(out):
     """{MPI rank: pid} of the processes running `campaign run ... --out OUT` under mpiexec."""
-    ranks = {}
-    for d in Path("/proc").iterdir():
-        if not d.name.isdigit():
-            continue
-        try:
-            cmd = (d / "cmdline").read_bytes().split(b"\0")
-            env = dict(kv.split(b"=", 1) for kv in (d / "environ").read_bytes().split(b"\0") if b"=" in kv)
-        except OSError:
-            continue
-        if str(out).encode() in cmd and b"campaign" in cmd and b"PMI_RANK" in env:
-            ranks[int(env[b"PMI_RANK"])] = int(d.name)
-    return ranks
+    return {int(env[b"PMI_RANK"]): pid for pid, cmd, env in processes()
+            if str(out).encode() in cmd and b"campaign" in cmd and b"PMI_RANK" in env}
 
 
 def test_worker_rank_killed_under_mpiexec(tmp_path, reference):

@@ -20,19 +20,10 @@ import numpy as np
 import pytest
 
 from campaign import cli
-from helpers import assert_same_contents, store_contents
+from helpers import DAMAGE_SPEC, assert_same_contents, store_contents
 
 ROOT = Path(__file__).resolve().parents[1]
-SPEC = """\
-name: integ
-seed: 5
-grid: {N_G: [16, 24], E_G: [1.0e-3, 1.0e-5], seeds: 3}
-variants: [{name: lad, start: ladder}]
-observables: [scalars, connectivity, void_areas]
-bins: {z_g: {range: [-0.5, 12.5], count: 13}, z_v: {range: [2.5, 12.5], count: 10}, alpha_v: {range: [0, 2], count: 40}}
-store: {configurations: true}
-run: {retries: 0}
-"""
+SPEC = DAMAGE_SPEC
 FAIL = "seed:1"  # the synthetic tasks of seed 1 fail: the store has failure records
 BLOCK = 4        # rows per chunk in these tests (256 in real stores): 24 tasks make 6 blocks
 def cli_run(capsys, *argv):
@@ -318,7 +309,7 @@ from campaign import cli
 sys.path.insert(0, os.path.dirname(os.path.abspath(sys.argv[1])))
 campaign.storage.store.BLOCK_ROWS = int(sys.argv[6])
 ref, spec, d, n, seed = sys.argv[2], sys.argv[3], sys.argv[4], int(sys.argv[5]), int(sys.argv[7])
-from helpers import assert_same_contents, store_contents
+from helpers import DAMAGE_SPEC, assert_same_contents, store_contents
 with h5py.File(ref, "r") as f:
     tid = sorted(f["configurations"])[0]
 size, rng, want = os.path.getsize(ref), random.Random(seed), store_contents(ref)

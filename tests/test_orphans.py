@@ -17,6 +17,8 @@ import h5py
 import numpy as np
 import pytest
 
+from helpers import processes
+
 ROOT = Path(__file__).resolve().parents[1]
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
 SPEC = """\
@@ -52,18 +54,10 @@ def _alive(pids):
 def _processes_of(out):
     """pid -> environment's PMI_RANK (or None) of every process running `campaign run ... OUT`."""
     got = {}
-    for d in Path("/proc").iterdir():
-        if not d.name.isdigit():
-            continue
-        try:
-            args = (d / "cmdline").read_bytes().split(b"\0")
-            env = (d / "environ").read_bytes().split(b"\0")
-        except OSError:
-            continue
+    for pid, args, env in processes():
         if b"campaign" in b" ".join(args) and str(out).encode() in args or (
-                b"--multiprocessing-fork" in args and f"CAMPAIGN_ORPHAN_TAG={out}".encode() in env):
-            rank = next((e.split(b"=", 1)[1].decode() for e in env if e.startswith(b"PMI_RANK=")), None)
-            got[int(d.name)] = rank
+                b"--multiprocessing-fork" in args and env.get(b"CAMPAIGN_ORPHAN_TAG") == str(out).encode()):
+            got[pid] = env[b"PMI_RANK"].decode() if b"PMI_RANK" in env else None
     return got
 
 

@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 from campaign import cli
+from helpers import DAMAGE_SPEC
 
 BLOCK = 4
 SPECS = {
@@ -31,16 +32,7 @@ grid: {N_G: [16, 24, 32], E_G: [1.0e-3, 1.0e-5], seeds: 6}
 observables: [scalars, connectivity]
 bins: {z_g: {range: [-0.5, 12.5], count: 13}, z_v: {range: [2.5, 12.5], count: 10}}
 """,
-    "configs": """\
-name: dmgc
-seed: 5
-grid: {N_G: [16, 24], E_G: [1.0e-3, 1.0e-5], seeds: 3}
-variants: [{name: lad, start: ladder}]
-observables: [scalars, connectivity, void_areas]
-bins: {z_g: {range: [-0.5, 12.5], count: 13}, z_v: {range: [2.5, 12.5], count: 10}, alpha_v: {range: [0, 2], count: 40}}
-store: {configurations: true}
-run: {retries: 0}
-""",
+    "configs": DAMAGE_SPEC,
 }
 
 
@@ -128,7 +120,7 @@ def chunk_keys(data):
     out = []
     pos = data.find(b"TREE")
     while pos >= 0:
-        kind, level, used = data[pos + 4], data[pos + 5], struct.unpack_from("<H", data, pos + 6)[0]
+        kind, used = data[pos + 4], struct.unpack_from("<H", data, pos + 6)[0]
         if kind == 1 and used:
             for rank in (1, 2):
                 key = 8 + 8 * (rank + 1)

@@ -30,7 +30,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from helpers import SKIP_DATASETS, durable_packings, mpich_segments, remove_segments_of_killed_jobs, store_data_and_attrs
+from helpers import (SKIP_DATASETS, durable_packings, mpich_segments, processes, remove_segments_of_killed_jobs,
+                     store_data_and_attrs)
 
 pytestmark = pytest.mark.slurm
 
@@ -375,17 +376,10 @@ def test_one_mpi_world_across_two_nodes(tmp_path, jobs, launcher):
 
 def _rank_pid(job_id, rank):
     """The pid of MPI rank ``rank`` of job ``job_id`` (the cluster runs on this machine)."""
-    for d in Path("/proc").iterdir():
-        if not d.name.isdigit():
-            continue
-        try:
-            env = dict(kv.split(b"=", 1) for kv in (d / "environ").read_bytes().split(b"\0") if b"=" in kv)
-            cmd = (d / "cmdline").read_bytes()
-        except OSError:
-            continue
+    for pid, argv, env in processes():
         if (env.get(b"SLURM_JOB_ID") == str(job_id).encode() and env.get(b"PMI_RANK") == str(rank).encode()
-                and b"campaign" in cmd):
-            return int(d.name)
+                and b"campaign" in b"\0".join(argv)):
+            return pid
     raise AssertionError(f"no rank {rank} of job {job_id} on this machine")
 
 
