@@ -208,3 +208,23 @@ def test_kernels_are_compiled_once_by_the_master_before_any_worker_starts(tmp_pa
     workers = entries[1:]
     assert len(workers) == 2 and master not in {p for p, _ in workers}
     assert all(t >= entries[0][1] + 0.3 for _, t in workers)  # ... and the workers only load it afterwards
+
+
+def test_a_full_disk_at_the_progress_file_says_what_the_write_needed(tmp_path, monkeypatch):
+    """The progress file's write on a full file system stops the run (OutOfSpace) with the bytes it
+    wanted, so that the stop paragraph says what the step needed whichever write met the full disk."""
+    import errno
+
+    from campaign.errors import OutOfSpace
+
+    p = Progress(10, sidecar=tmp_path / "out.h5.progress.json", stream=io.StringIO(), enabled=False)
+    written = []
+
+    def full(self, text, *a, **k):
+        written.append(text)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full)
+    with pytest.raises(OutOfSpace) as got:
+        p.write_sidecar()
+    assert got.value.needed == len(written[-1].encode()) > 0

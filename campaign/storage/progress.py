@@ -203,9 +203,10 @@ class Progress:
         data = dict(self.state, updated=time.time(), active=not final, phase="ended" if final else self.phase,
                     **self.extra, **self.identity)
         tmp = self.sidecar.with_name(self.sidecar.name + ".tmp")
+        text = json.dumps(data)
         with self._lock:
             try:
-                tmp.write_text(json.dumps(data))
+                tmp.write_text(text)
                 os.replace(tmp, self.sidecar)
             except OSError as exc:
                 try:
@@ -214,7 +215,7 @@ class Progress:
                     pass
                 from campaign.storage.faults import write_fault
 
-                fault = write_fault(exc, self.sidecar, "writing the progress file")
+                fault = write_fault(exc, self.sidecar, "writing the progress file", needed=len(text.encode()))
                 if fault is not None and fault.out_of_space:
                     raise fault from None
 
