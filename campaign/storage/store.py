@@ -6,8 +6,9 @@ Two files per campaign, written only by the master:
   T rows (T known from the spec), chunked by blocks of ``block`` rows and compressed
   (shuffle + deflate), so the file grows with the finished packings, not with the
   grid; a chunk never written costs nothing. ``tasks/status`` (one byte a task, not
-  compressed) is the commit marker: a row counts once its status says so. Its layout,
-  creation, checking and salvage: ``campaign.storage.storefile``.
+  compressed) is the commit marker: a row counts once its status says so. Its layout
+  (with a block of rows built from the tasks' records), creation, checking and salvage:
+  ``campaign.storage.storefile``.
 * ``OUT.journal``: a write-ahead log (``campaign.storage.journal``). One length-prefixed,
   CRC-checked record per finished task, written with a single ``write()`` before
   anything touches the HDF5 file. At a *checkpoint* (when the journal passes
@@ -66,6 +67,7 @@ from campaign.storage.storefile import (  # noqa: F401 - part of this module's i
     CHUNK_CACHE, COMPRESSION, DONE, ERROR_LEN, FAILED, FORMAT_VERSION, HOST_LEN, OLD_FORMAT_HELP, PENDING,
     ROW_FIELDS, SCHEMA, SLACK, TASK_FIELDS, VARIANT_LEN, check_file, check_format, create_file, dataset_kwargs,
     fill_value, fixed, format_problem, fsync_path, load_state, row_dtype, row_values)
+from campaign.storage.storefile import block_values, column_block
 from campaign.storage.storespace import StoreSpace
 
 FLUSH_SECONDS = 0.5     # staged complete blocks are written at least this often
@@ -314,7 +316,7 @@ class Store:
         """Rows [lo, hi) of a block dataset this run adds rows to. A chunk that fails its checksum
         (or cannot be read) stops the run with StoreDamaged: it must not be written back."""
         try:
-            data = self._dataset(name)[0][lo:hi]
+            data = self._dataset(name)[lo:hi]
             sums = self._sums_of(name)
             if sums is not None and lo // self.B not in self.unsure:
                 check_rows(sums, name, lo, data, self.B)
@@ -409,11 +411,10 @@ class Store:
             self.checkpoint()
 
     def _dataset(self, name):
-        """(dataset, fill value, dtype, row shape), looked up once (h5py lookups are slow)."""
+        """The dataset ``name``, looked up once (h5py lookups are slow)."""
         got = self._datasets.get(name)
         if got is None:
-            ds = self.f[name]
-            got = self._datasets[name] = (ds, ds.fillvalue, ds.dtype, tuple(ds.shape[1:]))
+            got = self._datasets[name] = self.f[name]
         return got
 
     def _sums_of(self, name):
@@ -459,10 +460,8 @@ class Store:
             rows = self.staged[b]
             lo, hi = b * self.B, min((b + 1) * self.B, self.T)
             final = np.flatnonzero(self.status[lo:hi] != PENDING) + lo
-            kept = [int(i) for i in final if i not in rows]
-            idx = np.fromiter(rows, np.int64, len(rows)) - lo
-            whole = not kept  # no committed row to keep: no need to read the chunks
-            values = [row_values(m, a, self.edges) for m, a in rows.values()]
+            whole = all(int(i) in rows for i in final)  # no committed row to keep: no need to read the chunks
+            idx, values = block_values(rows, lo, self.edges)
             keys = set()
             for v in values:
                 keys.update(v.keys())
@@ -476,18 +475,9 @@ class Store:
             columns = [f"tasks/{n}" for n in ROW_FIELDS] + [f"scalars/{n}" for n in sorted(self.scalar_names)]
             columns += [f"histograms/{h}/counts" for h in self.edges]
             for name in columns:
-                ds, fill, dtype, shape = self._dataset(name)
-                written[name] = ds
-                if whole:
-                    block = np.full((hi - lo,) + shape, fill, dtype=dtype)
-                else:
-                    block = self._read_block(name, lo, hi)
-                col = [v.get(name) for v in values]
-                if shape:  # histogram rows
-                    zero = np.zeros(shape, dtype)
-                    block[idx] = np.stack([zero if x is None else x for x in col])
-                else:
-                    block[idx] = np.array([fill if x is None else x for x in col], dtype=dtype)
+                ds = written[name] = self._dataset(name)
+                kept = None if whole else self._read_block(name, lo, hi)
+                block = column_block(name, hi - lo, idx, values, self.edges, kept)
                 ds[lo:hi] = block
                 write_sums(self._sums_of(name), lo, block, self.B)
             for i, (meta, arrays) in sorted(rows.items()):
@@ -508,7 +498,7 @@ class Store:
                     self.have_failures.add(tid)
         f.flush()
         # ... then the commit marker
-        status = self._dataset("tasks/status")[0]
+        status = self._dataset("tasks/status")
         for b in blocks:
             lo, hi = b * self.B, min((b + 1) * self.B, self.T)
             status[lo:hi] = self.status[lo:hi]

@@ -1,8 +1,14 @@
-"""The campaign store's HDF5 layout: its names and types, the format version, creating a
-fresh file, checking an existing one against a spec, and salvaging a damaged one.
+"""The campaign store's HDF5 layout: its names and types, the format version, a block of rows
+built from the tasks' records, creating a fresh file, checking an existing one against a spec,
+and salvaging a damaged one.
 
-``campaign.storage.store`` (the master's writer) and the readers use these; everything here is
-re-exported by ``campaign.storage.store``. The layout itself is documented in docs/STORE.md.
+``campaign.storage.store`` (the master's writer), ``campaign.storage.storespace`` (the space
+accounting) and the readers use these; nothing here imports them back. The store re-exports the
+names it held before the layout was split out. The layout itself is documented in docs/STORE.md.
+
+A block's columns are built once, here, for both who need them: the writer (``column_block`` of
+``block_values``), and the space accounting, which compresses the same arrays to estimate a first
+write's size.
 
 Creating and salvaging write a new file under a temporary name (``OUT.tmp``), reserve the
 space they need first (``campaign.storage.faults.reserve``), and rename it into place only when it
@@ -83,6 +89,42 @@ def row_values(meta, arrays, edges, columns=None):
                 res[c] = None
         return res
     return out
+
+
+def column_layout(name, edges):
+    """(dtype, fill value, row shape) of the per-task column ``name`` a task's row goes to
+    (``tasks/<field>``, ``scalars/<name>``, ``histograms/<h>/counts``)."""
+    if name.startswith("histograms/"):
+        return np.dtype(np.int64), 0, (len(edges[name.split("/")[1]]) - 1,)
+    if name.startswith("scalars/"):
+        return np.dtype(np.float64), np.nan, ()
+    field = name[len("tasks/"):]
+    return np.dtype(row_dtype(field)), fill_value(field), ()
+
+
+def block_values(rows, lo, edges):
+    """The rows of one block as the columns take them: (their offsets in the block, from ``lo``;
+    their values per dataset name, ``row_values``), in ``rows``' order (row -> its journal
+    record (meta, arrays))."""
+    idx = np.fromiter(rows, np.int64, len(rows)) - lo
+    return idx, [row_values(m, a, edges) for m, a in rows.values()]
+
+
+def column_block(name, n, idx, values, edges, block=None):
+    """Column ``name`` of a block of ``n`` rows with the rows ``idx`` set to their ``values``
+    (``block_values``); a row without a value gets the column's fill (a histogram row, zeros).
+    The other rows are the column's fill, or those of ``block`` (the block as the file holds it,
+    set in place) when given."""
+    dtype, fill, shape = column_layout(name, edges)
+    if block is None:
+        block = np.full((n,) + shape, fill, dtype=dtype)
+    col = [v.get(name) for v in values]
+    if shape:  # histogram rows
+        zero = np.zeros(shape, dtype)
+        block[idx] = np.stack([zero if x is None else x for x in col])
+    else:
+        block[idx] = np.array([fill if x is None else x for x in col], dtype=dtype)
+    return block
 
 
 def fsync_path(path):

@@ -4,16 +4,16 @@ reservation around every write step (and what a failed one leaves), and what fin
 campaign needs on disk.
 
 Calls go one way: ``campaign.storage.store`` -> here -> ``campaign.storage.faults`` (reserving,
-releasing, classifying a failed write) and ``campaign.storage.storefile`` (the layout: a row's
-values, dtypes, fill values). The store hands over what an estimate needs (its staged records,
+releasing, classifying a failed write) and ``campaign.storage.storefile`` (the layout: dtypes,
+fill values, a block's columns built from its rows, as the store writes them). The store hands over what an estimate needs (its staged records,
 its scalar names, the datasets it has just written); nothing here calls back into it.
 
 A step rewrites whole chunks (blocks of ``B`` rows of every per-task dataset), compressed;
 HDF5 may place a rewritten chunk at the end of the file, so each counts in full: its raw size
 times the compression ratio of its column, plus a quarter. The ratios are learnt from the
 chunks the store has written (the largest of the last eight, per column), and before there are
-any, by compressing the block about to be written with HDF5's own filters (shuffle, then
-deflate level 1). Configurations and failure records are not compressed; new datasets, grown
+any, by compressing the block about to be written (built as the store builds it:
+``storefile.column_block``) with HDF5's own filters (shuffle, then deflate level 1). Configurations and failure records are not compressed; new datasets, grown
 symbol tables and chunk indices, and a large file's larger structures get fixed room
 (``slack``). ``tests/test_store.py::test_reservations_cover_every_write_step`` checks that no
 step grows the file by more than it reserved.
@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from campaign.storage.faults import release, reserve, write_fault
-from campaign.storage.storefile import FAILED, ROW_FIELDS, SLACK, fill_value, row_dtype, row_values
+from campaign.storage.storefile import FAILED, ROW_FIELDS, SLACK, block_values, column_block, row_dtype
 
 
 class StoreSpace:
@@ -83,26 +83,13 @@ class StoreSpace:
 
     def calibrate(self, rows, b, columns):
         """Ratios of the columns not learnt yet, from the values block ``b`` is about to get
-        (``rows``: row -> its (meta, arrays) record)."""
+        (``rows``: row -> its (meta, arrays) record), built as the store builds them."""
         lo, hi = b * self.B, min((b + 1) * self.B, self.T)
-        idx = np.fromiter(rows, np.int64, len(rows)) - lo
-        values = [row_values(m, a, self.edges) for m, a in rows.values()]
+        idx, values = block_values(rows, lo, self.edges)
         for name, width, key in columns:
             if key in self.ratio:
                 continue
-            shape = (len(self.edges[name.split("/")[1]]) - 1,) if name.startswith("histograms/") else ()
-            if shape:
-                dtype, fill = np.int64, 0
-            elif name.startswith("scalars/"):
-                dtype, fill = np.float64, np.nan
-            else:
-                dtype, fill = np.dtype(row_dtype(name[6:])), fill_value(name[6:])
-            block = np.full((hi - lo,) + shape, fill, dtype=dtype)
-            col = [v.get(name) for v in values]
-            if shape:
-                block[idx] = np.stack([np.zeros(shape, np.int64) if x is None else x for x in col])
-            else:
-                block[idx] = np.array([fill if x is None else x for x in col], dtype=dtype)
+            block = column_block(name, hi - lo, idx, values, self.edges)
             raw = block.view(np.uint8).reshape(-1, block.dtype.itemsize).T.tobytes()  # the shuffle filter
             self.ratio[key] = min(1.02, (len(zlib.compress(raw, 1)) + 64) / max(1, len(raw)))
 
