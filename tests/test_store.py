@@ -187,6 +187,31 @@ def test_view_damaged_by_a_killed_run_is_rebuilt_from_the_journal(tmp_path):
         _assert_same(_contents(out), expected)
 
 
+def test_a_failed_write_step_poisons_the_handle_and_closing_writes_nothing(tmp_path):
+    """What failed belongs to the handle HDF5 writes through (``GuardedFile.poisoned``), set by the
+    write step that failed: no later step may write through it, and abandoning the store writes
+    nothing more to the file, which the next start opens as it was."""
+    spec, tasks, fn, ctx, edges = _setup()
+    out = tmp_path / "s.h5"
+    st = Store(out, spec, tasks, edges)
+    st.record(0, _summary(fn, tasks[0], ctx), attempts=1)
+    st.flush(force=True)
+    before = out.read_bytes()
+    with pytest.raises(RuntimeError, match="boom"):
+        with st.space.write_step(st.io, 0, "a step that fails", len(st.scalar_names)):
+            st.f.attrs["half_written"] = 1
+            raise RuntimeError("boom")
+    assert st.io.poisoned and st.io.failed is None
+    with pytest.raises(RuntimeError, match="failed a write before"):
+        with st.space.write_step(st.io, 0, "a later step", len(st.scalar_names)):
+            pass
+    st.abandon()
+    assert out.read_bytes() == before
+    st = Store(out, spec, tasks, edges)
+    assert st.finished(0) and not st.io.poisoned and "half_written" not in st.f.attrs
+    st.close()
+
+
 def test_checkpoint_leaves_only_the_header_in_the_journal(tmp_path):
     spec, tasks, fn, ctx, edges = _setup()
     out = tmp_path / "s.h5"

@@ -12,7 +12,8 @@
   what the write did not use.
 * ``GuardedFile``: the file object the store's HDF5 writes go through (h5py's ``fileobj``
   driver): a refused write is recorded and goes, with every later one, to memory, so that
-  HDF5 never sees a failure it does not survive.
+  HDF5 never sees a failure it does not survive; it keeps what failed through it (``failed``, and
+  ``poisoned``: a write step failed, nothing may be written through it any more).
 * ``neutralise(h5file)``: the same after the fact, for a file HDF5 writes with its own driver
   (the command line's last resort): after HDF5 failed a write, its metadata cache holds blocks
   that never reached the disk; flushing or closing that handle normally writes a damaged
@@ -145,6 +146,12 @@ class GuardedFile:
     file on disk keeps what it had at that moment. The store checks ``failed`` after each
     write step and stops. ``discard()`` sends every later write to the overlay (closing a
     handle that must not write any more).
+
+    What failed is kept here, for whoever holds the handle: ``failed`` (a write the file system
+    refused) and ``poisoned``: a write step through this handle failed (``poison()``, by
+    ``campaign.storage.storespace``'s ``write_step``), so HDF5's cache may hold blocks that never
+    reached the disk and nothing may be written through it any more; the store then closes it
+    with ``discard()`` first.
     """
 
     def __init__(self, path, create=False):
@@ -153,6 +160,7 @@ class GuardedFile:
         self.fd = os.open(self.path, flags, 0o644)
         self.pos = 0
         self.failed = None       # the OSError of the first refused write
+        self._poisoned = False   # a write step through this handle failed (poison())
         self._overlay = None     # memfd holding what was written after it
         self._ranges = []        # (start, end) of the overlay's written ranges, sorted, disjoint
 
@@ -237,6 +245,16 @@ class GuardedFile:
 
     def seekable(self):
         return True
+
+    # what failed
+    def poison(self):
+        """A write step through this handle failed: nothing may be written through it any more."""
+        self._poisoned = True
+
+    @property
+    def poisoned(self) -> bool:
+        """Whether a write step through this handle failed, or the file system refused a write."""
+        return self._poisoned or self.failed is not None
 
     # the overlay
     def discard(self):

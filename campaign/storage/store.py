@@ -37,12 +37,16 @@ with the damage are counted and run again: packings are pure functions of the sp
 A full disk (or quota, or a file system that fails) never leaves the two files
 disagreeing: every HDF5 write step first reserves the space it may need and raises
 ``OutOfSpace`` before writing anything when it is not there (``campaign.storage.storespace``:
-the estimate, the reservation, what finishing needs; the store hands it data and it never
-calls back); a journal append that fails is cut back to the previous record. Should HDF5
-itself still meet a failed write, its handle is *poisoned*: never flushed or closed normally
-again, since its cache then holds blocks that never reached the disk (its writes go to memory:
-``campaign.storage.faults.GuardedFile``); the journal holds every finished task and the next
-start salvages the store. Either way the run stops with a ``WriteFault`` (exit status 3).
+the estimate, the reservation, what finishing needs; the store hands it data, the blocks its
+file holds once when it opens it, and it never calls back); a journal append that fails is cut
+back to the previous record. Should HDF5 itself still meet a failed write, its handle is
+*poisoned* (``campaign.storage.faults.GuardedFile.poisoned``, the handle's own state, set by the
+failed write step): never flushed or closed normally again, since its cache then holds blocks
+that never reached the disk (its writes go to memory); the journal holds every finished task and
+the next start salvages the store. Either way the run stops with a ``WriteFault`` (exit status 3).
+
+Calls go one way: here -> ``storespace``, ``storefile``, ``checksums``, ``journal``, ``faults``;
+none of them imports this module.
 """
 
 from __future__ import annotations
@@ -93,9 +97,7 @@ class Store:
         self.B = max(1, min(BLOCK_ROWS, self.T))
         self.edges = {k: np.asarray(v, np.float64) for k, v in sorted(edges.items())}
         self.log = log or (lambda msg: print(msg, file=sys.stderr))
-        self.f = self.io = None
-        # the space accounting: what a write step may add, its reservation, what finishing needs
-        self.space = StoreSpace(self.path, self.B, self.T, self.edges)
+        self.f = self.io = self.space = None
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -168,7 +170,10 @@ class Store:
                         state=(self.status, self.attempts, self.wall))
             self.n_status = [int(np.count_nonzero(self.status == k)) for k in (PENDING, DONE, FAILED)]
             rebuilt = "the damaged part of the" if salvage_from else "the missing"
-        self.space.written_blocks = set((np.flatnonzero(self.status != PENDING) // self.B).tolist())
+        # the space accounting (what a write step may add, its reservation, what finishing needs),
+        # told once which blocks the file holds
+        self.space = StoreSpace(self.path, self.B, self.T, self.edges,
+                                written=(np.flatnonzero(self.status != PENDING) // self.B).tolist())
         try:
             self.io = GuardedFile(self.path)
         except OSError as exc:
@@ -616,12 +621,12 @@ class Store:
         writes go to an in-memory overlay, so that the file on disk keeps what it had."""
         try:
             if self.f is not None:
-                if self.space.poisoned:
+                if self.io.poisoned:
                     self.io.discard()
                 try:
                     self.f.close()
                 except Exception:  # noqa: BLE001 - after a fault: what the file holds is what the next start sees
-                    if not self.space.poisoned:
+                    if not self.io.poisoned:
                         raise
         finally:
             self.f = None

@@ -5,8 +5,11 @@ campaign needs on disk.
 
 Calls go one way: ``campaign.storage.store`` -> here -> ``campaign.storage.faults`` (reserving,
 releasing, classifying a failed write) and ``campaign.storage.storefile`` (the layout: dtypes,
-fill values, a block's columns built from its rows, as the store writes them). The store hands over what an estimate needs (its staged records,
-its scalar names, the datasets it has just written); nothing here calls back into it.
+fill values, a block's columns built from its rows, as the store writes them). The store hands
+over what an estimate needs (the blocks its file holds when it opens it, its staged records, its
+scalar names, the datasets it has just written); nothing here calls back into it, and nothing of
+this object's is set from outside. What a failed step leaves is the handle's
+(``GuardedFile.poison``, ``poisoned``): the store reads it there when it closes.
 
 A step rewrites whole chunks (blocks of ``B`` rows of every per-task dataset), compressed;
 HDF5 may place a rewritten chunk at the end of the file, so each counts in full: its raw size
@@ -34,17 +37,17 @@ from campaign.storage.storefile import FAILED, ROW_FIELDS, SLACK, block_values, 
 
 class StoreSpace:
     """The space accounting of one store file: ``path``, ``B`` rows a block, ``T`` tasks, the
-    histograms' bin ``edges``."""
+    histograms' bin ``edges``, the blocks ``written`` (those the file holds chunks of when the
+    store opens it; the write steps add theirs)."""
 
-    def __init__(self, path, B: int, T: int, edges: dict):
+    def __init__(self, path, B: int, T: int, edges: dict, written=()):
         self.path = Path(path)
         self.B, self.T, self.edges = B, T, edges
         self.ratio = {}  # learnt key (a column, or all scalars) -> compressed / raw bytes
         self.seen = {}   # learnt key -> the last few ratios seen in the file
-        self.written_blocks = set()  # blocks the file holds chunks of (set by the store when it opens the file)
+        self.written_blocks = set(written)  # blocks the file holds chunks of
         self.record_bytes = []  # sizes of this run's journal records (what finishing needs)
         self.log = []  # (bytes reserved, bytes the file grew) of the last HDF5 write steps
-        self.poisoned = False  # a write step failed: the store's handle must write nothing to the file any more
 
     # ---- what a write step may add
     def columns(self, names):
@@ -141,9 +144,10 @@ class StoreSpace:
         space it may need (``nbytes`` plus room for HDF5's own metadata, with ``n_scalars``
         scalar datasets and the chunks of ``blocks`` written) is reserved first, or OutOfSpace
         is raised before anything is written; if anything fails inside, the handle is poisoned
-        and an operating-system failure is raised as a WriteFault. Logs (bytes reserved, bytes
-        the file grew) and counts ``blocks`` as written."""
-        if self.poisoned:
+        (``io.poison()``: the store then closes it without writing) and an operating-system
+        failure is raised as a WriteFault. Logs (bytes reserved, bytes the file grew) and counts
+        ``blocks`` as written."""
+        if io.poisoned:
             raise RuntimeError("the store's HDF5 handle failed a write before; it must not be written again")
         fresh = [b for b in blocks if b not in self.written_blocks]
         fd = io.fd
@@ -153,15 +157,13 @@ class StoreSpace:
         try:
             yield
         except BaseException as exc:
-            self.poisoned = True
+            io.poison()
             fault = write_fault(exc, self.path, what, needed=need)
             if fault is not None and fault is not exc:
                 raise fault from None
             raise
         finally:
-            if io.failed is not None:
-                self.poisoned = True
-            if not self.poisoned:
+            if not io.poisoned:  # a refused write poisons it too (``failed``)
                 release(fd, reserved)
         if io.failed is not None:  # HDF5 wrote past the reservation into a full disk: the overlay took it
             fault = write_fault(io.failed, self.path, what, needed=need)
