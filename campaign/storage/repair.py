@@ -1,7 +1,8 @@
 """``campaign verify --repair``: the store rebuilt without what a scan found damaged
 (``campaign.storage.integrity.scan``, its ``Report``: ``campaign.storage.damage``), under the
 lock a run holds, so that ``campaign run`` of the same spec recomputes exactly the rows dropped
-(docs/STORE.md, "Checksums, verify and repair").
+(docs/STORE.md, "Checksums, verify and repair"). The copying of the rows kept is
+``campaign.storage.salvage``'s, which a run's start uses too.
 """
 
 from __future__ import annotations
@@ -59,8 +60,8 @@ def repair(report: Report) -> dict:
     whatever is not a task's (damaged provenance, stray groups, ``/reduced``) is left out.
     Returns ``{"pending_again", "rows_before", "rows_after"}``. Raises UserError when it cannot be
     done (the file cannot be opened, its spec attributes are damaged, a run is writing it)."""
-    from campaign.storage.storefile import create_file
     from campaign.plan.tasks import expand
+    from campaign.storage.salvage import salvage
 
     if report.fatal is not None:
         raise UserError(f"{report.path}: cannot be repaired: {report.fatal}")
@@ -82,8 +83,7 @@ def repair(report: Report) -> dict:
     before = report.counts
     state = (np.zeros(T, np.int8), np.zeros(T, np.int32), np.full(T, np.nan))
     with run_lock(report.path):
-        create_file(report.path, spec, tasks, edges, B, salvage=True, state=state, drop=drop,
-                    renames=report.renames, checked=True)
+        salvage(report.path, spec, tasks, edges, B, state, drop=drop, renames=report.renames, checked=True)
     st = state[0]
     after = {"done": int(np.count_nonzero(st == 1)), "failed": int(np.count_nonzero(st == 2)),
              "pending": int(np.count_nonzero(st == 0))}

@@ -7,8 +7,8 @@ Two files per campaign, written only by the master:
   (shuffle + deflate), so the file grows with the finished packings, not with the
   grid; a chunk never written costs nothing. ``tasks/status`` (one byte a task, not
   compressed) is the commit marker: a row counts once its status says so. Its layout
-  (with a block of rows built from the tasks' records), creation, checking and salvage:
-  ``campaign.storage.storefile``.
+  (with a block of rows built from the tasks' records), creation and checking:
+  ``campaign.storage.storefile``; the salvage of a damaged one: ``campaign.storage.salvage``.
 * ``OUT.journal``: a write-ahead log (``campaign.storage.journal``). One length-prefixed,
   CRC-checked record per finished task, written with a single ``write()`` before
   anything touches the HDF5 file. At a *checkpoint* (when the journal passes
@@ -45,8 +45,8 @@ failed write step): never flushed or closed normally again, since its cache then
 that never reached the disk (its writes go to memory); the journal holds every finished task and
 the next start salvages the store. Either way the run stops with a ``WriteFault`` (exit status 3).
 
-Calls go one way: here -> ``storespace``, ``storefile``, ``checksums``, ``journal``, ``faults``;
-none of them imports this module.
+Calls go one way: here -> ``storespace``, ``salvage``, ``storefile``, ``checksums``,
+``journal``, ``faults``; none of them imports this module.
 """
 
 from __future__ import annotations
@@ -71,6 +71,7 @@ from campaign.storage.storefile import (  # noqa: F401 - part of this module's i
     CHUNK_CACHE, COMPRESSION, DONE, ERROR_LEN, FAILED, FORMAT_VERSION, HOST_LEN, OLD_FORMAT_HELP, PENDING,
     ROW_FIELDS, SCHEMA, SLACK, TASK_FIELDS, VARIANT_LEN, check_file, check_format, create_file, dataset_kwargs,
     fill_value, fixed, format_problem, fsync_path, load_state, row_dtype, row_values)
+from campaign.storage.salvage import salvage
 from campaign.storage.storefile import block_values, column_block
 from campaign.storage.storespace import StoreSpace
 
@@ -166,8 +167,10 @@ class Store:
                          "new file and replaying the journal")
                 salvage_from = problem
         if salvage_from is not None or not self.path.exists():
-            create_file(self.path, self.spec, self.tasks, self.edges, self.B, salvage=salvage_from is not None,
-                        state=(self.status, self.attempts, self.wall))
+            if salvage_from is not None:
+                salvage(self.path, self.spec, self.tasks, self.edges, self.B, (self.status, self.attempts, self.wall))
+            else:
+                create_file(self.path, self.spec, self.tasks, self.edges, self.B)
             self.n_status = [int(np.count_nonzero(self.status == k)) for k in (PENDING, DONE, FAILED)]
             rebuilt = "the damaged part of the" if salvage_from else "the missing"
         # the space accounting (what a write step may add, its reservation, what finishing needs),

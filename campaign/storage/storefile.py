@@ -1,24 +1,23 @@
 """The campaign store's HDF5 layout: its names and types, the format version, a block of rows
-built from the tasks' records, creating a fresh file, checking an existing one against a spec,
-and salvaging a damaged one.
+built from the tasks' records, creating a fresh file, and checking an existing one against a spec.
 
 ``campaign.storage.store`` (the master's writer), ``campaign.storage.storespace`` (the space
-accounting) and the readers use these; nothing here imports them back. The store re-exports the
-names it held before the layout was split out. The layout itself is documented in docs/STORE.md.
+accounting), ``campaign.storage.salvage`` (a damaged store's readable rows copied into a new file)
+and the readers use these; nothing here imports them back. The store re-exports the names it held
+before the layout was split out. The layout itself is documented in docs/STORE.md.
 
 A block's columns are built once, here, for both who need them: the writer (``column_block`` of
 ``block_values``), and the space accounting, which compresses the same arrays to estimate a first
 write's size.
 
-Creating and salvaging write a new file under a temporary name (``OUT.tmp``), reserve the
-space they need first (``campaign.storage.faults.reserve``), and rename it into place only when it
-is complete and durable: a full disk at any point leaves the existing store as it was and
-removes the temporary file.
+Creating writes a new file under a temporary name (``OUT.tmp``), reserves the space it needs
+first (``campaign.storage.faults.reserve``), and renames it into place only when it is complete
+and durable: a full disk at any point leaves the existing store as it was and removes the
+temporary file. Salvaging creates its file the same way (``create_file``'s ``fill``).
 """
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -264,37 +263,26 @@ def load_state(path, status, attempts, wall):
         wall[:] = f["tasks/wall"][:]
 
 
-# --------------------------------------------------------------------------- creating, salvaging
+# --------------------------------------------------------------------------- creating
 
-def creation_bytes(T, edges, salvage_from=None) -> int:
-    """A generous estimate of the bytes a new store of T tasks takes (plus the damaged
-    store's size when its rows are salvaged into it)."""
+def creation_bytes(T, edges, extra=0) -> int:
+    """A generous estimate of the bytes a new store of T tasks takes (plus ``extra``: what is
+    copied into it, a damaged store's size when its rows are salvaged into it)."""
     raw = T * (32 + VARIANT_LEN + 8 + 8 + 8 + 1) + 64 * (T // 256 + 1) * 16
     raw += sum(8 * len(e) for e in edges.values())
     columns = len(TASK_FIELDS) + 2 * len(edges)  # their block checksums: 8 bytes a block, and a header
     raw += columns * (8 * (T // 256 + 1) + 1024)
-    extra = 0
-    if salvage_from is not None:
-        try:
-            extra = os.stat(salvage_from).st_size
-        except OSError:
-            extra = 0
     return int(1.05 * (raw + extra)) + 8 * SLACK
 
 
-def create_file(path, spec, tasks, edges, B, *, salvage=False, state=None, drop=(), renames=None, checked=False):
+def create_file(path, spec, tasks, edges, B, *, fill=None, extra=0, what="creating the store"):
     """A fresh store at ``path``, created under a temporary name and renamed into place.
 
-    With ``salvage``, the committed rows that can still be read from the damaged file at
-    ``path`` are copied into it (block by block; a block that cannot be read is lost and its
-    tasks are pending again; so is a row in ``drop``, a row whose commit marker contradicts it,
-    and one whose configuration or failure record cannot be read or fails its checksum), and
-    ``state`` (status, attempts, wall arrays) gets their values; ``renames`` maps scalar datasets
-    found under a damaged name to their name. A block that differs from its block checksums is lost
-    too, unless ``checked`` (``campaign verify --repair``: its scan found those, and ``drop`` holds
-    their rows).
-    The space it needs is reserved first; a full disk (OutOfSpace) or any other fault
-    removes the temporary file and leaves ``path`` as it was.
+    ``fill(f)``, when given, writes into the new file (the open h5py File, its layout written)
+    before it is made durable, ``extra`` bytes on top of the layout's (``creation_bytes``):
+    ``campaign.storage.salvage`` copies a damaged store's readable rows this way. ``what`` names
+    the step in a fault's message. The space it needs is reserved first; a full disk (OutOfSpace)
+    or any other fault removes the temporary file and leaves ``path`` as it was.
     """
     import h5py
 
@@ -302,16 +290,15 @@ def create_file(path, spec, tasks, edges, B, *, salvage=False, state=None, drop=
     tmp = path.with_name(path.name + ".tmp")
     if tmp.exists():
         tmp.unlink()
-    need = creation_bytes(len(tasks), edges, path if salvage else None)
-    what = "salvaging the damaged store into a new file" if salvage else "creating the store"
+    need = creation_bytes(len(tasks), edges, extra)
     f = io = None
     try:
         io = GuardedFile(tmp, create=True)
         reserved = reserve(io.fd, need, tmp, what)  # before HDF5 writes its first byte
         f = h5py.File(io, "w")
         _write_layout(f, spec, tasks, edges, B)
-        if salvage:
-            _salvage_into(f, path, tasks, edges, B, state, drop, renames or {}, checked)
+        if fill is not None:
+            fill(f)
         f.flush()
         if io.failed is not None:
             raise io.failed
@@ -391,137 +378,3 @@ def _write_layout(f, spec, tasks, edges, B):
     f.attrs["spec_hash"] = spec.hash
     f.attrs["name"] = spec.name
     f.attrs["spec_yaml"] = spec.text
-
-
-def _salvage_into(f, old_path, tasks, edges, B, state, drop=(), renames=None, checked=False):
-    """Copy every readable committed row of the damaged store ``old_path`` into ``f``.
-
-    Dropped (pending again, every column at its fill value): the rows of a block that cannot be
-    read, the rows in ``drop``, a row whose status is not 0, 1 or 2 or says finished where its
-    row holds no finished task (``attempts`` 0), and a finished row whose configuration or failure
-    record cannot be read or fails its checksum. Root attributes that read are carried over."""
-    import h5py
-
-    from campaign.storage.checksums import (configuration_problem, create_fill_sums, failure_problem, good_scalar_name,
-                                            write_configuration, write_failure, write_scalar_names, write_sums)
-
-    T = len(tasks)
-    status, attempts, wall = state
-    drop = set(int(i) for i in drop)
-    try:
-        old = h5py.File(old_path, "r", locking=False)
-    except (OSError, ValueError, RuntimeError):
-        return
-    with old:
-        try:
-            for key in old.attrs.keys():
-                if key in f.attrs:
-                    continue
-                try:
-                    value = old.attrs[key]
-                    if key in ("runs", "hosts", "versions"):
-                        json.loads(value)
-                    f.attrs[key] = value
-                except (OSError, KeyError, ValueError, RuntimeError, TypeError):
-                    continue  # a damaged provenance attribute: left out (the next run writes it again)
-        except (OSError, KeyError, ValueError, RuntimeError):
-            pass
-        renames = renames or {}
-        try:  # old name -> name (a damaged name is renamed back when known, else left out)
-            scalar_names = {n: renames.get(n, n) for n in old["scalars"].keys()
-                            if n in renames or good_scalar_name(n)}
-        except (OSError, KeyError, ValueError, RuntimeError):
-            scalar_names = {}
-        fills = {f"tasks/{n}": fill_value(n) for n in ROW_FIELDS}
-        fills.update({f"scalars/{n}": np.nan for n in scalar_names.values()})
-        fills.update({f"histograms/{h}/counts": 0 for h in edges})
-        for lo in range(0, T, B):
-            hi = min(lo + B, T)
-            try:
-                st = np.array(old["tasks/status"][lo:hi])
-                if not checked:
-                    _check_old(old, "tasks/status", lo, st, B)
-                rows = np.flatnonzero(st != PENDING)
-                if not len(rows):
-                    continue
-                data = {f"tasks/{n}": old[f"tasks/{n}"][lo:hi] for n in ROW_FIELDS}
-                for n, new in scalar_names.items():
-                    data[f"scalars/{new}"] = old["scalars"][n][lo:hi]
-                for h in edges:
-                    data[f"histograms/{h}/counts"] = old[f"histograms/{h}/counts"][lo:hi]
-                for name, a in data.items():  # a block read from the wrong place is lost like a damaged one
-                    if not checked:
-                        _check_old(old, name, lo, a, B)
-            except (OSError, KeyError, ValueError, RuntimeError, TypeError, MemoryError):
-                continue  # this block is lost: its tasks are pending again
-            bad = {int(r) for r in rows if lo + int(r) in drop or st[r] not in (DONE, FAILED)
-                   or data["tasks/attempts"][r] < 1}
-            bad.update(int(r) for r in np.flatnonzero(st == PENDING))  # nothing of a pending row is kept
-            extra = {}
-            for r in rows:
-                if int(r) in bad:
-                    continue
-                tid = tasks[lo + r].id
-                try:
-                    if "configurations" in old and tid in old["configurations"]:
-                        conf, problem = configuration_problem(old[f"configurations/{tid}"])
-                        if problem is not None:
-                            raise ValueError(problem)
-                        extra[("c", tid)] = conf
-                    if st[r] == FAILED and "failures" in old and tid in old["failures"]:
-                        rec = dict(old[f"failures/{tid}"].attrs)
-                        problem = failure_problem(rec, has_sums(old))
-                        if problem is not None:
-                            raise ValueError(problem)
-                        extra[("f", tid)] = rec
-                except (OSError, KeyError, ValueError, RuntimeError, TypeError):
-                    bad.add(int(r))  # this task is pending again
-                    extra.pop(("c", tid), None)
-            for r in bad:
-                st[r] = PENDING
-                extra.pop(("c", tasks[lo + r].id), None)
-                extra.pop(("f", tasks[lo + r].id), None)
-                for name, a in data.items():
-                    a[r] = fills[name]
-            for name, a in data.items():
-                if name.startswith("scalars/") and name not in f:
-                    f["scalars"].create_dataset(name[8:], dtype=np.float64, **dataset_kwargs(B, (T,), np.nan))
-                    create_fill_sums(f, name, T, B, (), np.float64, np.nan)
-                    write_scalar_names(f["scalars"], f["scalars"].keys())
-                f[name][lo:hi] = a
-                write_sums(f.get(sums_name(name)), lo, a, B)
-            for (kind, tid), v in extra.items():
-                if kind == "c":
-                    write_configuration(f.require_group("configurations"), tid, v)
-                else:
-                    write_failure(f["failures"], tid, v)
-            f["tasks/status"][lo:hi] = st
-            write_sums(f.get(sums_name("tasks/status")), lo, st, B)
-            status[lo:hi] = st
-            attempts[lo:hi] = data["tasks/attempts"]
-            wall[lo:hi] = data["tasks/wall"]
-
-
-def sums_name(name):
-    from campaign.storage.checksums import sums_name as _name
-
-    return _name(name)
-
-
-def has_sums(f):
-    from campaign.storage.checksums import has_sums as _has
-
-    return _has(f)
-
-
-def _check_old(old, name, lo, data, B):
-    """Raise BlockMismatch when rows of the damaged store ``old`` being salvaged differ from their block
-    checksums (a store without them, or without those of ``name``, is taken as it reads)."""
-    from campaign.storage.checksums import SUMS_ROWS, check_rows, has_sums
-
-    if not has_sums(old):
-        return
-    ds = old.get(sums_name(name))
-    if ds is None or int(ds.attrs.get(SUMS_ROWS, -1)) != B:
-        return
-    check_rows(ds, name, lo, data, B)
