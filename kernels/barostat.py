@@ -49,7 +49,7 @@ jamming from a residual of 1e-2 to 1e-4), and there are half as many stages, but
 stages are larger steps: over seeds the two routes cost about the same
 (docs/PRESSURE_ROUTE.md has the measurements).
 
-Bounds, status codes and the returned tuple are those of ``kernels.protocol._ohern_core``:
+Bounds, status codes and the returned tuple are those of ``kernels.protocol.ohern_search``:
 ``max_search`` bounds the minimisations (each enthalpy minimisation and each polish
 counts one), ``max_steps`` the FIRE steps of each.
 """
@@ -171,7 +171,7 @@ def _enthalpy_core(positions, radii0, box, alpha, p_target, lam, tol, ptol, max_
 def _pressure_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search,
                    max_steps, skin_factor, max_radius, stage_step, baro_scale, verbose):
     """Run the pressure route in place; arguments and returned tuple as in
-    ``kernels.protocol._ohern_core`` (``scale`` is the final ``lambda``)."""
+    ``kernels.protocol.ohern_search`` (``scale`` is the final ``lambda``)."""
     n = positions.shape[0]
     area = box[0] * box[1]
     e_max = e_min * (1.0 + window)

@@ -19,12 +19,13 @@ import numpy as np
 
 from kernels.barostat import BARO_SCALE, STAGE_STEP, _pressure_core
 from kernels.cells import _candidate_pairs_core
-from kernels.names import MAX_POLYDISPERSITY, SIZE_DISTRIBUTIONS
+from kernels.names import (CHOICES, MAX_POLYDISPERSITY, ROUTES, SIZE_DISTRIBUTIONS,  # noqa: F401 - ROUTES re-exported
+                           protocol_problem)
 from kernels.network import HALF_PLANE_TOL, _overlapping_core, _rattlers_core
 from kernels.potential import ALPHA_RANGE, check_exponent, stress_from_bonds
 from kernels.space import _as_box
 from kernels.protocol import (CELL_NAMES, ENDGAME_NAMES, MINIMIZER_NAMES, SEARCH_NAMES,
-                              STATUS_NAMES, _ohern_core)
+                              STATUS_NAMES, SearchSettings, ohern_search)
 
 DEFAULT_SPECIES = ((0.5, 1.4), (0.5, 1.0))
 
@@ -52,17 +53,10 @@ DEFAULTS = dict(
 )
 
 
-#: Routes to a packing in the window: the O'Hern ladder (``kernels.protocol``) or fixed-pressure
-#: minimisation with the radius scale as a degree of freedom (``kernels.barostat``).
-ROUTES = ("ohern", "pressure")
-
 #: Largest factor by which the secant search lowers the energy per minimisation.
 ENERGY_STEP = 1e-1
 
 STATUS_CODES = {name: code for code, name in enumerate(STATUS_NAMES)}
-
-#: stopping rules of a minimisation (``stop``)
-STOP_RULES = ("force", "energy")
 
 
 @dataclass(frozen=True, eq=False)
@@ -396,42 +390,21 @@ def _prepare(n, energy, seed, start, settings):
     phi_start = _positive_float("phi_start", opt["phi_start"], upper=1.0)
     max_search = _positive_int("max_search", opt["max_search"])
     max_steps = _positive_int("max_steps", opt["max_steps"])
-    if opt["minimizer"] not in MINIMIZER_NAMES:
-        raise ValueError(f"minimizer: expected one of {list(MINIMIZER_NAMES)}, "
-                         f"got {opt['minimizer']!r}")
+    for key, names in CHOICES.items():
+        if opt[key] not in names:
+            raise ValueError(f"{key}: expected one of {list(names)}, got {opt[key]!r}")
+    problem = protocol_problem(opt)  # the combinations the kernels run (kernels.names.RUNNABLE)
+    if problem is not None:
+        raise ValueError(f"{problem[0]}: {problem[1]}")
     minimizer = MINIMIZER_NAMES.index(opt["minimizer"])
-    if opt["stop"] not in STOP_RULES:
-        raise ValueError(f"stop: expected one of {list(STOP_RULES)}, got {opt['stop']!r}")
-    if opt["stop"] == "energy" and opt["minimizer"] != "cg":
-        raise ValueError(f"stop: expected 'force' with minimizer {opt['minimizer']!r} (the energy "
-                         "rule counts conjugate-gradient steps: use minimizer='cg'), got 'energy'")
+    endgame = ENDGAME_NAMES.index(opt["endgame"])
+    cell = CELL_NAMES.index(opt["cell"])
     e_tol = _positive_float("energy_tolerance", opt["energy_tolerance"])
     if opt["stop"] == "force":
         e_tol = 0.0
     if opt["search"] not in SEARCH_NAMES:
         raise ValueError(f"search: expected one of {list(SEARCH_NAMES)}, got {opt['search']!r}")
     rule = SEARCH_NAMES.index(opt["search"])
-    if opt["route"] not in ROUTES:
-        raise ValueError(f"route: expected one of {list(ROUTES)}, got {opt['route']!r}")
-    if opt["route"] == "pressure" and (opt["minimizer"] != "fire" or opt["stop"] != "force"):
-        raise ValueError("route: 'pressure' relaxes with FIRE and stops on the force residual; expected "
-                         f"minimizer 'fire' and stop 'force', got {opt['minimizer']!r} and {opt['stop']!r}")
-    if opt["endgame"] not in ENDGAME_NAMES:
-        raise ValueError(f"endgame: expected one of {list(ENDGAME_NAMES)}, got {opt['endgame']!r}")
-    endgame = ENDGAME_NAMES.index(opt["endgame"])
-    if opt["cell"] not in CELL_NAMES:
-        raise ValueError(f"cell: expected one of {list(CELL_NAMES)}, got {opt['cell']!r}")
-    cell = CELL_NAMES.index(opt["cell"])
-    if cell and (opt["minimizer"] != "fire" or opt["stop"] != "force" or opt["route"] != "ohern"
-                 or endgame):
-        raise ValueError("cell: 'shear' relaxes the cell with FIRE in the O'Hern search; expected "
-                         "minimizer 'fire', stop 'force', route 'ohern' and endgame 'none', got "
-                         f"{opt['minimizer']!r}, {opt['stop']!r}, {opt['route']!r} and "
-                         f"{opt['endgame']!r}")
-    if endgame and (opt["minimizer"] != "fire" or opt["stop"] != "force" or opt["route"] != "ohern"):
-        raise ValueError("endgame: 'newton' takes over FIRE's minimisations of the O'Hern route; expected "
-                         "minimizer 'fire', stop 'force' and route 'ohern', got "
-                         f"{opt['minimizer']!r}, {opt['stop']!r} and {opt['route']!r}")
     delta = _positive_float("delta", opt["delta"], upper=1.0)
     skin = _positive_float("skin", opt["skin"], upper=1.0)
     # the kernels' cell [Lx, Ly, xy] (kernels.space): a shear-stabilised start keeps its own
@@ -474,10 +447,11 @@ def _run(job):
             job.max_search, job.max_steps, job.skin, job.max_radius, STAGE_STEP, BARO_SCALE, False)
         nfact = 0
     else:
-        status, scale, e_tot, virial, residual, iterations, nforce, nfact = _ohern_core(
-            positions, radii0, cell_box, alpha, job.e_min, job.window, job.tol, job.search_tol,
-            job.max_search, job.max_steps, job.skin, job.delta, job.rule, job.max_radius,
-            ENERGY_STEP, job.minimizer, job.e_tol, job.endgame, job.cell)
+        settings = SearchSettings(alpha, job.e_min, job.window, job.tol, job.search_tol, job.max_search,
+                                  job.max_steps, job.skin, job.delta, job.rule, job.max_radius,
+                                  ENERGY_STEP, job.e_tol)
+        status, scale, e_tot, virial, residual, iterations, nforce, nfact = ohern_search(
+            positions, radii0, cell_box, settings, job.minimizer, job.endgame, job.cell)
     return _packing(job, STATUS_NAMES[status], scale, e_tot, virial, residual, iterations, nforce,
                     nfact)
 

@@ -56,9 +56,11 @@ steps. The status says which bound stopped the search (``STATUS_NAMES``); it is
 ``converged`` only for a force-balanced packing inside the window.
 
 Jitted cores usable from other numba code: ``OHERN_CORES[(minimizer, endgame, cell)]``, one
-per minimiser (each compiles only its own minimiser); ``_ohern_core`` (Python) picks one
+per minimiser (each compiles only its own minimiser); ``ohern_search`` (Python) picks one
 by the integer codes (see their docstrings).
 """
+
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -72,7 +74,8 @@ from kernels import rules
 from kernels.rules import (ABORT_FRACTION, AIM, BELOW, CONVERGED, DT_FACTOR,  # noqa: F401 (re-exported)
                            E_FIRST_GUESS, MAX_STEPS, SEARCH_HALVING, SEARCH_NAMES, SEARCH_PAPER,
                            SEARCH_SECANT)
-from kernels.space import _wrap_core
+from kernels.space import _wrap_core, remainder
+from kernels.names import CELL_NAMES, ENDGAME_NAMES, MINIMIZER_NAMES, RUNNABLE
 
 
 #: The search's next radius scale (``kernels.rules.search_step``, the rule the GPU block shares).
@@ -80,19 +83,15 @@ _search_step = njit(cache=True)(rules.search_step)
 _search_targets = njit(cache=True, inline="always")(rules.search_targets)
 _search_start = njit(cache=True, inline="always")(rules.search_start)
 
-MIN_FIRE = 0
-MIN_CG = 1
-MINIMIZER_NAMES = ("fire", "cg")
+# the codes of the choices: their positions in kernels.names' tuples
+MIN_FIRE = MINIMIZER_NAMES.index("fire")
+MIN_CG = MINIMIZER_NAMES.index("cg")
+ENDGAME_NONE = ENDGAME_NAMES.index("none")
+ENDGAME_NEWTON = ENDGAME_NAMES.index("newton")
+CELL_FIXED = CELL_NAMES.index("fixed")
+CELL_SHEAR = CELL_NAMES.index("shear")
 
-ENDGAME_NONE = 0
-ENDGAME_NEWTON = 1
-ENDGAME_NAMES = ("none", "newton")
-
-CELL_FIXED = 0
-CELL_SHEAR = 1
-CELL_NAMES = ("fixed", "shear")
-
-# status codes of _ohern_core
+# status codes of the O'Hern search
 ST_CONVERGED = 0
 ST_MAX_SEARCH = 1
 ST_MAX_STEPS = 2
@@ -161,8 +160,8 @@ def _spatial_order(positions, box, cell):
     ny = max(1, int(box[1] / cell))
     key = np.empty(n, dtype=np.int64)
     for i in range(n):
-        x = positions[i, 0] - box[0] * np.floor(positions[i, 0] / box[0])
-        y = positions[i, 1] - box[1] * np.floor(positions[i, 1] / box[1])
+        x = remainder(positions[i, 0], box[0])
+        y = remainder(positions[i, 1], box[1])
         cx = min(int(x / box[0] * nx), nx - 1)
         cy = min(int(y / box[1] * ny), ny - 1)
         # serpentine rows keep consecutive cells adjacent
@@ -330,7 +329,7 @@ def _ohern_fire_cell(positions, radii0, box, alpha, e_min, window, tol, search_t
 
 
 #: The jitted O'Hern search per ``(minimizer, endgame, cell)`` code triple (``MIN_*``,
-#: ``ENDGAME_*``, ``CELL_*``); arguments those of ``_ohern_core`` without the three codes.
+#: ``ENDGAME_*``, ``CELL_*``); arguments ``(positions, radii0, box, *SearchSettings)``.
 OHERN_CORES = {
     (MIN_FIRE, ENDGAME_NONE, CELL_FIXED): _ohern_fire,
     (MIN_CG, ENDGAME_NONE, CELL_FIXED): _ohern_cg,
@@ -339,19 +338,39 @@ OHERN_CORES = {
 }
 
 
-def _ohern_core(positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search,
-                max_steps, skin_factor, delta0, rule, max_radius, energy_step, minimizer, e_tol,
-                endgame, cell=CELL_FIXED):
-    """The O'Hern search (``_ohern_search``) with ``minimizer`` (``MIN_FIRE`` or ``MIN_CG``),
-    ``endgame`` (``ENDGAME_NONE`` or ``ENDGAME_NEWTON``, FIRE only) and ``cell``
-    (``CELL_FIXED``, or ``CELL_SHEAR`` with FIRE alone: ``box`` = [Lx, Ly, xy] is relaxed and
-    updated): calls the jitted entry of ``OHERN_CORES`` for that triple, which compiles (or
-    loads from the numba cache) only that minimiser. Arguments and returned tuple as
-    ``_ohern_search``."""
+if set(OHERN_CORES) != {(MINIMIZER_NAMES.index(m), ENDGAME_NAMES.index(e), CELL_NAMES.index(c))
+                         for route, m, _, e, c in RUNNABLE if route == "ohern"}:
+    raise ImportError("kernels.protocol.OHERN_CORES and kernels.names.RUNNABLE name different searches")
+
+
+class SearchSettings(NamedTuple):
+    """The settings of one O'Hern search: the jitted searches' arguments after ``(positions,
+    radii0, box)``, in their order (``_ohern_search`` says what each is)."""
+    alpha: float
+    e_min: float
+    window: float
+    tol: float
+    search_tol: float
+    max_search: int
+    max_steps: int
+    skin_factor: float
+    delta0: float
+    rule: int
+    max_radius: float
+    energy_step: float
+    e_tol: float
+
+
+def ohern_search(positions, radii0, box, settings, minimizer, endgame=ENDGAME_NONE, cell=CELL_FIXED):
+    """The O'Hern search (``_ohern_search``) with ``settings`` (a ``SearchSettings``),
+    ``minimizer`` (``MIN_FIRE`` or ``MIN_CG``), ``endgame`` (``ENDGAME_NONE`` or
+    ``ENDGAME_NEWTON``, FIRE only) and ``cell`` (``CELL_FIXED``, or ``CELL_SHEAR`` with FIRE
+    alone: ``box`` = [Lx, Ly, xy] is relaxed and updated): calls the jitted entry of
+    ``OHERN_CORES`` for that triple, which compiles (or loads from the numba cache) only that
+    minimiser. Returns ``_ohern_search``'s tuple."""
     try:
         core = OHERN_CORES[(int(minimizer), int(endgame), int(cell))]
     except KeyError:
         raise ValueError(f"minimizer {minimizer!r} with endgame {endgame!r} and cell {cell!r}: "
                          f"expected one of {sorted(OHERN_CORES)}") from None
-    return core(positions, radii0, box, alpha, e_min, window, tol, search_tol, max_search,
-                max_steps, skin_factor, delta0, rule, max_radius, energy_step, e_tol)
+    return core(positions, radii0, box, *settings)

@@ -139,7 +139,7 @@ def test_route_in_task_identity():
 
 
 def test_pressure_route_refuses_the_other_minimisers():
-    with pytest.raises(ValueError, match="route: 'pressure' relaxes with FIRE"):
+    with pytest.raises(ValueError, match="route: route 'pressure' relaxes with FIRE"):
         kernels.jam(32, 1e-6, 0, route="pressure", minimizer="cg")
     with pytest.raises(UserError, match="route 'pressure' relaxes with FIRE"):
         parse_spec("name: x\ngrid: {N_G: [16], E_G: [1.0e-4], seeds: 1}\n"

@@ -164,7 +164,7 @@ def test_bad_minimize_settings(kw, match):
     (dict(minimizer="newton"), r"minimizer: expected one of \['fire', 'cg'\], got 'newton'"),
     (dict(minimizer=None), r"minimizer: expected one of"),
     (dict(stop="residual"), r"stop: expected one of \['force', 'energy'\], got 'residual'"),
-    (dict(stop="energy"), r"stop: expected 'force' with minimizer 'fire'.*got 'energy'"),
+    (dict(stop="energy"), r"stop: stop 'energy' counts conjugate-gradient steps: it needs minimizer 'cg'.*; got minimizer 'fire'"),
     (dict(minimizer="cg", stop="energy", energy_tolerance=0.0),
      r"energy_tolerance: expected a finite number > 0, got 0.0"),
     (dict(energy_tolerance="small"), r"energy_tolerance: expected a finite number > 0"),

@@ -6,6 +6,7 @@ else a process compiled, the numba cache still serves a second process, and
 The real checks run the kernels in subprocesses with a fresh NUMBA_CACHE_DIR (compilation from
 a cold cache)."""
 
+import inspect
 import json
 import os
 import subprocess
@@ -13,6 +14,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -133,10 +135,51 @@ def test_ohern_cores_one_per_minimiser():
                                          (protocol.MIN_CG, protocol.ENDGAME_NONE, fixed),
                                          (protocol.MIN_FIRE, protocol.ENDGAME_NEWTON, fixed),
                                          (protocol.MIN_FIRE, protocol.ENDGAME_NONE, shear)}
+    settings = protocol.SearchSettings(*([None] * len(protocol.SearchSettings._fields)))
     with pytest.raises(ValueError, match="endgame"):
-        protocol._ohern_core(*([None] * 15), protocol.MIN_CG, 0.0, protocol.ENDGAME_NEWTON)
+        protocol.ohern_search(None, None, None, settings, protocol.MIN_CG, protocol.ENDGAME_NEWTON)
     with pytest.raises(ValueError, match="cell"):
-        protocol._ohern_core(*([None] * 15), protocol.MIN_CG, 0.0, protocol.ENDGAME_NONE, shear)
+        protocol.ohern_search(None, None, None, settings, protocol.MIN_CG, protocol.ENDGAME_NONE, shear)
+    # the record names the jitted searches' arguments, in their order
+    for core in protocol.OHERN_CORES.values():
+        params = list(inspect.signature(core.py_func).parameters)
+        assert params[:3] == ["positions", "radii0", "box"]
+        assert tuple(params[3:]) == protocol.SearchSettings._fields, core
+
+
+def test_jam_and_the_spec_accept_exactly_the_runnable_combinations():
+    """kernels.jam and a campaign spec accept a combination of route, minimiser, stop rule,
+    endgame and cell exactly when kernels.names.RUNNABLE has it, and refuse the others naming
+    the choice at fault."""
+    import itertools
+
+    from campaign.errors import UserError
+    from campaign.plan.spec import parse_spec
+    from kernels.jamming import _prepare
+    from kernels.names import CHOICE_DEFAULTS, CHOICES, RUNNABLE
+
+    base = "name: t\nseed: 1\ngrid: {N_G: [32], E_G: [1.0e-4], seeds: 1}\n"
+    for combo in itertools.product(*CHOICES.values()):
+        choice = dict(zip(CHOICES, combo))
+        runs = combo in RUNNABLE
+        settings = dict(choice, energy_tolerance=1e-16)
+        try:
+            _prepare(32, 1e-4, 0, None, settings)
+            jam_error = None
+        except ValueError as exc:
+            jam_error = str(exc)
+        assert (jam_error is None) == runs, (combo, jam_error)
+        protocol = ", ".join(f"{k}: {v}" for k, v in choice.items() if v != CHOICE_DEFAULTS[k])
+        try:
+            parse_spec(base + f"protocol: {{{protocol}}}\n", "t.yaml")
+            spec_error = None
+        except UserError as exc:
+            spec_error = str(exc)
+        assert (spec_error is None) == runs, (combo, spec_error)
+        if not runs:
+            key = jam_error.split(":")[0]
+            assert choice[key] != CHOICE_DEFAULTS[key] or key == "minimizer", jam_error
+            assert f"protocol.{key}: {key} {choice[key]!r}" in spec_error, spec_error
 
 
 def test_compile_report_names_kernels_and_summarises():

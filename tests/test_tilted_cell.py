@@ -272,9 +272,9 @@ def test_shear_ladder_keeps_the_cell():
 
 @pytest.mark.parametrize("kw,match", [
     (dict(cell="sheared"), "cell: expected one of"),
-    (dict(cell="shear", minimizer="cg"), "cell: 'shear'"),
-    (dict(cell="shear", endgame="newton"), "cell: 'shear'"),
-    (dict(cell="shear", route="pressure"), "cell: 'shear'"),
+    (dict(cell="shear", minimizer="cg"), "cell: cell 'shear'"),
+    (dict(cell="shear", endgame="newton"), "cell: cell 'shear'"),
+    (dict(cell="shear", route="pressure"), "cell: cell 'shear'"),
 ])
 def test_refusals_of_bad_cell_settings(kw, match):
     with pytest.raises(ValueError, match=match):

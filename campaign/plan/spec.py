@@ -33,29 +33,27 @@ import numpy as np
 import yaml
 
 from campaign.errors import UserError
-from kernels.names import (DEFAULT_OBSERVABLES, HISTOGRAMS, MAX_POLYDISPERSITY, OBSERVABLES,  # noqa: F401 - re-exported
-                           SIZE_DISTRIBUTIONS)
+from kernels.names import (CELL_NAMES, DEFAULT_OBSERVABLES, HISTOGRAMS, MAX_POLYDISPERSITY,  # noqa: F401 - re-exported
+                           MINIMIZER_NAMES, OBSERVABLES, ROUTES, SIZE_DISTRIBUTIONS, STOP_RULES, protocol_problem)
 
 #: protocol keys a spec may set (forwarded to ``kernels.jam`` as keyword arguments)
 PROTOCOL_DEFAULTS = {"window": 0.1, "force_tolerance": 1e-6}
 PROTOCOL_KEYS = ("window", "force_tolerance", "search_tolerance", "phi_start", "max_search", "max_steps",
                  "minimizer", "search", "delta", "skin", "start", "stop", "energy_tolerance", "route",
                  "endgame", "cell", "device", "gpu_threads")
-MINIMIZERS = ("fire", "cg")
+MINIMIZERS = MINIMIZER_NAMES
 #: how each minimisation of the O'Hern search ends (``kernels.protocol.ENDGAME_NAMES``): FIRE
 #: alone ("none", the default) or FIRE handing over to sparse Newton steps (``kernels.newton``)
 ENDGAMES = ("none", "newton", "auto")
 SEARCH_RULES = ("secant", "halving", "paper")
 #: what ends a minimisation: the force residual, or (cg only) the paper's energy-change rule
-STOPS = ("force", "energy")
-#: how a packing reaches its window (``kernels.jamming.ROUTES``): "ohern" (default) or "pressure"
-ROUTES = ("ohern", "pressure")
+STOPS = STOP_RULES
 #: where each packing's search starts: "random" (independent packings, the paper's protocol) or
 #: "ladder" (the same seed's packing at the next higher energy of the grid, decompressed)
 STARTS = ("random", "ladder")
-#: the periodic cell (``kernels.jamming.CELL_NAMES``): "fixed" (default, the spec's box) or "shear" (its
+#: the periodic cell (``kernels.names.CELL_NAMES``): "fixed" (default, the spec's box) or "shear" (its
 #: tilt and aspect ratio relaxed with the disks at fixed area: the shear-stabilised ensemble)
-CELLS = ("fixed", "shear")
+CELLS = CELL_NAMES
 #: what runs a packing's search: "cpu" (default, ``kernels.jam``) or "gpu" (one thread block per
 #: packing, ``kernels.gpu``): another trajectory from the same seed, so another task id
 DEVICES = ("cpu", "gpu")
@@ -701,9 +699,6 @@ def _protocol(c, value, path, allow, base=None):
         del out["start"]  # the default: independent packings keep their ids
     if out.get("stop") == "force":
         del out["stop"]  # the default: packings keep their ids
-    if out.get("stop") == "energy" and out.get("minimizer", "fire") != "cg":
-        c.err(path + ("stop",), "stop 'energy' counts conjugate-gradient steps: it needs minimizer 'cg', "
-                                f"got minimizer {out.get('minimizer', 'fire')!r}")
     if out.get("stop") != "energy" and "energy_tolerance" in out:
         if "energy_tolerance" in m:
             c.err(path + ("energy_tolerance",), "energy_tolerance is only used with stop 'energy'; "
@@ -713,20 +708,12 @@ def _protocol(c, value, path, allow, base=None):
         del out["route"]  # the default route: its packings keep their ids
     if out.get("endgame") == "none":
         del out["endgame"]  # the default: packings keep their ids
-    if out.get("endgame") in ("newton", "auto") and (out.get("minimizer", "fire") != "fire" or "stop" in out
-                                                     or "route" in out):
-        c.err(path + ("endgame",), f"endgame {out['endgame']!r} finishes the FIRE minimisations of the O'Hern "
-                                   "search: it needs minimizer 'fire', stop 'force' and route 'ohern', "
-                                   f"got minimizer {out.get('minimizer', 'fire')!r}, stop "
-                                   f"{out.get('stop', 'force')!r}, route {out.get('route', 'ohern')!r}")
     if out.get("cell") == "fixed":
         del out["cell"]  # the default: packings keep their ids
-    if out.get("cell") == "shear" and (out.get("minimizer", "fire") != "fire" or "stop" in out or "route" in out
-                                       or "endgame" in out):
-        c.err(path + ("cell",), "cell 'shear' relaxes the cell with the FIRE minimisations of the O'Hern search: "
-                                "it needs minimizer 'fire', stop 'force', route 'ohern' and endgame 'none', got "
-                                f"minimizer {out.get('minimizer', 'fire')!r}, stop {out.get('stop', 'force')!r}, "
-                                f"route {out.get('route', 'ohern')!r}, endgame {out.get('endgame', 'none')!r}")
+    auto = out.get("endgame") == "auto"  # the Newton endgame where it pays: it runs as "newton"
+    problem = protocol_problem(dict(out, endgame="newton") if auto else out, {"endgame": "auto"} if auto else None)
+    if problem is not None:
+        c.err(path + (problem[0],), problem[1])
     if out.get("device") == "cpu":
         del out["device"]  # the default: packings keep their ids
     if "gpu_threads" in out:
@@ -747,10 +734,6 @@ def _protocol(c, value, path, allow, base=None):
                                   f"{out.get('minimizer', 'fire')!r}, stop {out.get('stop', 'force')!r}, route "
                                   f"{out.get('route', 'ohern')!r}, endgame {out.get('endgame', 'none')!r}, cell "
                                   f"{out.get('cell', 'fixed')!r}, start {out.get('start', 'random')!r}")
-    if out.get("route") == "pressure" and (out.get("minimizer", "fire") != "fire" or "stop" in out):
-        c.err(path + ("route",), "route 'pressure' relaxes with FIRE and stops on the force residual: it "
-                                 f"needs minimizer 'fire' and stop 'force', got minimizer "
-                                 f"{out.get('minimizer', 'fire')!r}, stop {out.get('stop', 'force')!r}")
     return out
 
 
