@@ -24,7 +24,7 @@ Checked wrapper: ``candidate_pairs(positions, radii, box, skin)``.
 import numpy as np
 from numba import njit
 
-from kernels.space import _as_box, _as_positions, widths
+from kernels.space import _as_box, _as_positions, remainder, widths
 
 
 @njit(cache=True)
@@ -77,9 +77,8 @@ def _candidate_pairs_core(positions, radii, box, skin):
     cell_of = np.empty(n, dtype=np.int64)
     for i in range(n):
         # the cell's own (sheared) coordinates: x - xy y along a, y along b
-        y = positions[i, 1] - Ly * np.floor(positions[i, 1] / Ly)
-        x = positions[i, 0] - xy * y
-        x = x - Lx * np.floor(x / Lx)
+        y = remainder(positions[i, 1], Ly)
+        x = remainder(positions[i, 0] - xy * y, Lx)
         cx = int(x / Lx * nx)
         cy = int(y / Ly * ny)
         if cx >= nx:

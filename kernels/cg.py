@@ -58,10 +58,10 @@ from numba import njit
 from kernels.minimiser import (_checked_minimize_inputs, _residual_core, _starting_timestep, _verlet_rows,
                                fire_result)
 from kernels.linesearch import (C1, E_ROUND, LS_MAX, _dot, _line_search,  # noqa: F401 (C1, E_ROUND, LS_MAX: re-exported)
-                                _max_norm2, _wrap_with, energy_resolution)
+                                _max_norm2, energy_resolution)
 from kernels.potential import _energy_forces_rows
 from kernels.rules import BELOW, CHECK_EVERY, CONVERGED, DT_FACTOR, MAX_STEPS, STALLED
-from kernels.space import _wrap_inplace
+from kernels.space import _wrap_inplace, _wrap_with
 
 SIGMA = 0.1  # strong Wolfe curvature parameter
 RESTART_EVERY = 1000  # iterations between forced steepest-descent restarts

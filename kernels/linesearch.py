@@ -74,27 +74,6 @@ def _max_disp2(a, b):
 
 
 @njit(cache=True)
-def _wrap_with(positions, ref, box):
-    """Fold ``positions`` into the box and shift ``ref`` by the same lattice vectors
-    (so that a Verlet list built at ``ref`` stays valid)."""
-    Lx = box[0]
-    Ly = box[1]
-    tilt = box[2] * Ly
-    for i in range(positions.shape[0]):
-        # y first: its period b moves x by the tilt (kernels.space)
-        k = np.floor(positions[i, 1] / Ly)
-        if k != 0.0:
-            positions[i, 1] -= Ly * k
-            ref[i, 1] -= Ly * k
-            positions[i, 0] -= tilt * k
-            ref[i, 0] -= tilt * k
-        s = Lx * np.floor(positions[i, 0] / Lx)
-        if s != 0.0:
-            positions[i, 0] -= s
-            ref[i, 0] -= s
-
-
-@njit(cache=True)
 def _along(positions, t, d, out):
     """``out = positions + t d``: the trial point at step ``t`` of the line search."""
     for i in range(positions.shape[0]):

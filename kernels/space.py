@@ -21,10 +21,12 @@ Jitted functions usable from other numba code:
 * ``minimum_image(dx, L)``: one component reduced to ``[-L/2, L/2]``.
 * ``separation(dx, dy, box) -> (dx, dy)``: the nearest-image separation in the cell.
 * ``near_image(dx, dy, Lx, Ly, tilt, hx, hy)``: the same by single shifts, for the force loops.
+* ``remainder(x, L)``: one coordinate folded into ``[0, L)`` (cell lists, spatial orders).
 * ``_fold(x, y, Lx, Ly, tilt)``: one point folded into the fundamental domain.
 * ``widths(box) -> (wx, wy)``: distances between opposite sides of the cell.
 * ``_wrap_core(positions, box)``: positions folded into ``[0, Lx) x [0, Ly)`` (new array);
-  ``_wrap_inplace(positions, box)`` the same in place.
+  ``_wrap_inplace(positions, box)`` the same in place; ``_wrap_with(positions, ref, box)`` in
+  place, moving a reference configuration ``ref`` by the same lattice vectors.
 
 Checked wrappers: ``wrap(positions, box)``, ``_as_box(box)``.
 """
@@ -45,6 +47,13 @@ def minimum_image(dx, L):
     ``[-L/2, L/2]`` (ties at exactly ``L/2`` go to ``-L/2``).
     """
     return dx - L * np.floor(dx / L + 0.5)
+
+
+@njit(cache=True, inline="always")
+def remainder(x, L):
+    """``x`` folded into ``[0, L)`` by whole periods ``L``: ``x - L floor(x / L)`` (a tiny
+    negative ``x`` may round to ``L``: ``_fold`` fixes that edge where it matters)."""
+    return x - L * np.floor(x / L)
 
 
 @njit(cache=True, inline="always")
@@ -133,6 +142,28 @@ def _wrap_inplace(positions, box):
     for i in range(positions.shape[0]):
         positions[i, 0] = w[i, 0]
         positions[i, 1] = w[i, 1]
+
+
+@njit(cache=True)
+def _wrap_with(positions, ref, box):
+    """Fold ``positions`` into the cell in place and shift ``ref`` by the same lattice vectors
+    (so that a Verlet list built at ``ref`` stays valid; ``kernels.cg``). The steps are
+    ``remainder``'s, counted so that ``ref`` can take them too; without ``_fold``'s edge fixes."""
+    Lx = box[0]
+    Ly = box[1]
+    tilt = box[2] * Ly
+    for i in range(positions.shape[0]):
+        # y first: its period b moves x by the tilt (kernels.space)
+        k = np.floor(positions[i, 1] / Ly)
+        if k != 0.0:
+            positions[i, 1] -= Ly * k
+            ref[i, 1] -= Ly * k
+            positions[i, 0] -= tilt * k
+            ref[i, 0] -= tilt * k
+        s = Lx * np.floor(positions[i, 0] / Lx)
+        if s != 0.0:
+            positions[i, 0] -= s
+            ref[i, 0] -= s
 
 
 def _as_positions(positions, name="positions"):
