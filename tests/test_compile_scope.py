@@ -204,7 +204,7 @@ def test_the_warm_up_covers_every_minimiser_the_tasks_use():
     task's time includes a compilation; one variant, one warm-up."""
     from campaign.plan.spec import parse_spec
     from campaign.plan.tasks import expand
-    from campaign.run.engine import _warm_ups
+    from campaign.plan.tasks import warm_ups as _warm_ups
 
     base = """name: w
 seed: 1

@@ -131,3 +131,64 @@ def test_no_module_is_over_900_lines():
     long = {str(f.relative_to(ROOT)): n for package in ("kernels", "campaign")
             for f in sorted((ROOT / package).rglob("*.py")) if (n := len(f.read_text().splitlines())) > 900}
     assert long == {}
+
+
+def run_walk(spec, out):
+    """The walk of ``campaign run`` (docs/DEVELOPMENT.md, "The house"): the project functions
+    ``run_campaign`` calls, to depth 3, each at its first call and in that order, outside the
+    master's task loop (``Master.run``) and the writing of finished rows (``Store.flush``, which
+    the loop or the close may do first, as time decides); comprehensions are not functions. Returns the modules of its stays: a stay is a run of
+    consecutive functions of one module; every stay in a module left before is a return."""
+    import sys
+
+    from campaign import cli
+    from campaign.run.engine import run_campaign
+    from campaign.run.master import Master
+    from campaign.storage.store import Store
+
+    seen, stays, root = set(), [], []
+
+    def profile(frame, event, arg):
+        if event != "call":
+            return
+        if not root:
+            if frame.f_code is run_campaign.__code__:
+                root.append(frame)
+            return
+        depth, f = 0, frame
+        while f is not None and f is not root[0]:
+            if f.f_code in (Master.run.__code__, Store.flush.__code__) and f is not frame:
+                return  # the task loop, the writing of rows
+            f, depth = f.f_back, depth + 1
+        module = frame.f_globals.get("__name__", "")
+        key = (module, frame.f_code.co_qualname)
+        if f is None or depth > 3 or not module.startswith(("campaign", "kernels")) or key in seen \
+                or frame.f_code.co_name.startswith("<"):
+            return  # comprehensions are expressions of their function (inlined since Python 3.12)
+        seen.add(key)
+        if not stays or stays[-1] != module:
+            stays.append(module)
+
+    # once without the profile: a cold numba cache compiles here, not under the profile (slow)
+    assert cli.main(["run", str(spec), "--out", f"{out}.warm.h5", "--workers", "1", "--quiet"]) == 0
+    sys.setprofile(profile)
+    try:
+        code = cli.main(["run", str(spec), "--out", str(out), "--workers", "1", "--quiet"])
+    finally:
+        sys.setprofile(None)
+    assert code == 0
+    return stays
+
+
+def test_the_walk_of_campaign_run_returns_to_few_modules(tmp_path):
+    """A reader following a run from its arguments to its workers and back meets each module in
+    few separate stays: 22 returns to a module left before (31 before the run gathered its plan,
+    the spec, its tasks, the energy check, the output's check and the workers' context, before
+    touching the store, and the store took the spec's hash once)."""
+    spec = tmp_path / "tiny.yaml"
+    spec.write_text("name: tiny\nseed: 1\ngrid: {N_G: [16], E_G: [1.0e-4], seeds: 2}\n")
+    stays = run_walk(spec, tmp_path / "tiny.h5")
+    walk = " -> ".join(stays)
+    assert len(set(stays)) >= 12, walk  # the walk does reach the store, the master and the workers
+    assert {"campaign.plan.spec", "campaign.storage.store", "campaign.run.master", "campaign.run.comm"} <= set(stays)
+    assert len(stays) - len(set(stays)) <= 22, walk

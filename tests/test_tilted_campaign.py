@@ -123,7 +123,7 @@ def test_a_variant_inheriting_shear_is_checked_too(capsys):
 
 
 def test_the_shear_campaign(capsys):
-    from campaign.run.engine import _warm_ups
+    from campaign.plan.tasks import warm_ups as _warm_ups
 
     spec = load_spec(ROOT / "campaigns" / "shear.yaml")
     assert [v.name for v in spec.variants] == ["default", "shear"]

@@ -187,6 +187,14 @@ class Spec:
     def hash(self) -> str:
         return hashlib.blake2b(canonical_json(self.canonical()).encode(), digest_size=16).hexdigest()
 
+    def worker_context(self) -> dict:
+        """What a worker needs of the spec to run and analyse its tasks (``campaign run``'s
+        context, docs/CONTRACTS.md): the systems, the observables, histograms and bins, whether
+        configurations are kept."""
+        return {"system": self.system.canonical(), "systems": {v.name: v.system.canonical() for v in self.variants},
+                "observables": list(self.observables), "histograms": list(self.histograms),
+                "bins": {h: list(e) for h, e in self.bins}, "configurations": self.configurations}
+
 
 # --------------------------------------------------------------------------- endgame: auto
 

@@ -102,6 +102,7 @@ def expand(spec: Spec) -> list[Task]:
     for v in spec.variants:
         # each variant's own system (a system variant is another physical system: other ids,
         # other initial states); variants of one system share the seed words
+        parents = {E: v.parent_E(E) for E in v.E}
         sys_json = canonical_json(v.system.canonical())
         tail = ',"system":' + sys_json + "}"
         hash_of = _hash_json('{"E":', tail)  # the id and the seed words share the key order
@@ -111,7 +112,7 @@ def expand(spec: Spec) -> list[Task]:
         protocol = v.protocol
         for N in spec.N:
             for E in v.E:
-                parent_E = v.parent_E(E)
+                parent_E = parents[E]
                 upper = parent_E is not None  # its parent is the same seed's packing at parent_E
                 if auto:  # resolved per (N, E) before the id: the explicit task it stands for
                     protocol = v.task_protocol(N, E)
@@ -130,6 +131,17 @@ def expand(spec: Spec) -> list[Task]:
                                     parent=i + n_seeds if upper else None,
                                     parent_E=parent_E, exponent=v.system.exponent))
     return out
+
+
+def warm_ups(tasks) -> list:
+    """One protocol per distinct choice of compiled kernels among the tasks (minimiser, endgame,
+    route, cell): a run's warm-up compiles each once, before any task is timed (variants, and
+    ``endgame: auto``, may use several)."""
+    out = {}
+    for proto in sorted(set(t.protocol for t in tasks), key=repr):
+        p = dict(proto)
+        out.setdefault(tuple(str(p.get(k)) for k in ("minimizer", "endgame", "route", "cell")), p)
+    return list(out.values())
 
 
 # Cost: the calibrated model of campaign.plan.calibration (its form, constants and their file).

@@ -28,17 +28,6 @@ def _log(msg):
     print(msg, file=sys.stderr, flush=True)
 
 
-def _warm_ups(tasks) -> list:
-    """One protocol per distinct choice of compiled kernels among the tasks (minimiser, endgame,
-    route, cell): the warm-up compiles each once, before any task is timed (variants, and
-    ``endgame: auto``, may use several)."""
-    out = {}
-    for proto in sorted(set(t.protocol for t in tasks), key=repr):
-        p = dict(proto)
-        out.setdefault(tuple(str(p.get(k)) for k in ("minimizer", "endgame", "route", "cell")), p)
-    return list(out.values())
-
-
 def _compiled() -> str:
     """What the warm-up compiled and what it loaded from the numba cache (``kernels.compiled``):
     a campaign compiles only the kernels its protocol and observables use."""
@@ -181,18 +170,20 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     from campaign.storage.progress import Progress
     from campaign.plan.spec import load_spec
     from campaign.storage.store import Store
-    from campaign.plan.tasks import energy_floor_problems, expand
+    from campaign.plan.tasks import energy_floor_problems, expand, warm_ups
     from campaign.run.worker import resolve
 
     state = state if state is not None else {}
+    # the plan: the spec, what workers need of it, the tasks, their histograms' edges
     spec = load_spec(args.spec)
+    gpu_batch = getattr(args, "gpu_batch", None)
+    context = dict(spec.worker_context(), task_function=args.task_function, gpus=int(getattr(args, "gpus", 0) or 0),
+                   gpu_batch=int(gpu_batch or 0) or GPU_BATCH)
     out = Path(args.out or spec.output)
-    check_writable(out, new=args.new)  # before any worker starts: exit 2 naming the path and the reason
     retries = spec.retries if args.retries is None else args.retries
     if retries < 0:
         raise UserError(f"--retries must be >= 0, got {retries}")
-    gpu_batch = getattr(args, "gpu_batch", None)
-    if (getattr(args, "gpus", 0) or 0) < 0 or (gpu_batch is not None and gpu_batch < 1):
+    if context["gpus"] < 0 or (gpu_batch is not None and gpu_batch < 1):
         raise UserError(f"--gpus must be >= 0 and --gpu-batch >= 1, got {args.gpus} and {args.gpu_batch}")
     if mpi_comm is not None:
         launcher, n_workers = "mpi", mpi_comm.Get_size() - 1
@@ -202,21 +193,17 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
         n_workers = args.workers if args.workers is not None else (os.cpu_count() or 1)
         if n_workers < 1:
             raise UserError(f"--workers must be at least 1, got {n_workers}")
-        if getattr(args, "gpus", 0) and args.gpus > n_workers:
+        if context["gpus"] > n_workers:
             raise UserError(f"--gpus {args.gpus} needs as many workers (one per GPU), got --workers {n_workers}")
         launcher = "local"
+    tasks = expand(spec)
+    context["protocol_warmups"] = warm_ups(tasks)
     if args.task_function == "kernels":
         problems = energy_floor_problems(spec)
         if problems:
             raise UserError(f"{len(problems)} problem(s) in the spec:\n  " + "\n  ".join(problems))
-    tasks = expand(spec)
+    check_writable(out, new=args.new)  # before any worker starts: exit 2 naming the path and the reason
     fn = resolve(args.task_function)
-    context = {"task_function": args.task_function, "system": spec.system.canonical(),
-               "systems": {v.name: v.system.canonical() for v in spec.variants},
-               "observables": list(spec.observables), "histograms": list(spec.histograms),
-               "bins": {h: list(e) for h, e in spec.bins}, "configurations": spec.configurations,
-               "protocol_warmups": _warm_ups(tasks), "gpus": int(getattr(args, "gpus", 0) or 0),
-               "gpu_batch": int(getattr(args, "gpu_batch", 0) or 0) or GPU_BATCH}
     edges = fn.histogram_edges(context)
     context["edges"] = {h: [float(x) for x in e] for h, e in edges.items()}
 
@@ -233,10 +220,9 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     try:
         todo = int(np.count_nonzero((store.status == 0) | ((store.status == 2) if args.retry_failed else False)))
         context["warm_up"] = bool(todo)
-        show = not args.quiet
-        progress = Progress(len(tasks), sidecar=Path(str(out) + ".progress.json"),
-                            enabled=None if show else False)
         c = store.counts_by_status()
+        progress = Progress(len(tasks), sidecar=Path(str(out) + ".progress.json"),
+                            enabled=None if not args.quiet else False)
         progress.begin(done=c["done"], failed=c["failed"], remaining=c["pending"])  # a heartbeat from now on
         if todo and hasattr(fn, "warm_up") and launcher != "inline":
             if sys.stderr.isatty() and not args.quiet:

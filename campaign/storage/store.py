@@ -94,6 +94,7 @@ class Store:
 
         self.path = Path(path)
         self.spec, self.tasks = spec, tasks
+        self.spec_hash = spec.hash  # the spec's identity, in the journal's header and the file's attributes
         self.T = len(tasks)
         self.B = max(1, min(BLOCK_ROWS, self.T))
         self.edges = {k: np.asarray(v, np.float64) for k, v in sorted(edges.items())}
@@ -117,7 +118,7 @@ class Store:
     def _open(self, new, provenance):
         import h5py
 
-        spec_hash = self.spec.hash
+        spec_hash = self.spec_hash
         records = self.journal.records
         self.journal.records = []
         if new:
@@ -567,7 +568,7 @@ class Store:
                 raise
             raise fault from None
         header = {"type": "header", "schema": SCHEMA, "format_version": FORMAT_VERSION,
-                  "spec_hash": self.spec.hash, "T": self.T}
+                  "spec_hash": self.spec_hash, "T": self.T}
         recs = [(header, None)] + [({"type": "run", "run": r}, None) for r in self.runs]
         recs.append(({"type": "checkpoint", "committed": self.n_final(), "time": _now()}, None))
         self.journal.rewrite(recs)
@@ -577,7 +578,7 @@ class Store:
     def _write_root_attrs(self):
         run = self.run
         attrs = {"schema": SCHEMA, "format_version": FORMAT_VERSION, "name": self.spec.name,
-                 "spec_hash": self.spec.hash, "spec_yaml": self.spec.text}
+                 "spec_hash": self.spec_hash, "spec_yaml": self.spec.text}
         for key in ("package_version", "git_commit"):
             attrs[key] = str(run.get(key, "unknown"))
         attrs["versions"] = json.dumps(run.get("versions", {}), sort_keys=True)
