@@ -162,6 +162,12 @@ class Spec:
     output: str = ""
     text: str = field(default="", compare=False)
     source: str = field(default="<spec>", compare=False)
+    #: the spec's identity (what decides its tasks and what is stored: ``canonical``), once
+    hash: str = field(default="", init=False, compare=False, repr=False)
+
+    def __post_init__(self):
+        object.__setattr__(self, "hash", hashlib.blake2b(canonical_json(self.canonical()).encode(),
+                                                         digest_size=16).hexdigest())
 
     @property
     def histograms(self) -> tuple[str, ...]:
@@ -182,10 +188,6 @@ class Spec:
                 "observables": list(self.observables),
                 "bins": {k: list(v) for k, v in self.bins},
                 "store": {"configurations": self.configurations}}
-
-    @property
-    def hash(self) -> str:
-        return hashlib.blake2b(canonical_json(self.canonical()).encode(), digest_size=16).hexdigest()
 
     def worker_context(self) -> dict:
         """What a worker needs of the spec to run and analyse its tasks (``campaign run``'s

@@ -88,16 +88,6 @@ def provenance(launcher, n_workers, mpi=None) -> dict:
             "argv": sys.argv[:], "pid": os.getpid()}
 
 
-def peak_rss_mb() -> float:
-    """This process's peak resident memory so far (MB), as the kernel counts it."""
-    try:
-        import resource
-
-        return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)  # kB on Linux
-    except (ImportError, OSError):
-        return float("nan")
-
-
 def mpi_worker(comm) -> int:
     from campaign.run.comm import mpi_worker as serve
 
@@ -267,8 +257,7 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
         comm, workers_stopped = None, True
         counts = store.counts_by_status()
         store.close(completed=outcome["done"], failed=outcome["failed"], stopped=outcome["stopped"],
-                    seconds=round(time.monotonic() - t0, 3), master_cpu_seconds=round(cpu, 3),
-                    master_peak_rss_mb=peak_rss_mb())
+                    seconds=round(time.monotonic() - t0, 3), master_cpu_seconds=round(cpu, 3))
     except WriteFault as fault:
         # A full disk (or a file system that failed) on the write path: stop at once. Everything
         # finished is in the journal, the store is consistent; the tasks in flight are given up.

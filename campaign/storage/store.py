@@ -81,6 +81,17 @@ BUFFER_BYTES = 96 << 20  # staged rows beyond this are written whether their blo
 JOURNAL_BYTES = 64 << 20  # checkpoint when the journal grows past this
 
 
+def peak_rss_mb() -> float:
+    """This process's peak resident memory so far (MB), as the kernel counts it: the master's,
+    recorded in the run's record when the store closes."""
+    try:
+        import resource
+
+        return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)  # kB on Linux
+    except (ImportError, OSError):
+        return float("nan")
+
+
 class Store:
     """The master's view of one campaign file. Not thread-safe; one per process.
 
@@ -94,7 +105,6 @@ class Store:
 
         self.path = Path(path)
         self.spec, self.tasks = spec, tasks
-        self.spec_hash = spec.hash  # the spec's identity, in the journal's header and the file's attributes
         self.T = len(tasks)
         self.B = max(1, min(BLOCK_ROWS, self.T))
         self.edges = {k: np.asarray(v, np.float64) for k, v in sorted(edges.items())}
@@ -118,7 +128,7 @@ class Store:
     def _open(self, new, provenance):
         import h5py
 
-        spec_hash = self.spec_hash
+        spec_hash = self.spec.hash
         records = self.journal.records
         self.journal.records = []
         if new:
@@ -568,7 +578,7 @@ class Store:
                 raise
             raise fault from None
         header = {"type": "header", "schema": SCHEMA, "format_version": FORMAT_VERSION,
-                  "spec_hash": self.spec_hash, "T": self.T}
+                  "spec_hash": self.spec.hash, "T": self.T}
         recs = [(header, None)] + [({"type": "run", "run": r}, None) for r in self.runs]
         recs.append(({"type": "checkpoint", "committed": self.n_final(), "time": _now()}, None))
         self.journal.rewrite(recs)
@@ -578,7 +588,7 @@ class Store:
     def _write_root_attrs(self):
         run = self.run
         attrs = {"schema": SCHEMA, "format_version": FORMAT_VERSION, "name": self.spec.name,
-                 "spec_hash": self.spec_hash, "spec_yaml": self.spec.text}
+                 "spec_hash": self.spec.hash, "spec_yaml": self.spec.text}
         for key in ("package_version", "git_commit"):
             attrs[key] = str(run.get(key, "unknown"))
         attrs["versions"] = json.dumps(run.get("versions", {}), sort_keys=True)
@@ -593,7 +603,8 @@ class Store:
                 self.f.attrs[key] = value
 
     def close(self, **end_info):
-        """Write everything, stamp the run's end, checkpoint, release the lock.
+        """Write everything, stamp the run's end (``end_info``, the end time and the master's
+        peak memory), checkpoint, release the lock.
 
         A WriteFault on the way (a full disk) leaves the store and its journal consistent
         (the journal holds whatever the store could not take) and the file closed."""
@@ -601,7 +612,7 @@ class Store:
             return
         ok = False
         try:
-            self.run.update(end_info, end=_now())
+            self.run.update(end_info, end=_now(), master_peak_rss_mb=peak_rss_mb())
             self.run["hosts"] = sorted(set(self.run.get("hosts", [])) | self.hosts)
             self.journal.append({"type": "run", "run": self.run})
             self._merge_run(self.run)
