@@ -65,8 +65,7 @@ def write_store(path, n_tasks, mode):
         spec = _spec(n_tasks)
         tasks = expand(spec)
         fn = SyntheticTask()
-        ctx = {"task_function": "synthetic", "observables": list(spec.observables), "histograms": list(spec.histograms),
-               "bins": {}, "configurations": False}
+        ctx = dict(spec.worker_context(), task_function="synthetic", bins={}, configurations=False)
         edges = fn.histogram_edges(ctx)
         ctx["edges"] = edges
         pool = [run_task(fn, dict(t.payload(), attempt=1), ctx, rank=1) for t in tasks[:64]]

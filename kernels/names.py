@@ -75,8 +75,9 @@ def protocol_problem(choice, shown=None):
     """None if the kernels run the combination ``choice`` (a mapping of some of ``CHOICES``' keys
     to names; the others take their defaults), else ``(key, message)``: the first non-default
     choice (the stop rule, cell, endgame, route, then the minimiser) whose rows of ``RUNNABLE``
-    do not hold the others, and a sentence saying what it needs. ``shown``: the names to print instead, where a caller's name for
-    a choice differs (``endgame: auto``). Unknown names are the caller's to refuse first."""
+    do not hold the others, and a sentence saying what it needs. ``shown``: the names to print
+    instead, where a caller's name for a choice differs (``endgame: auto``). Unknown names are
+    the caller's to refuse first."""
     full = dict(CHOICE_DEFAULTS, **{k: v for k, v in choice.items() if k in CHOICES})
     if tuple(full[k] for k in CHOICES) in RUNNABLE:
         return None
@@ -91,7 +92,7 @@ def protocol_problem(choice, shown=None):
         if all(rows[0][k] == full[k] for k in fixed):
             continue  # what it needs is there: another choice is to blame
         needs = [f"{k} {rows[0][k]!r}" for k in fixed]
+        needs = " and ".join([", ".join(needs[:-1]), needs[-1]] if len(needs) > 1 else needs)
         got = ", ".join(f"{k} {shown[k]!r}" for k in fixed if full[k] != rows[0][k])
-        return key, (f"{key} {shown[key]!r} {_WHY.get((key, full[key]), 'runs')}: it needs "
-                     f"{', '.join(needs[:-1])} and {needs[-1]}; got {got}")
+        return key, f"{key} {shown[key]!r} {_WHY.get((key, full[key]), 'runs')}: it needs {needs}; got {got}"
     raise AssertionError(f"no rule refuses {full}")  # every combination outside RUNNABLE has one

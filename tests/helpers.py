@@ -200,8 +200,7 @@ def synthetic_run(tmp_path, text, name="s.h5"):
     """(spec, tasks, context, store) of a campaign whose tasks are the synthetic task function's."""
     spec = parse_spec(text)
     tasks = expand(spec)
-    ctx = {"task_function": "synthetic", "system": spec.system.canonical(), "observables": list(spec.observables),
-           "histograms": list(spec.histograms), "bins": {}, "configurations": False}
+    ctx = dict(spec.worker_context(), task_function="synthetic", bins={}, configurations=False)
     edges = SyntheticTask().histogram_edges(ctx)
     ctx["edges"] = {h: list(e) for h, e in edges.items()}
     return spec, tasks, ctx, Store(tmp_path / name, spec, tasks, edges)

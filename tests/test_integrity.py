@@ -205,8 +205,7 @@ def test_a_run_meeting_a_damaged_chunk_stops_and_loses_nothing(reference, blocks
     spec = parse_spec(spec_path.read_text())
     tasks = expand(spec)
     fn = SyntheticTask()
-    ctx = {"task_function": "synthetic", "observables": list(spec.observables), "histograms": list(spec.histograms),
-           "bins": {h: list(e) for h, e in spec.bins}, "configurations": True}
+    ctx = dict(spec.worker_context(), task_function="synthetic", configurations=True)
     edges = fn.histogram_edges(ctx)
     ctx["edges"] = edges
     path = tmp_path / "p.h5"

@@ -137,8 +137,9 @@ def run_walk(spec, out):
     """The walk of ``campaign run`` (docs/DEVELOPMENT.md, "The house"): the project functions
     ``run_campaign`` calls, to depth 3, each at its first call and in that order, outside the
     master's task loop (``Master.run``) and the writing of finished rows (``Store.flush``, which
-    the loop or the close may do first, as time decides); comprehensions are not functions. Returns the modules of its stays: a stay is a run of
-    consecutive functions of one module; every stay in a module left before is a return."""
+    the loop or the close may do first, as time decides); comprehensions are not functions.
+    Returns the modules of its stays: a stay is a run of consecutive functions of one module;
+    every stay in a module left before is a return."""
     import sys
 
     from campaign import cli

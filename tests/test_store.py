@@ -24,8 +24,7 @@ def _setup(text=SPEC):
     spec = parse_spec(text)
     tasks = expand(spec)
     fn = SyntheticTask()
-    ctx = {"task_function": "synthetic", "system": spec.system.canonical(), "observables": list(spec.observables),
-           "histograms": list(spec.histograms), "bins": {}, "configurations": spec.configurations}
+    ctx = dict(spec.worker_context(), task_function="synthetic", bins={})
     edges = fn.histogram_edges(ctx)
     ctx["edges"] = edges
     return spec, tasks, fn, ctx, edges

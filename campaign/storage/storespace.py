@@ -16,9 +16,9 @@ HDF5 may place a rewritten chunk at the end of the file, so each counts in full:
 times the compression ratio of its column, plus a quarter. The ratios are learnt from the
 chunks the store has written (the largest of the last eight, per column), and before there are
 any, by compressing the block about to be written (built as the store builds it:
-``storefile.column_block``) with HDF5's own filters (shuffle, then deflate level 1). Configurations and failure records are not compressed; new datasets, grown
-symbol tables and chunk indices, and a large file's larger structures get fixed room
-(``slack``). ``tests/test_store.py::test_reservations_cover_every_write_step`` checks that no
+``storefile.column_block``) with HDF5's own filters (shuffle, then deflate level 1).
+Configurations and failure records are not compressed; new datasets, grown symbol tables and
+chunk indices, and a large file's larger structures get fixed room (``slack``). ``tests/test_store.py::test_reservations_cover_every_write_step`` checks that no
 step grows the file by more than it reserved.
 """
 
