@@ -478,26 +478,6 @@ def test_run_refuses_bad_gpu_options(tmp_path):
         assert r.returncode == 2 and msg in r.stderr and "Traceback" not in r.stderr, r.stderr
 
 
-def test_slurm_writes_gpu_jobs(tmp_path):
-    """campaign slurm --gpus-per-task: SLURM gives every rank its GPU, every worker is a GPU worker;
-    without it the script has no GPU line."""
-    spec = tmp_path / "b.yaml"
-    spec.write_text(BATCH_SPEC)
-
-    def script(*extra):
-        r = subprocess.run([sys.executable, "-m", "campaign", "slurm", str(spec), "--no-estimate", "--nodes", "2",
-                            "--ntasks-per-node", "5", *extra], capture_output=True, text=True, timeout=60,
-                           env=dict(os.environ, PYTHONPATH=str(ROOT)))
-        assert r.returncode == 0, r.stderr
-        return r.stdout
-
-    gpu = script("--gpus-per-task", "1", "--partition", "gpu")
-    assert "#SBATCH --gpus-per-task=1\n" in gpu and "#SBATCH --partition=gpu\n" in gpu
-    assert [ln for ln in gpu.splitlines() if "campaign run" in ln][0].endswith(" --gpus 1")
-    cpu = script()
-    assert "--gpus" not in cpu and "#SBATCH --gpus" not in cpu
-
-
 def test_gpu_worker_keeps_to_the_devices_it_was_given(monkeypatch):
     from campaign.run.worker import visible_device
 

@@ -287,10 +287,21 @@ def mpi_worker(comm, context: dict) -> None:
         return bool(probed)
 
     watch_master(context.get("master"))
+    _worker.worker_loop(recv, send, rank_gpu(context, rank), rank, poll)
+
+
+def rank_gpu(context: dict, rank: int) -> dict:
+    """A worker rank's context under ``--gpus K``: every worker rank is a GPU worker, on GPU
+    ``node_rank mod K`` of the GPUs it sees (the node's ranks share them in turn). The master is its
+    node's rank 0 (the block layouts of srun and mpiexec), so K workers beside it still take K
+    different GPUs. ``CUDA_VISIBLE_DEVICES`` is set at once, before anything (the node's warm-up)
+    can start CUDA; the worker loop sets it again to the same device."""
     gpus = int(context.get("gpus") or 0)
-    if gpus:  # one rank per GPU: the node's ranks share its GPUs in turn, by their rank on the node
-        context = gpu_context(context, node_rank(rank) % gpus)
-    _worker.worker_loop(recv, send, context, rank, poll)
+    if not gpus or "gpu_device" in context:
+        return context
+    context = gpu_context(context, node_rank(rank) % gpus)
+    os.environ["CUDA_VISIBLE_DEVICES"] = _worker.visible_device(context["gpu_device"])
+    return context
 
 
 def watch_master(master, interval: float = 0.5) -> None:

@@ -89,13 +89,14 @@ def provenance(launcher, n_workers, mpi=None) -> dict:
 
 
 def mpi_worker(comm) -> int:
-    from campaign.run.comm import mpi_worker as serve
+    from campaign.run.comm import mpi_worker as serve, rank_gpu
 
     context = comm.bcast(None, root=0)
     if context is None:  # the master refused to start (bad spec, refused file): it says why
         return 0
     comm.gather(socket.gethostname(), root=0)
     try:
+        context = rank_gpu(context, comm.Get_rank())  # before the node's warm-up can start CUDA
         node_warm_up(comm, context, first_warms=True)
         serve(comm, context)
     except BaseException:  # noqa: BLE001 - a worker-side fault must not hang the job
@@ -175,6 +176,10 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
         raise UserError(f"--retries must be >= 0, got {retries}")
     if context["gpus"] < 0 or (gpu_batch is not None and gpu_batch < 1):
         raise UserError(f"--gpus must be >= 0 and --gpu-batch >= 1, got {args.gpus} and {args.gpu_batch}")
+    if context["gpus"]:
+        from campaign.run.slurm import refuse_without_gpu_tasks
+
+        refuse_without_gpu_tasks(spec, f"--gpus {context['gpus']}", "run it without --gpus (a worker per core)")
     if mpi_comm is not None:
         launcher, n_workers = "mpi", mpi_comm.Get_size() - 1
     elif args.launcher == "inline":
@@ -218,7 +223,12 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
             if sys.stderr.isatty() and not args.quiet:
                 _log(f"campaign: compiling the kernels (once; cached in {os.environ.get('NUMBA_CACHE_DIR')})")
             t_warm, cpu_warm = time.monotonic(), time.process_time()
-            fn.warm_up(context)
+            # beside GPU workers, none of the device: gpu kernels: the CUDA kernel is compiled in memory,
+            # not cached on disk, so the master's compilation would serve no worker, and it would hold a
+            # CUDA context on a GPU that a worker uses (with no CPU protocol left it warms the default
+            # one, whose analysis kernels the GPU workers load from the node's numba cache)
+            fn.warm_up(dict(context, protocol_warmups=[p for p in context["protocol_warmups"] or [{}]
+                                                       if p.get("device") != "gpu"]) if context["gpus"] else context)
             if not args.quiet:  # the per-node start-up cost a job of a chain pays (docs: slurm/README.md)
                 _log(f"campaign: kernels ready in {time.monotonic() - t_warm:.1f} s, "
                      f"{time.process_time() - cpu_warm:.1f} s of CPU: {_compiled()} "

@@ -173,8 +173,8 @@ class KernelTask:
 
 def visible_device(k: int) -> str:
     """``CUDA_VISIBLE_DEVICES`` for a worker's ``k``-th GPU: the k-th (cyclically) of the devices
-    the process may already see (SLURM's ``--gpus-per-task`` binds each rank to its own), else GPU
-    ``k`` of the node."""
+    the process may already see (SLURM lists the node's GPUs of the job, or the one it bound the
+    rank to), else GPU ``k`` of the node."""
     seen = [d for d in os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",") if d.strip()]
     return seen[k % len(seen)].strip() if seen else str(k)
 
