@@ -53,6 +53,7 @@ CELL_CAP = 48  # slots per cell of the list's grid (about 2-3 disks per cell on 
 DEFAULT_THREADS = 256
 BACKENDS = ("auto", "cuda", "emulate")
 NO_BUDGET = 2.0 ** 62  # FIRE steps: no bound
+DEFAULTS_FORCE_TOLERANCE = 1e-6  # (kernels.jamming.DEFAULTS')
 
 
 class BlockOverflow(RuntimeError):
@@ -187,19 +188,54 @@ def emulated_block(exponent=2.0):
                       exponent)
 
 
-@lru_cache(maxsize=None)
-def _emulator(exponent):
-    """One packing's search with the block compiled for the CPU."""
+_SEARCH = None  # the block's search that the runner being compiled calls (see _emulator)
+
+
+def _source_tag(exponent):
+    """What the emulation's compiled code depends on: the sources of the block and of the rules
+    it compiles, and the exponent. It keys the numba cache entry of the runner, which numba
+    would otherwise reuse after a change of the block (numba keys a cached function by its own
+    file only)."""
+    import hashlib
+
+    h = hashlib.sha256(repr(exponent).encode())
+    base = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    for rel in ("gpu/block.py", "gpu/batch.py", "rules.py", "space.py"):
+        with open(os.path.join(base, rel), "rb") as fh:
+            h.update(fh.read())
+    return h.hexdigest()
+
+
+def _runner(tag):
     from numba import njit
 
-    search = emulated_block(exponent).search
-
-    @njit
+    @njit(cache=True)
     def run(nt, xy, fl, nbr, ninv, iv, cells, prm, st):
+        if len(tag) == 0:  # (the tag keys the cache entry; it is never empty)
+            return
         red = np.zeros((ROWS, nt))
         sh = np.zeros(N_ST)
-        search(0, nt, nt, xy, fl, nbr, ninv, iv, cells, red, sh, prm, st)
+        _SEARCH(0, nt, nt, xy, fl, nbr, ninv, iv, cells, red, sh, prm, st)
 
+    return run
+
+
+@lru_cache(maxsize=None)
+def _emulator(exponent):
+    """One packing's search with the block compiled for the CPU (``NUMBA_CACHE_DIR``'s cache
+    under the tag of its sources: a process loads it in seconds instead of compiling it for
+    a minute)."""
+    global _SEARCH
+    import numba
+
+    run = _runner(_source_tag(exponent))
+    f2, i2 = numba.float64[:, ::1], numba.int32[:, ::1]
+    sig = (numba.int64, f2, f2, i2, f2, i2, i2, numba.float64[::1], numba.float64[::1])
+    _SEARCH = emulated_block(exponent).search  # (a global: frozen into the code it compiles)
+    try:
+        run.compile(sig)
+    finally:
+        _SEARCH = None
     return run
 
 
@@ -456,34 +492,49 @@ def _kernel_seconds(handle, bound):
     return wall, float(st[:, S_STEPS].sum())
 
 
-def time_steps(n, batch, steps, backend=None, threads=None, energy=1e-12):
-    """Seconds per FIRE step: ``(block, cpu)``. The block's per packing: a launch of ``batch``
-    random starts, the first minimisation of each bounded at ``steps`` and then at ``2 steps``
-    steps, the kernel's time alone (no host preparation or copies); the steps ``steps .. 2
-    steps`` are timed (their difference), past the first steps' list rebuilds at every step,
-    as in the long minimisations that make a packing's cost. The CPU kernel's
-    (``kernels.fire._fire_core``) the same way on the first of those starts, one core. What
-    ``benchmarks/bench_gpu.py`` and ``campaign calibrate --gpu`` measure."""
+def time_steps(n, batch, steps, backend=None, threads=None, energy=1e-12, starts=None, cpu=True):
+    """Seconds per FIRE step of a launch of ``batch`` packings: the first minimisation of each
+    bounded at ``steps`` and then at ``2 steps`` steps, the kernel's time alone (no host
+    preparation or copies); the steps ``steps .. 2 steps`` are timed (their difference), past
+    the first steps' list rebuilds at every step, as in the long minimisations that make a
+    packing's cost. Random starts, or ``starts`` (``batch`` tuples ``(positions, radii,
+    species)``: near a minimum, where the minimisation then stops on the final tolerance).
+
+    Returns ``{"gpu": per step per packing, "block_step": per step of one resident block (per
+    packing times the packings resident at once), "cpu": the CPU kernel's
+    (``kernels.fire._fire_core``) per step on the first start, one core (NaN without
+    ``cpu``), "occupancy": the kernel's (``occupancy``)}``. What ``benchmarks/bench_gpu.py``
+    and ``campaign calibrate --gpu`` measure."""
     from kernels.fire import _fire_core
     from kernels.minimiser import default_timestep
 
-    jam_batch(n, [energy], [0], backend=backend, threads=threads, max_search=1, max_steps=10)
-    handle = _stage(n, [energy] * batch, list(range(batch)), None, backend, threads, max_search=1,
-                    max_steps=steps)
+    kw = {"max_search": 1}
+    if starts is not None:
+        kw["search_tolerance"] = DEFAULTS_FORCE_TOLERANCE
+    jam_batch(n, [energy], [0], starts=None if starts is None else starts[:1], backend=backend,
+              threads=threads, max_steps=10, **kw)
+    handle = _stage(n, [energy] * batch, list(range(batch)), starts, backend, threads, max_steps=steps,
+                    **kw)
     (w1, d1), (w2, d2) = (_kernel_seconds(handle, b) for b in (steps, 2 * steps))
     gpu = (w2 - w1) / (d2 - d1) if d2 > d1 else math.nan
+    occ = occupancy(handle)
+    out = {"gpu": gpu, "block_step": gpu * min(batch, occ["slots"]), "cpu": math.nan, "occupancy": occ}
+    if not cpu:
+        return out
     job = handle["jobs"][0]
     box = job.cell_box
     dt = default_timestep(job.radii0, job.alpha, 1e-8)
     skin = job.skin * 2.0 * float(np.mean(job.radii0))
     _fire_core(job.positions.copy(), job.radii0, box, job.alpha, 1e-6, 10, skin, dt, 0.0)
-    cpu = []
+    times = []
     for bound in (steps, 2 * steps):
         t0 = time.perf_counter()
-        r = _fire_core(job.positions.copy(), job.radii0, box, job.alpha, 1e-6, bound, skin, dt, 0.0)
-        cpu.append((time.perf_counter() - t0, r[1]))
-    (c1, s1), (c2, s2) = cpu
-    return gpu, ((c2 - c1) / (s2 - s1) if s2 > s1 else math.nan)
+        r = _fire_core(job.positions.copy(), job.radii0, box, job.alpha, job.search_tol, bound, skin,
+                       dt, 0.0)
+        times.append((time.perf_counter() - t0, r[1]))
+    (c1, s1), (c2, s2) = times
+    out["cpu"] = (c2 - c1) / (s2 - s1) if s2 > s1 else math.nan
+    return out
 
 
 __all__ = ["jam_batch", "start_batch", "finish_batch", "batch_done", "occupancy", "time_steps", "prepare",

@@ -92,6 +92,8 @@ results (``S_*``).
 import math
 from types import SimpleNamespace
 
+import numpy as np
+
 from kernels import rules
 from kernels.space import fold_py, near_image_py
 
@@ -309,13 +311,15 @@ def make_block(jit, sync, slot_add, put_sum, put_max, total, now, exponent):
             p = 0.0
             vv = 0.0
             fm = 0.0
-            for i in range(t, n, nt):
+            for i0 in range(t, n, nt):
+                i = np.uint32(i0)  # (unsigned indices: no wraparound for negative ones)
                 xi = xy[i, 0]
                 yi = xy[i, 1]
                 fx = 0.0
                 fy = 0.0
-                for k in range(iv[NNB, i]):
-                    j = nbr[k, i]
+                for k0 in range(iv[NNB, i]):
+                    k = np.uint32(k0)
+                    j = np.uint32(nbr[k, i])
                     dx, dy = near(xy[j, 0] - xi, xy[j, 1] - yi, Lx, Ly, tilt, hx, hy)
                     d2 = dx * dx + dy * dy
                     q = ninv[k, i]
@@ -360,9 +364,11 @@ def make_block(jit, sync, slot_add, put_sum, put_max, total, now, exponent):
         hy = 0.5 * Ly
         for t in range(t0, t1):
             w = 0.0
-            for i in range(t, n, nt):
-                for k in range(iv[NNB, i]):
-                    j = nbr[k, i]
+            for i0 in range(t, n, nt):
+                i = np.uint32(i0)
+                for k0 in range(iv[NNB, i]):
+                    k = np.uint32(k0)
+                    j = np.uint32(nbr[k, i])
                     dx, dy = near(xy[j, 0] - xy[i, 0], xy[j, 1] - xy[i, 1], Lx, Ly, tilt, hx, hy)
                     d2 = dx * dx + dy * dy
                     q = ninv[k, i]
@@ -385,7 +391,8 @@ def make_block(jit, sync, slot_add, put_sum, put_max, total, now, exponent):
         half2 = sh[S_HALF2]
         for t in range(t0, t1):
             far = False
-            for i in range(t, n, nt):
+            for i0 in range(t, n, nt):
+                i = np.uint32(i0)
                 x = xy[i, 0]
                 y = xy[i, 1]
                 vx = fl[VX, i]
