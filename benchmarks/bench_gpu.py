@@ -29,7 +29,7 @@ run on one machine: where a GPU packing's time goes.
    rows of 16 slots) at the same N_G and batches in the same run, as the yardstick.
 
     python benchmarks/bench_gpu.py [--sizes 1024 4096 8192 16384] [--threads 256 512 1024]
-        [--batches 1 132 264] [--steps 500] [--jammed big_8192.npz] [--cell 8192:1e-9]
+        [--batches 1 132 264] [--registers 64 128] [--steps 500] [--jammed big_8192.npz] [--cell 8192:1e-9]
         [--cell-batch 264] [--full 8192:1e-9] [--cpu-full] [--campaign SPEC]
         [--baseline lean_fire.py] [--check] [--backend auto|cuda|emulate] [--json FILE]
 
@@ -178,28 +178,26 @@ def _jammed_starts(path, batch):
                       for _ in range(batch)]
 
 
-def step_table(sizes, threads, batches, steps, backend, jammed):
+def step_table(sizes, threads, batches, steps, backend, jammed, bounds):
     from kernels.gpu.batch import time_steps
 
     rows = []
     plans = [(n, None) for n in sizes] + ([("jammed", jammed)] if jammed else [])
-    for n, path in plans:
-        for nt in threads:
-            for b in batches:
-                starts = None
-                if path is not None:
-                    n, starts = _jammed_starts(path, b)
-                r = time_steps(n, b, steps, backend, nt, starts=starts, cpu=(nt == threads[0] and b == batches[0]))
-                occ = r["occupancy"]
-                row = {"N": n, "start": "jammed" if starts else "random", "batch": b, "threads": nt,
-                       "us_per_step_per_packing": 1e6 * r["gpu"], "us_per_block_step": 1e6 * r["block_step"],
-                       "cpu_us_per_step": 1e6 * r["cpu"], **occ}
-                rows.append(row)
-                print(f"  N_G {n:6d} {row['start']:7s} {nt:5d} thr  batch {b:4d}  {row['us_per_step_per_packing']:9.3f} "
-                      f"us/step/packing  {row['us_per_block_step']:8.1f} us/block step  {occ['registers']:3d} regs "
-                      f"{occ['local_bytes']:4d} B spill  {occ['blocks_per_sm']} blocks/SM"
-                      + (f"   CPU core {row['cpu_us_per_step']:8.1f} us/step" if np.isfinite(r["cpu"]) else ""),
-                      flush=True)
+    for size, path in plans:
+        for nt, regs, b in ((nt, regs, b) for nt in threads for regs in bounds for b in batches):
+            n, starts = (size, None) if path is None else _jammed_starts(path, b)
+            first = nt == threads[0] and regs == bounds[0] and b == batches[0]
+            r = time_steps(n, b, steps, backend, nt, starts=starts, cpu=first, registers=regs)
+            occ = r["occupancy"]
+            row = {"N": n, "start": "jammed" if starts else "random", "batch": b, "threads": nt,
+                   "max_registers": regs, "us_per_step_per_packing": 1e6 * r["gpu"],
+                   "us_per_block_step": 1e6 * r["block_step"], "cpu_us_per_step": 1e6 * r["cpu"], **occ}
+            rows.append(row)
+            print(f"  N_G {n:6d} {row['start']:7s} {nt:5d} thr {regs:4d} regs  batch {b:4d}  "
+                  f"{row['us_per_step_per_packing']:9.3f} us/step/packing  {row['us_per_block_step']:8.1f} us/block "
+                  f"step  {occ['registers']:3d} regs {occ['local_bytes']:4d} B local  {occ['blocks_per_sm']} blocks/SM"
+                  + (f"   CPU core {row['cpu_us_per_step']:8.1f} us/step" if np.isfinite(r["cpu"]) else ""),
+                  flush=True)
     return rows
 
 
@@ -322,6 +320,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, nargs="*", default=[256, 512, 1024])
     ap.add_argument("--batches", type=int, nargs="*", default=[1, 132, 264])
     ap.add_argument("--steps", type=int, default=500)
+    ap.add_argument("--registers", type=int, nargs="*", default=[64, 128],
+                    help="bounds on the kernel's registers per thread to time (never changes results)")
     ap.add_argument("--jammed", default=None, metavar="FILE.npz")
     ap.add_argument("--cell", nargs="*", default=[], metavar="N:E")
     ap.add_argument("--cell-batch", type=int, default=264)
@@ -359,7 +359,7 @@ def main(argv=None) -> int:
         save()
     if a.sizes or a.jammed:
         print(f"FIRE steps (the kernel alone, steps {a.steps}-{2 * a.steps} of the first minimisation):", flush=True)
-        record["steps"] = step_table(a.sizes, a.threads, a.batches, a.steps, backend, a.jammed)
+        record["steps"] = step_table(a.sizes, a.threads, a.batches, a.steps, backend, a.jammed, a.registers)
         save()
     if a.cell:
         print("whole cells (one launch, most expensive first):", flush=True)

@@ -339,7 +339,7 @@ def prepare(n, energies, seeds, starts=None, **settings):
 
 
 def jam_batch(n, energies, seeds, starts=None, backend=None, threads=None, budget=None,
-              resume=None, **settings):
+              resume=None, registers=None, **settings):
     """Jammed packings of ``n`` disks, one per ``(energy, seed[, start])``, each in its own
     thread block; settings as ``kernels.jam`` (FIRE on the O'Hern route, fixed cell).
 
@@ -347,24 +347,26 @@ def jam_batch(n, energies, seeds, starts=None, backend=None, threads=None, budge
     ``settings["device_clock"]`` when and how long; ``force_evaluations`` counts FIRE's force
     evaluations as on the CPU), a ``BlockOverflow`` for a packing whose lists outgrew their
     slots, or a ``Suspended`` for one that reached ``budget`` FIRE steps in this launch
-    (``resume``: per packing None or the ``Suspended`` it goes on from). ``start_batch`` and
-    ``finish_batch`` are its two halves: on a GPU the launch runs while the caller does other
-    work."""
+    (``resume``: per packing None or the ``Suspended`` it goes on from). ``registers``: a
+    bound on the kernel's registers per thread (``kernels.gpu.device.DEFAULT_REGISTERS``; it
+    never changes the results). ``start_batch`` and ``finish_batch`` are its two halves: on a
+    GPU the launch runs while the caller does other work."""
     return finish_batch(start_batch(n, energies, seeds, starts, backend, threads, budget, resume,
-                                    **settings))
+                                    registers, **settings))
 
 
 def start_batch(n, energies, seeds, starts=None, backend=None, threads=None, budget=None,
-                resume=None, **settings):
+                resume=None, registers=None, **settings):
     """Prepare the batch and start it: on a GPU the kernel is launched on a stream of its own and
     this returns at once; the emulation runs it here. Returns the handle ``finish_batch`` takes
     (``batch_done(handle)`` says whether it has ended)."""
-    handle = _stage(n, energies, seeds, starts, backend, threads, budget, resume, **settings)
+    handle = _stage(n, energies, seeds, starts, backend, threads, budget, resume, registers,
+                    **settings)
     if handle["backend"] == "emulate":
         _emulate(handle["nt"], handle["exponent"], handle["which"], handle["arrays"])
     else:
         handle["running"] = _device().launch(handle["nt"], handle["exponent"], handle["which"],
-                                             handle["arrays"])
+                                             handle["arrays"], registers)
     return handle
 
 
@@ -379,11 +381,11 @@ def occupancy(handle) -> dict:
     if handle["backend"] == "emulate":
         return {"registers": 0, "local_bytes": 0, "shared_bytes": 0, "blocks_per_sm": 1, "sms": 1,
                 "slots": 1}
-    return _device().occupancy(handle["nt"], handle["exponent"])
+    return _device().occupancy(handle["nt"], handle["exponent"], handle["registers"])
 
 
 def _stage(n, energies, seeds, starts=None, backend=None, threads=None, budget=None, resume=None,
-           **settings):
+           registers=None, **settings):
     """The batch's host arrays (a handle for ``finish_batch``, nothing started yet)."""
     from kernels.protocol import _spatial_order
 
@@ -424,7 +426,8 @@ def _stage(n, energies, seeds, starts=None, backend=None, threads=None, budget=N
     # most expensive first: the lowest energies (then the caller's order)
     launch = np.array(sorted(range(B), key=lambda b: (jobs[b].e_min, b)), np.int32)
     return {"n": n, "jobs": jobs, "orders": orders, "cap": cap, "arrays": arrays, "backend": which,
-            "nt": nt, "exponent": exponent_kind(jobs[0].alpha), "which": launch, "running": None}
+            "nt": nt, "exponent": exponent_kind(jobs[0].alpha), "which": launch, "running": None,
+            "registers": registers}
 
 
 def _clock(state):
@@ -485,14 +488,15 @@ def _kernel_seconds(handle, bound):
         which = dev.upload([handle["which"]])[0]
         dev.wait()
         t0 = time.perf_counter()
-        dev.start(handle["nt"], handle["exponent"], which, on)
+        dev.start(handle["nt"], handle["exponent"], which, on, handle["registers"])
         dev.wait()
         wall = time.perf_counter() - t0
         st = on[-1].copy_to_host()
     return wall, float(st[:, S_STEPS].sum())
 
 
-def time_steps(n, batch, steps, backend=None, threads=None, energy=1e-12, starts=None, cpu=True):
+def time_steps(n, batch, steps, backend=None, threads=None, energy=1e-12, starts=None, cpu=True,
+               registers=None):
     """Seconds per FIRE step of a launch of ``batch`` packings: the first minimisation of each
     bounded at ``steps`` and then at ``2 steps`` steps, the kernel's time alone (no host
     preparation or copies); the steps ``steps .. 2 steps`` are timed (their difference), past
@@ -512,9 +516,9 @@ def time_steps(n, batch, steps, backend=None, threads=None, energy=1e-12, starts
     if starts is not None:
         kw["search_tolerance"] = DEFAULTS_FORCE_TOLERANCE
     jam_batch(n, [energy], [0], starts=None if starts is None else starts[:1], backend=backend,
-              threads=threads, max_steps=10, **kw)
-    handle = _stage(n, [energy] * batch, list(range(batch)), starts, backend, threads, max_steps=steps,
-                    **kw)
+              threads=threads, registers=registers, max_steps=10, **kw)
+    handle = _stage(n, [energy] * batch, list(range(batch)), starts, backend, threads,
+                    registers=registers, max_steps=steps, **kw)
     (w1, d1), (w2, d2) = (_kernel_seconds(handle, b) for b in (steps, 2 * steps))
     gpu = (w2 - w1) / (d2 - d1) if d2 > d1 else math.nan
     occ = occupancy(handle)
