@@ -407,6 +407,15 @@ def test_spec_device_keys_give_their_own_ids(tmp_path):
     assert ids("{device: cpu}") == cpu
     gpu = ids("{device: gpu}")
     assert set(gpu).isdisjoint(cpu)
+    # the block's version is part of a GPU packing's identity: another block, other packings
+    import campaign.plan.spec as spec_module
+
+    block = spec_module.GPU_BLOCK
+    try:
+        spec_module.GPU_BLOCK = block + 1
+        assert set(ids("{device: gpu}")).isdisjoint(gpu) and ids("{}") == cpu
+    finally:
+        spec_module.GPU_BLOCK = block
     assert ids("{device: gpu, gpu_threads: 256}") == gpu
     assert set(ids("{device: gpu, gpu_threads: 64}")).isdisjoint(gpu)
     for bad, msg in (("{device: gpu, gpu_threads: 48}", "power of two"),

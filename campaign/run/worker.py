@@ -101,6 +101,7 @@ class KernelTask:
 
         system, exponent, protocol = self._setup(payloads[0], context)
         protocol.pop("device")
+        protocol.pop("gpu_block", None)  # (the block's version: its identity, not a setting)
         threads = protocol.pop("gpu_threads", None)
         t0 = time.perf_counter()
         handle = start_batch(payloads[0]["N"], [p["E"] for p in payloads],
