@@ -62,8 +62,8 @@ DEVICES = ("cpu", "gpu")
 GPU_THREADS_DEFAULT = 256
 #: the GPU block's trajectories, part of a GPU packing's identity (protocol key ``gpu_block``, set
 #: with ``device: gpu``, never written in a spec): 2 since 0.3.0, whose block sums FIRE's |v|^2
-#: after the kick from the step's sums and the energy over both sides of each pair (version 1:
-#: 0.2.x, the stores of data/gpu-equivalence*.h5)
+#: after the kick from the step's sums and the energy over both sides of each pair (version 1: the
+#: first block, before 0.3.0, whose stores record 0.2.7: data/gpu-equivalence*.h5)
 GPU_BLOCK = 2
 
 TOP_KEYS = ("name", "seed", "system", "grid", "protocol", "variants", "observables", "bins",
