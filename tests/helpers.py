@@ -4,6 +4,7 @@ Test modules import these instead of importing each other (``tests/test_docs.py`
 none does). The oracles the kernels are compared with are in ``references.py``.
 """
 
+import importlib.util
 import math
 from collections import deque
 from functools import lru_cache
@@ -368,3 +369,20 @@ def reseal(f, *names):
         if sums_name(name) in f:
             ds = f[sums_name(name)]
             write_sums(ds, 0, f[name][:], int(ds.attrs[SUMS_ROWS]))
+
+
+def cuda_missing(compiler=False):
+    """Why the CUDA kernel cannot be built here (None when it can): numba-cuda is not installed
+    (the ``cuda`` extra, which .ci/run installs; numba's own ``numba.cuda`` is not what the GPU
+    workers run), or, with ``compiler``, its libNVVM cannot be loaded (the CUDA compiler libraries
+    the ``cuda`` extra brings as wheels)."""
+    if importlib.util.find_spec("numba_cuda") is None:
+        return "needs numba-cuda: pip install '.[cuda]' (.ci/run does)"
+    if compiler:
+        try:
+            from cuda.pathfinder import load_nvidia_dynamic_lib
+
+            load_nvidia_dynamic_lib("nvvm")
+        except Exception as exc:  # noqa: BLE001 - any reason it cannot be loaded
+            return f"needs libNVVM (the cuda extra's CUDA compiler libraries): {exc}"
+    return None

@@ -65,6 +65,7 @@ def _cached_modules(cache):
     return {p.name.split(".")[0] for p in Path(cache).rglob("*.nbi")}
 
 
+@pytest.mark.slow
 def test_a_fire_task_compiles_only_fire_and_gets_the_same_bits(tmp_path):
     # another minimiser first (CG, then FIRE) in one process, from a cold cache (the Newton
     # endgame's compilation, most of a cold cache's minute, is left to tests/test_newton.py)

@@ -19,6 +19,7 @@ from kernels.cells import _candidate_pairs_core
 from kernels.gpu import BlockOverflow, jam_batch
 from kernels.gpu import batch as gpu_batch
 from kernels.gpu.block import FX, FY, N_FL, N_IV, NNB, R, ROWS, X, Y
+from helpers import cuda_missing
 
 ROOT = Path(__file__).resolve().parents[1]
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
@@ -34,7 +35,7 @@ def emulate(n, energies, seeds, threads=32, **kw):
     (64, [1e-3, 1e-7, 1e-11], {}),
     (128, [1e-5], {"exponent": 2.5}),
     (64, [1e-6], {"search": "halving", "sizes": ("lognormal", 0.2)}),
-    (1024, [1e-4], {}),
+    pytest.param(1024, [1e-4], {}, marks=pytest.mark.slow),
 ])
 def test_block_packings_are_jammed_in_the_window(n, energies, kw):
     """Every packing of the block: converged, E_G in [E, 1.1 E] recomputed from its positions,
@@ -184,6 +185,8 @@ def test_gpu_and_cpu_packings_agree_in_the_mean():
 
 # --------------------------------------------------------------------------- the CUDA kernel
 
+@pytest.mark.slow
+@pytest.mark.skipif(cuda_missing(compiler=True) is not None, reason=str(cuda_missing(compiler=True)))
 def test_kernel_compiles_for_a_real_gpu():
     """The batch kernel goes through numba-cuda's CUDA compiler to sm_90 PTX (libNVVM from the
     test extra's numba-cuda[cu13]; no GPU needed: the device's compute capability is given), as
@@ -231,6 +234,8 @@ store: {configurations: true}
 """
 
 
+@pytest.mark.slow
+@pytest.mark.skipif(cuda_missing() is not None, reason=str(cuda_missing()))
 def test_tiny_gpu_campaign_under_the_cuda_simulator_equals_the_emulation(tmp_path):
     """A device: gpu campaign runs end to end with the CUDA kernel under numba's simulator, and
     its packing is the emulation's bit for bit (the kernel and the emulation are one code)."""
@@ -303,7 +308,7 @@ def _stored(path):
         return {k: f["scalars"][k][:] for k in names}, size, f["tasks/status"][:]
 
 
-@pytest.mark.parametrize("launch", ["local", "mpi"])
+@pytest.mark.parametrize("launch", ["local", pytest.param("mpi", marks=pytest.mark.slow)])
 def test_gpu_workers_take_batches_and_store_the_same_bits(tmp_path, launch):
     """GPU workers (--gpus) run tasks of one variant and N_G together; the store holds the same
     values as a run without GPU workers (synthetic tasks: the batching, not the kernels)."""
@@ -470,7 +475,7 @@ observables: [scalars]
 """
 
 
-@pytest.mark.parametrize("launch", ["local", "mpi"])
+@pytest.mark.parametrize("launch", ["local", pytest.param("mpi", marks=pytest.mark.slow)])
 def test_gpu_tasks_go_to_gpu_workers(tmp_path, launch):
     """With GPU workers, device: gpu tasks run only on them (never emulated beside them on a CPU
     worker); CPU tasks run on the CPU workers, and on a GPU worker once no GPU task waits."""
