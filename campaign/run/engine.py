@@ -218,7 +218,8 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
             if sys.stderr.isatty() and not args.quiet:
                 _log(f"campaign: compiling the kernels (once; cached in {os.environ.get('NUMBA_CACHE_DIR')})")
             t_warm, cpu_warm = time.monotonic(), time.process_time()
-            fn.warm_up(context)
+            # a local run's master compiles the analysis in a second process beside the search
+            fn.warm_up(dict(context, warm_helper=launcher == "local" and n_workers > 1))
             if not args.quiet:  # the per-node start-up cost a job of a chain pays (docs: slurm/README.md)
                 _log(f"campaign: kernels ready in {time.monotonic() - t_warm:.1f} s, "
                      f"{time.process_time() - cpu_warm:.1f} s of CPU: {_compiled()} "
