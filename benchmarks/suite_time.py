@@ -132,6 +132,10 @@ def main(argv=None):
     result = {"commit": ref, "machine": machine(), "commands": []}
     print(f"commit {ref[:10]}, {result['machine']['cpus']} cpus, load {result['machine']['load_before']}",
           flush=True)
+    load = result["machine"]["load_before"]
+    if load and load[0] > 0.5:
+        print("warning: the machine is busy (load above 0.5): these times are inflated, not figures to quote",
+              flush=True)
     for name, command in todo:
         rec = run_command(name, command, ROOT, ref, a.keep, a.durations, log_dir)
         result["commands"].append(rec)
