@@ -426,6 +426,7 @@ def test_a_gpu_task_that_overflows_fails_with_its_reason(monkeypatch):
     assert s["ok"] and s["scalars"]["identities_ok"] == 1.0 and s["host"].endswith(" emulation")
 
 
+@pytest.mark.slow
 def test_calibrate_gpu_prices_gpu_tasks_in_gpu_hours(tmp_path):
     """campaign calibrate --gpu adds the block's measured step-time ratios to a calibration (here of
     the emulation: a GPU is not at hand); validate then prices device: gpu tasks in GPU-hours as the
