@@ -21,6 +21,7 @@ from kernels.gpu import batch as gpu_batch
 from kernels.gpu import block as gpu_block
 from kernels.gpu.block import (FX, FY, N_FL, N_IV, N_ST, NNB, R, ROWS, RX, RY, S_ALPHA, S_LX, S_LY,
                                S_NCX, S_NCY, S_NG, S_RESV, S_RMAX, S_SIN_TOL, S_SKIN, S_TE, S_XY)
+from helpers import cuda_missing
 
 ROOT = Path(__file__).resolve().parents[1]
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
@@ -36,7 +37,7 @@ def emulate(n, energies, seeds, threads=32, **kw):
     (64, [1e-3, 1e-7, 1e-11], {}),
     (128, [1e-5], {"exponent": 2.5}),
     (64, [1e-6], {"search": "halving", "sizes": ("lognormal", 0.2)}),
-    (1024, [1e-4], {}),
+    pytest.param(1024, [1e-4], {}, marks=pytest.mark.slow),
 ])
 def test_block_packings_are_jammed_in_the_window(n, energies, kw):
     """Every packing of the block: converged, E_G in [E, 1.1 E] recomputed from its positions,
@@ -257,6 +258,8 @@ def test_gpu_and_cpu_packings_agree_in_the_mean():
 
 # --------------------------------------------------------------------------- the CUDA kernel
 
+@pytest.mark.slow
+@pytest.mark.skipif(cuda_missing(compiler=True) is not None, reason=str(cuda_missing(compiler=True)))
 def test_kernel_compiles_for_a_real_gpu():
     """The batch kernel goes through numba-cuda's CUDA compiler to sm_90 PTX (libNVVM from the
     test extra's numba-cuda[cu13]; no GPU needed: the device's compute capability is given), as
@@ -364,6 +367,8 @@ store: {configurations: true}
 """
 
 
+@pytest.mark.slow
+@pytest.mark.skipif(cuda_missing() is not None, reason=str(cuda_missing()))
 def test_tiny_gpu_campaign_under_the_cuda_simulator_equals_the_emulation(tmp_path):
     """A device: gpu campaign runs end to end with the CUDA kernel under numba's simulator, and
     its packing is the emulation's bit for bit (the kernel and the emulation are one code)."""
@@ -445,7 +450,7 @@ def _stored(path):
         return {k: f["scalars"][k][:] for k in names}, size, f["tasks/status"][:]
 
 
-@pytest.mark.parametrize("launch", ["local", "mpi"])
+@pytest.mark.parametrize("launch", ["local", pytest.param("mpi", marks=pytest.mark.slow)])
 def test_gpu_workers_take_batches_and_store_the_same_bits(tmp_path, launch):
     """GPU workers (--gpus) run tasks of one variant and N_G together; the store holds the same
     values as a run without GPU workers (synthetic tasks: the batching, not the kernels)."""
@@ -543,6 +548,7 @@ def test_a_gpu_task_that_overflows_fails_with_its_reason(monkeypatch):
     assert s["ok"] and s["scalars"]["identities_ok"] == 1.0 and s["host"].endswith(" emulation")
 
 
+@pytest.mark.slow
 def test_calibrate_gpu_prices_gpu_tasks_in_gpu_hours(tmp_path):
     """campaign calibrate --gpu adds the block's measured step-time ratios to a calibration (here of
     the emulation: a GPU is not at hand); validate then prices device: gpu tasks in GPU-hours as the
@@ -592,7 +598,7 @@ observables: [scalars]
 """
 
 
-@pytest.mark.parametrize("launch", ["local", "mpi"])
+@pytest.mark.parametrize("launch", ["local", pytest.param("mpi", marks=pytest.mark.slow)])
 def test_gpu_tasks_go_to_gpu_workers(tmp_path, launch):
     """With GPU workers, device: gpu tasks run only on them (never emulated beside them on a CPU
     worker); CPU tasks run on the CPU workers, and on a GPU worker once no GPU task waits."""

@@ -33,7 +33,7 @@ import pytest
 from helpers import (SKIP_DATASETS, durable_packings, mpich_segments, processes, remove_segments_of_killed_jobs,
                      store_data_and_attrs)
 
-pytestmark = pytest.mark.slurm
+pytestmark = [pytest.mark.slurm, pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent

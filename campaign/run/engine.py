@@ -226,9 +226,11 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
             # beside GPU workers, none of the device: gpu kernels: the CUDA kernel is compiled in memory,
             # not cached on disk, so the master's compilation would serve no worker, and it would hold a
             # CUDA context on a GPU that a worker uses (with no CPU protocol left it warms the default
-            # one, whose analysis kernels the GPU workers load from the node's numba cache)
-            fn.warm_up(dict(context, protocol_warmups=[p for p in context["protocol_warmups"] or [{}]
-                                                       if p.get("device") != "gpu"]) if context["gpus"] else context)
+            # one, whose analysis kernels the GPU workers load from the node's numba cache); a local
+            # run's master compiles the analysis in a second process beside the search
+            warm = dict(context, warm_helper=launcher == "local" and n_workers > 1)
+            fn.warm_up(dict(warm, protocol_warmups=[p for p in context["protocol_warmups"] or [{}]
+                                                    if p.get("device") != "gpu"]) if context["gpus"] else warm)
             if not args.quiet:  # the per-node start-up cost a job of a chain pays (docs: slurm/README.md)
                 _log(f"campaign: kernels ready in {time.monotonic() - t_warm:.1f} s, "
                      f"{time.process_time() - cpu_warm:.1f} s of CPU: {_compiled()} "

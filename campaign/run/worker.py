@@ -45,14 +45,32 @@ class KernelTask:
 
     def warm_up(self, context) -> None:
         """Compile (or load from the numba cache) every kernel a task will use: one small packing
-        per protocol of ``context["protocol_warmups"]`` (the engine's list of distinct choices)."""
+        per protocol of ``context["protocol_warmups"]`` (the engine's list of distinct choices).
+        With ``context["warm_helper"]`` (a local run's master on several cores) and a cold cache,
+        a second process compiles the analysis while this one compiles the search
+        (``_warm_analysis``); this one then loads the analysis from the cache."""
+        helper = _start_analysis_helper(context) if context.get("warm_helper") else None
         for protocol in context.get("protocol_warmups") or [{}]:
             if protocol.get("device") == "gpu":
                 from kernels.gpu import simulated
 
                 if simulated():  # numba's CUDA simulator compiles nothing (and is slow)
                     continue
-            self.run({"N": 16, "E": 1e-3, "entropy": [0], "protocol": protocol}, context)
+            payload = {"N": 16, "E": 1e-3, "entropy": [0], "protocol": protocol}
+            if helper is not None:
+                helper = self._warm_beside(helper, payload, context)
+            else:
+                self.run(payload, context)
+        if helper is not None:
+            helper.join()
+
+    def _warm_beside(self, helper, payload, context):
+        """The search's kernels here while ``helper`` compiles the analysis; then, once it has
+        finished, the analysis loaded from the cache. Returns None (the helper is done)."""
+        got = self._jam(payload, context)
+        helper.join()
+        self._analyse(payload, context, *got)
+        return None
 
     def run(self, payload, context):
         return self._analyse(payload, context, *self._jam(payload, context))
@@ -170,6 +188,62 @@ class KernelTask:
         if device:  # a GPU packing: what ran it, recorded beside the host
             return scalars, hists, config, device
         return scalars, hists, config
+
+
+def _analysis_cached() -> bool:
+    """Whether numba's cache already holds the analysis (its rotation kernel, which only the
+    analysis calls, has an index file); True where that cannot be told (then no helper)."""
+    try:
+        from kernels.network import _rotation_core
+
+        return os.path.exists(_rotation_core._cache._cache_file._index_path)
+    except Exception:  # noqa: BLE001 - numba's internals differ: compile in one process, as before
+        return True
+
+
+def _start_analysis_helper(context):
+    """A process compiling the analysis of the tasks' observables into the numba cache
+    (``_warm_analysis``), or None when the cache has it already or this machine has one core."""
+    if (os.cpu_count() or 1) < 2 or _analysis_cached():
+        return None
+    import multiprocessing
+
+    helper = multiprocessing.get_context("spawn").Process(target=_warm_analysis, args=(context,), daemon=True)
+    helper.start()
+    return helper
+
+
+def stand_in():
+    """16 disks in a unit box with contacts, voids, fictitious contacts and rattlers (a jittered
+    lattice of offset rows, overlaps up to 15%), with the types of a packing of ``kernels.jam``
+    (a task's box, its size or a tilted cell's, is also a float64 vector): what
+    ``_warm_analysis`` analyses."""
+    from types import SimpleNamespace
+
+    box = np.ones(2)
+    rng = np.random.default_rng(0)
+    j, i = np.divmod(np.arange(16), 4)
+    frac = np.stack([(i + 0.5 * (j % 2)) / 4.0, j / 4.0], axis=1) + 0.01 * rng.standard_normal((16, 2))
+    positions = np.ascontiguousarray((frac % 1.0) * box)
+    radii = 0.5 * 1.15 * np.sqrt(box[0] * box[1]) / 4.0 * (1.0 + 0.05 * rng.uniform(-1.0, 1.0, 16))
+    return SimpleNamespace(positions=positions, radii=radii, box=box, species=np.zeros(16, dtype=np.int32),
+                           force_residual=0.0, iterations=0, force_evaluations=0, status="converged",
+                           status_code=0, factorizations=0)
+
+
+def _warm_analysis(context, quiet=True):
+    """Compile what ``KernelTask._analyse`` calls for the tasks' observables, bins and (first)
+    system, on ``stand_in``'s configuration. In the helper process (``quiet``) a failure only
+    leaves the master to compile what is missing."""
+    protocols = context.get("protocol_warmups") or [{}]
+    payload = {"N": 16, "E": 1e-3, "entropy": [0], "protocol": protocols[0]}
+    task = KernelTask()
+    try:
+        return task._analyse(payload, context, stand_in(), 0.0)
+    except Exception:  # noqa: BLE001 - see above
+        if not quiet:
+            raise
+        return None
 
 
 def visible_device(k: int) -> str:
