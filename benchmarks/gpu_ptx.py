@@ -10,10 +10,10 @@ the innermost loop of the forces phase (one pair of a neighbour row) in the PTX.
 
     python benchmarks/gpu_ptx.py [--threads 256 512 1024] [--exponent 2.0] [--json FILE]
 
-Needs numba-cuda with its CUDA compiler libraries (``pip install '.[ptx]'``) and ``ptxas``:
-``PTXAS``, else the one of the ``nvidia-cuda-nvcc`` wheel (the ``ptx`` extra), else the first on
-the ``PATH``. A PTX newer than the assembler is relabelled with the assembler's version (the
-kernel uses nothing newer: the assembler refuses what it does not know).
+Needs numba-cuda with its CUDA compiler libraries and ``ptxas`` (``pip install '.[cuda]'``, whose
+``nvidia-cuda-nvcc`` wheel brings it; ``PTXAS`` names another, else the first on the ``PATH``).
+A PTX newer than an older assembler is relabelled with the assembler's version (the kernel uses
+nothing newer: the assembler refuses what it does not know).
 """
 
 from __future__ import annotations
@@ -36,18 +36,14 @@ SM90 = {"registers": 65536, "threads": 2048, "blocks": 32, "shared": 228 * 1024,
 
 
 def find_ptxas() -> str | None:
-    """``PTXAS``, the ``nvidia-cuda-nvcc`` wheel's, or the ``PATH``'s."""
+    """``PTXAS``, the ``nvidia-cuda-nvcc`` wheel's (the ``cuda`` extra), or the ``PATH``'s."""
     if os.environ.get("PTXAS"):
         return os.environ["PTXAS"]
-    try:
-        import nvidia.cuda_nvcc as wheel  # the ptx extra
-
-        for base in wheel.__path__:
-            for cand in (Path(base) / "bin" / "ptxas",):
-                if cand.exists():
-                    return str(cand)
-    except ImportError:
-        pass
+    for base in sys.path:
+        for cu in ("cu13", "cu12"):
+            cand = Path(base or ".") / "nvidia" / cu / "bin" / "ptxas"
+            if cand.is_file() and os.access(cand, os.X_OK):
+                return str(cand)
     return shutil.which("ptxas")
 
 
@@ -127,9 +123,11 @@ def _version(ptxas):
 def assemble(ptxas: str, ptx: str, max_registers: int) -> dict:
     """``ptxas -v`` at ``max_registers``: registers, spills, stack and shared memory."""
     ver = _version(ptxas)
-    if ver is not None:  # PTX ISA 9.x for CUDA 13.x: the ISA of the assembler's release
-        ptx = re.sub(r"^\.version \d+\.\d+", f".version {ver[0] - 4}.{ver[1]}", ptx, count=1,
-                     flags=re.M)
+    have = re.search(r"^\.version (\d+)\.(\d+)", ptx, flags=re.M)
+    if ver is not None and ver[0] >= 13 and have is not None:  # PTX ISA 9.x for CUDA 13.x
+        isa = (ver[0] - 4, ver[1])
+        if (int(have.group(1)), int(have.group(2))) > isa:
+            ptx = ptx.replace(have.group(0), f".version {isa[0]}.{isa[1]}", 1)
     with tempfile.TemporaryDirectory() as tmp:
         src = Path(tmp) / "k.ptx"
         src.write_text(ptx)
@@ -177,7 +175,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     ptxas = find_ptxas()
     if ptxas is None:
-        print("gpu_ptx: no ptxas (set PTXAS, or pip install '.[ptx]')", file=sys.stderr)
+        print("gpu_ptx: no ptxas (set PTXAS, or pip install '.[cuda]')", file=sys.stderr)
         return 2
     exponent = a.exponent or None
     t0 = time.perf_counter()

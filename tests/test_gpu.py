@@ -262,7 +262,7 @@ def test_gpu_and_cpu_packings_agree_in_the_mean():
 @pytest.mark.skipif(cuda_missing(compiler=True) is not None, reason=str(cuda_missing(compiler=True)))
 def test_kernel_compiles_for_a_real_gpu():
     """The batch kernel goes through numba-cuda's CUDA compiler to sm_90 PTX (libNVVM from the
-    test extra's numba-cuda[cu13]; no GPU needed: the device's compute capability is given), as
+    cuda extra's numba-cuda[cu13]; no GPU needed: the device's compute capability is given), as
     the launch compiles it: without contraction (every float64 multiply, add and subtract rounded
     on its own, ``.rn``, which the assembler never fuses; fused multiply-adds left only inside
     libdevice's functions; ``a x + y`` contracted by default, not so) and without link-time
@@ -297,6 +297,40 @@ print("ok", len(ptx))
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                        env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert r.returncode == 0 and r.stdout.startswith("ok"), r.stderr[-3000:]
+
+
+REGISTERS = """
+import sys
+sys.path.insert(0, "benchmarks")
+import gpu_ptx
+ptxas = gpu_ptx.find_ptxas()
+if ptxas is None:
+    print("no ptxas")
+    raise SystemExit(0)
+loop = gpu_ptx.pair_loop(gpu_ptx.forces_ptx(2.0))
+ptx = gpu_ptx.kernel_ptx(512, 2.0)
+wide, narrow = gpu_ptx.assemble(ptxas, ptx, 128), gpu_ptx.assemble(ptxas, ptx, 64)
+print(len(loop), wide["registers"], wide["spill_store_bytes"], wide["spill_load_bytes"],
+      narrow["registers"], narrow["stack_bytes"])
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(cuda_missing(compiler=True) is not None, reason=str(cuda_missing(compiler=True)))
+def test_the_kernel_fits_its_register_budgets():
+    """The block's budget, assembled by ptxas for sm_90 (benchmarks/gpu_ptx.py): a 512-thread
+    block fits an SM at 128 registers a thread without a byte of spills, 64 registers (2048
+    threads an SM, the default) spill at most a few hundred bytes of stack, and the forces' pair
+    loop stays under 80 PTX instructions."""
+    r = subprocess.run([sys.executable, "-c", REGISTERS], capture_output=True, text=True, timeout=900,
+                       cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert r.returncode == 0, r.stderr[-3000:]
+    if r.stdout.strip() == "no ptxas":
+        pytest.skip("no ptxas (the cuda extra's nvidia-cuda-nvcc, or PTXAS)")
+    loop, wide, st, ld, narrow, stack = map(int, r.stdout.split())
+    assert 0 < loop <= 80
+    assert wide <= 128 and st == 0 and ld == 0
+    assert narrow <= 64 and stack <= 256
 
 
 REDUCE = """
