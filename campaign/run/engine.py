@@ -169,6 +169,8 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     gpu_batch = getattr(args, "gpu_batch", None)
     context = dict(spec.worker_context(), task_function=args.task_function, gpus=int(getattr(args, "gpus", 0) or 0),
                    gpu_batch=int(gpu_batch or 0) or GPU_BATCH)
+    # a GPU worker's launches stop at a step budget before the deadline (campaign.run.gpuworker)
+    context.update(deadline=getattr(args, "deadline", None), margin=float(getattr(args, "margin", 0.0) or 0.0))
     out = Path(args.out or spec.output)
     retries = spec.retries if args.retries is None else args.retries
     if retries < 0:
@@ -214,11 +216,17 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
         progress = Progress(len(tasks), sidecar=Path(str(out) + ".progress.json"),
                             enabled=None if not args.quiet else False)
         progress.begin(done=c["done"], failed=c["failed"], remaining=c["pending"])  # a heartbeat from now on
-        if todo and hasattr(fn, "warm_up") and launcher != "inline":
+        warm = context
+        if context["gpus"]:
+            # device: gpu tasks run on the GPU workers alone (each warms itself up): the master's
+            # warm-up would compile the block's emulation, which numba does not cache, for nothing
+            cpu = [p for p in context["protocol_warmups"] if dict(p).get("device") != "gpu"]
+            warm = dict(context, protocol_warmups=cpu) if cpu else None
+        if todo and hasattr(fn, "warm_up") and launcher != "inline" and warm is not None:
             if sys.stderr.isatty() and not args.quiet:
                 _log(f"campaign: compiling the kernels (once; cached in {os.environ.get('NUMBA_CACHE_DIR')})")
             t_warm, cpu_warm = time.monotonic(), time.process_time()
-            fn.warm_up(context)
+            fn.warm_up(warm)
             if not args.quiet:  # the per-node start-up cost a job of a chain pays (docs: slurm/README.md)
                 _log(f"campaign: kernels ready in {time.monotonic() - t_warm:.1f} s, "
                      f"{time.process_time() - cpu_warm:.1f} s of CPU: {_compiled()} "
@@ -257,6 +265,7 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
         comm, workers_stopped = None, True
         counts = store.counts_by_status()
         store.close(completed=outcome["done"], failed=outcome["failed"], stopped=outcome["stopped"],
+                    suspended=outcome.get("suspended", 0),
                     seconds=round(time.monotonic() - t0, 3), master_cpu_seconds=round(cpu, 3))
     except WriteFault as fault:
         # A full disk (or a file system that failed) on the write path: stop at once. Everything
@@ -278,6 +287,9 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     msg = (f"campaign: {out}: {counts['done']} done, {counts['failed']} failed, {counts['pending']} pending "
            f"of {len(tasks)} tasks (this run: {outcome['done']} done, {outcome['failed']} failed)")
     _log(msg)
+    if outcome.get("suspended"):
+        _log(f"campaign: {outcome['suspended']} GPU packing(s) stopped at their step budget before the deadline; "
+             "their state is in the store and the next run goes on from it")
     if counts["failed"]:
         _log(f"campaign: see the failures with: campaign status {out}")
     if outcome["stopped"] is not None and counts["pending"]:

@@ -11,6 +11,10 @@ The per-task work is a *task function* chosen by name in the run context:
   ``CAMPAIGN_SYNTHETIC_FLAKY`` (tasks that raise on their first attempt only),
   ``CAMPAIGN_SYNTHETIC_CRASH`` (tasks that kill their worker process). Each is a
   comma-separated list of ``seed:K`` (seed index K), ``N:K`` or task-id prefixes.
+  ``CAMPAIGN_SYNTHETIC_STEPS="SECONDS:STEPS"`` makes a GPU worker's ``device: gpu`` task a search
+  of ``STEPS x (1 + seed % 3)`` steps of ``SECONDS`` each (slept, one packing after the other, as
+  the block's emulation runs them) that stops at a launch's step budget and goes on from its
+  state (``SyntheticState``): the stop and go of ``campaign.run.gpuworker`` without the kernels.
 * ``"package.module:attribute"``: any object with ``run(payload, context)``
   and ``histogram_edges(context)`` (and optionally ``warm_up(context)``).
 
@@ -276,10 +280,21 @@ class SyntheticTask:
 
     # a GPU worker's event loop (campaign.run.gpuworker): the "packing" is the task's own outcome
     def start_batch(self, payloads, context, budget=None, resume=None):
+        stepping = _synthetic_steps()
+        resume = resume or [None] * len(payloads)
         out = []
-        for p in payloads:
+        for p, state in zip(payloads, resume):
             try:
-                out.append((self.run(p, context), float(len(payloads))))
+                launches = None
+                if stepping is not None and (p.get("protocol") or {}).get("device") == "gpu":
+                    if state is None and p.get("resume") is not None:
+                        state = SyntheticState.from_arrays(p["resume"], p)
+                    got = _synthetic_search(p, state, budget, *stepping)
+                    if isinstance(got, SyntheticState):
+                        out.append(got)
+                        continue
+                    launches = got
+                out.append((self.run(p, context), float(len(payloads)), launches))
             except Exception as exc:  # noqa: BLE001 - that task fails, the batch goes on
                 out.append(exc)
         return out
@@ -287,9 +302,20 @@ class SyntheticTask:
     def finish_batch(self, started):
         return started
 
-    def analyse(self, payload, context, got, size):
+    def slots(self, started):
+        return 1  # one packing after the other
+
+    def clock(self, item):
+        if isinstance(item, SyntheticState):
+            return item.device_clock["seconds"], float(item.steps)
+        return float("nan"), float("nan")
+
+    def analyse(self, payload, context, got, size, launches=None):
         scalars, hists, config = got
-        return dict(scalars, batch_size=size), hists, config
+        scalars = dict(scalars, batch_size=size)
+        if launches is not None:
+            scalars["device_launches"] = float(launches)
+        return scalars, hists, config
 
     def run(self, payload, context):
         env = os.environ
@@ -325,6 +351,56 @@ class SyntheticTask:
             config = {"positions": pos, "radii": np.where(np.arange(N) < N // 2, 1.4, 1.0) * 0.01,
                       "box": np.array([1.0, 1.0]), "species": (np.arange(N) >= N // 2).astype(np.int32)}
         return scalars, hists, config
+
+
+def _synthetic_steps():
+    """``CAMPAIGN_SYNTHETIC_STEPS`` as (seconds per step, steps), or None."""
+    text = os.environ.get("CAMPAIGN_SYNTHETIC_STEPS", "")
+    if not text:
+        return None
+    seconds, steps = text.split(":")
+    return float(seconds), int(steps)
+
+
+def _synthetic_search(payload, state, budget, seconds, steps):
+    """Run a synthetic search (``CAMPAIGN_SYNTHETIC_STEPS``) on from ``state`` for at most
+    ``budget`` steps: its launches when it ends, else the ``SyntheticState`` it stopped in."""
+    need = steps * (1 + int(payload["seed"]) % 3)
+    done, launches = (0, 1) if state is None else (state.steps, state.launches + 1)
+    run = need - done if budget is None else min(need - done, int(budget))
+    time.sleep(run * seconds)
+    if done + run < need:
+        return SyntheticState(payload, done + run, launches, seconds)
+    return launches
+
+
+class SyntheticState:
+    """A synthetic search stopped at a step budget, shaped as ``kernels.gpu.batch.Suspended``:
+    its arrays (as large as a packing's of N disks) are a function of the task and the steps done,
+    so that a task that goes on from any other state fails instead of ending as it should."""
+
+    def __init__(self, payload, steps, launches, seconds):
+        self.payload, self.steps, self.launches, self.seconds = payload, int(steps), int(launches), seconds
+        self.force_evaluations = self.steps
+        self.device_clock = {"seconds": self.steps * seconds, "launches": self.launches}
+
+    @staticmethod
+    def _positions(payload, steps):
+        rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(list(payload["entropy"]) + [steps])))
+        return rng.random((int(payload["N"]), 2))
+
+    def arrays(self):
+        pos = self._positions(self.payload, self.steps)
+        return {"positions": pos, "velocities": pos.T * 0.5, "reference": pos.T.copy(),
+                "state": np.array([self.steps, self.launches, self.seconds], np.float64)}
+
+    @classmethod
+    def from_arrays(cls, arrays, payload):
+        steps, launches, seconds = (float(x) for x in arrays["state"][:3])
+        got = cls(payload, int(steps), int(launches), seconds)
+        if not np.array_equal(np.asarray(arrays["positions"]), cls._positions(payload, int(steps))):
+            raise RuntimeError(f"synthetic task {payload['id']} resumed from a state that is not its own")
+        return got
 
 
 def resolve(name: str):

@@ -129,6 +129,7 @@ class Scan:
             self._edges()
             self._configurations()
             self._failures()
+            self._checkpoints()
             self._rows()
             self._reduced()
             self._walk()
@@ -735,6 +736,34 @@ class Scan:
             if CHECKSUM_ATTR not in a:
                 r.unchecked["failures"] += 1
             r.checked["failures"] += 1
+
+    def _checkpoints(self):
+        """Suspended GPU packings (``/checkpoints``, stop and go): each must read and match its
+        checksum. A damaged one holds no finished task: a repair leaves it out and its task starts
+        over (as a run does when it meets it)."""
+        from campaign.storage.checksums import checkpoint_problem
+
+        f = self.f
+        try:
+            names = list(f["checkpoints"].keys()) if "checkpoints" in f else []
+        except Exception as exc:  # noqa: BLE001
+            self.add(Damage("checkpoints", f"its index cannot be read ({reason(exc)})", repair="remove",
+                            note="left out: the suspended tasks start over"))
+            return
+        rows = self._rows_of(names)
+        for key, row in zip(names, rows.tolist()):
+            name = f"checkpoints/{_text(key)}"
+            if row < 0 and self.ids is not None:
+                self.add(Damage(name, "is named after no task of this store (its name is damaged)", repair="remove",
+                                note="left out"))
+                continue
+            try:
+                g = f["checkpoints"][key]
+            except Exception as exc:  # noqa: BLE001
+                g = None
+            _, _, problem = checkpoint_problem(g)
+            if problem is not None:
+                self.add(Damage(name, problem, repair="remove", note="left out: its task starts over"))
 
     def _rows(self):
         """The commit marker against the rows it commits (it carries no checksum of its own)."""
