@@ -163,6 +163,32 @@ def checkpoint_problem(g):
     return arrays, counters, None
 
 
+def checkpoint_damage(f, rows_of=None):
+    """``(name, problem)`` of every damaged part of a store's ``/checkpoints`` (``campaign verify``):
+    a checkpoint that cannot be read or does not match its checksum, one named after no task
+    (``rows_of(names)``: their task rows, -1 for none; None: names not checked), an index that
+    cannot be listed."""
+    try:
+        names = list(f["checkpoints"].keys()) if "checkpoints" in f else []
+    except Exception as exc:  # noqa: BLE001
+        return [("checkpoints", f"its index cannot be read ({reason(exc)})")]
+    rows = rows_of(names) if rows_of is not None and names else None
+    out = []
+    for k, key in enumerate(names):
+        name = f"checkpoints/{_text(key)}"
+        if rows is not None and rows[k] < 0:
+            out.append((name, "is named after no task of this store (its name is damaged)"))
+            continue
+        try:
+            g = f["checkpoints"][key]
+        except Exception:  # noqa: BLE001 - checkpoint_problem says it cannot be read
+            g = None
+        problem = checkpoint_problem(g)[2]
+        if problem is not None:
+            out.append((name, problem))
+    return out
+
+
 FAILURE_KEYS = ("message", "traceback", "attempts", "rank", "host")
 
 

@@ -38,7 +38,7 @@ import numpy as np
 from campaign.errors import UserError
 from campaign.storage.checksums import (BLOCK_FILTERS, CHECKSUM_ATTR, CONFIG_KEYS, CONFIG_WEIGHT, EDGES_NOTE,
                                         FLETCHER32, IDENTITY, ROOT_ATTRS, ROOT_MEMBERS, SLAB_BYTES,
-                                        _text, configuration_problem, failure_problem,
+                                        _text, checkpoint_damage, configuration_problem, failure_problem,
                                         good_scalar_name, is_filter_failure, looks_like_store, reason,
                                         scalar_names_listed)
 from campaign.storage.checksums import (BLOCK_MISMATCH, SUMS_GROUP, SUMS_ROWS, has_sums, mismatched_blocks,
@@ -129,7 +129,8 @@ class Scan:
             self._edges()
             self._configurations()
             self._failures()
-            self._checkpoints()
+            for name, how in checkpoint_damage(f, self._rows_of if self.ids is not None else None):
+                self.add(Damage(name, how, repair="remove", note="left out: its task starts over"))  # stop and go
             self._rows()
             self._reduced()
             self._walk()
@@ -736,34 +737,6 @@ class Scan:
             if CHECKSUM_ATTR not in a:
                 r.unchecked["failures"] += 1
             r.checked["failures"] += 1
-
-    def _checkpoints(self):
-        """Suspended GPU packings (``/checkpoints``, stop and go): each must read and match its
-        checksum. A damaged one holds no finished task: a repair leaves it out and its task starts
-        over (as a run does when it meets it)."""
-        from campaign.storage.checksums import checkpoint_problem
-
-        f = self.f
-        try:
-            names = list(f["checkpoints"].keys()) if "checkpoints" in f else []
-        except Exception as exc:  # noqa: BLE001
-            self.add(Damage("checkpoints", f"its index cannot be read ({reason(exc)})", repair="remove",
-                            note="left out: the suspended tasks start over"))
-            return
-        rows = self._rows_of(names)
-        for key, row in zip(names, rows.tolist()):
-            name = f"checkpoints/{_text(key)}"
-            if row < 0 and self.ids is not None:
-                self.add(Damage(name, "is named after no task of this store (its name is damaged)", repair="remove",
-                                note="left out"))
-                continue
-            try:
-                g = f["checkpoints"][key]
-            except Exception as exc:  # noqa: BLE001
-                g = None
-            _, _, problem = checkpoint_problem(g)
-            if problem is not None:
-                self.add(Damage(name, problem, repair="remove", note="left out: its task starts over"))
 
     def _rows(self):
         """The commit marker against the rows it commits (it carries no checksum of its own)."""
