@@ -202,8 +202,11 @@ def _suspended(f, status, np, PENDING):
         return out
     if not names:
         return out
-    ids = f["tasks/id"][:]
-    pending = set(ids[status == PENDING].astype(str).tolist())
+    kept, pending = set(names), set()
+    for lo in range(0, len(status), BLOCK):  # the ids of pending rows, a block at a time
+        rows = np.flatnonzero(status[lo:lo + BLOCK] == PENDING)
+        if len(rows):
+            pending.update(kept.intersection(f["tasks/id"][lo:lo + BLOCK][rows].astype(str).tolist()))
     for tid in names:
         if tid not in pending:
             continue
