@@ -337,9 +337,11 @@ class ThreadComm:
         self.thread.join(60)
 
 
-def _kernel_run(tmp_path, name, seconds=None):
+def _kernel_run(tmp_path, name, seconds=None, gpu=True):
     """A run of KERNEL_SPEC into ``name`` (the same store goes on), with a deadline ``seconds``
-    from now; returns the master's outcome."""
+    from now, on a GPU worker (else on a CPU worker, in the master: ``InlineComm``); returns the
+    master's outcome."""
+    from campaign.run.comm import InlineComm
     from campaign.plan.spec import load_spec
     from campaign.plan.tasks import expand, warm_ups
     from campaign.run.worker import KernelTask
@@ -354,7 +356,7 @@ def _kernel_run(tmp_path, name, seconds=None):
     edges = KernelTask().histogram_edges(ctx)
     ctx["edges"] = {h: [float(x) for x in e] for h, e in edges.items()}
     store = Store(tmp_path / name, spec, tasks, edges)
-    comm = ThreadComm(ctx)
+    comm = ThreadComm(ctx) if gpu else InlineComm(ctx)
     wall = None if end is None else Deadline(store, tasks, end, 0.0)
     try:
         out = Master(comm, store, tasks, can_dispatch=wall).run()
@@ -364,12 +366,13 @@ def _kernel_run(tmp_path, name, seconds=None):
     return out
 
 
-def test_kernel_packings_stopped_at_a_deadline_end_with_an_uninterrupted_runs_bits(tmp_path, monkeypatch):
+@pytest.mark.parametrize("then", ["gpu worker", "cpu worker"])
+def test_kernel_packings_stopped_at_a_deadline_end_with_an_uninterrupted_runs_bits(tmp_path, monkeypatch, then):
     """The block's own stop and go through the GPU worker's loop, the master and the store: a run
-    with a deadline 3 s away (8 searches at E_G 1e-12 take about 7 s here) stops the searches that do not finish (after the probe launch, at
-    budgets from the block step it measured), keeps them, and the next run ends them; the store
-    then holds the bits of an uninterrupted run's (configurations included), only the device's
-    clock differs."""
+    with a deadline 3 s away (8 searches at E_G 1e-12 take about 7 s here) stops the searches that
+    do not finish (after the probe launch, at budgets from the block step it measured), keeps them,
+    and the next run ends them, on a GPU worker or emulated on a CPU worker; the store then holds
+    the bits of an uninterrupted run's (configurations included), only the device's clock differs."""
     monkeypatch.setenv("CAMPAIGN_GPU_BACKEND", "emulate")
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "0")  # the worker sets it: restored after the test
     from kernels.gpu import jam_batch
@@ -383,7 +386,7 @@ def test_kernel_packings_stopped_at_a_deadline_end_with_an_uninterrupted_runs_bi
         kept = {k: int(g.attrs["launches"]) for k, g in f["checkpoints"].items()}
         ids = list(f["tasks/id"][:].astype(str))
     assert kept
-    second = _kernel_run(tmp_path, "k.h5")
+    second = _kernel_run(tmp_path, "k.h5", gpu=then == "gpu worker")
     assert second["done"] == 16 - first["done"]
     with h5py.File(tmp_path / "k.h5", "r") as f:
         assert np.all(f["tasks/status"][:] == 1) and len(f["checkpoints"]) == 0
@@ -404,3 +407,21 @@ def assert_same_contents_but(a, b):
             continue
         x, y = np.asarray(a[k]), np.asarray(b[k])
         assert x.dtype == y.dtype and np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), k
+
+
+def test_a_gpu_packing_run_alone_records_its_device_clock(monkeypatch):
+    """A device: gpu task run by itself (a CPU worker emulating it) stores the device clock's
+    scalars too: one launch on one slot, its block-seconds inside its start and end."""
+    from campaign.run.worker import KernelTask, run_task
+
+    monkeypatch.setenv("CAMPAIGN_GPU_BACKEND", "emulate")
+    context = {"system": {"box": [1.0, 1.0], "potential": {"exponent": 2.0},
+                          "species": [["A", 0.5, 1.4], ["B", 0.5, 1.0]]},
+               "observables": ["scalars"], "histograms": [], "edges": {}}
+    payload = {"id": "t", "index": 0, "N": 32, "E": 1e-4, "seed": 0, "entropy": [1, 2],
+               "protocol": {"device": "gpu", "gpu_threads": 16}}
+    t0 = time.time()
+    s = run_task(KernelTask(), payload, context)["scalars"]
+    assert (s["device_launches"], s["device_slots"]) == (1.0, 1.0)
+    assert t0 <= s["device_start"] < s["device_end"] <= time.time()
+    assert 0 < s["device_seconds"] <= s["device_end"] - s["device_start"] + 1e-6
