@@ -425,3 +425,18 @@ def test_a_gpu_packing_run_alone_records_its_device_clock(monkeypatch):
     assert (s["device_launches"], s["device_slots"]) == (1.0, 1.0)
     assert t0 <= s["device_start"] < s["device_end"] <= time.time()
     assert 0 < s["device_seconds"] <= s["device_end"] - s["device_start"] + 1e-6
+
+
+def test_the_checkpoints_write_step_reserves_what_it_adds(tmp_path):
+    """Writing suspended packings is a write step like any other: the file never grows by more than
+    the step reserved first (docs/STORE.md, "Out of space"), nor does the store reserve wildly more."""
+    spec, tasks, ctx, store = synthetic_run(tmp_path, GPU_SPEC)
+    for rounds in range(3):  # new groups, then each replaced by a later stop
+        for i in range(len(tasks)):
+            store.suspend(i, _record(4096, 100 * (rounds + 1), seed=i + rounds))
+        store.flush(force=True)
+    steps = store.space_log
+    assert len(steps) >= 3 and all(grew <= need for need, grew in steps), steps
+    store.close()
+    arrays = 4096 * 2 * 8 * 3 + 12 * 8  # one packing's four arrays
+    assert max(need for need, _ in steps) <= 2 * len(tasks) * arrays + (512 << 10)
