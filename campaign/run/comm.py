@@ -131,7 +131,11 @@ def gpu_context(context: dict, device: int | None) -> dict:
     """A worker's context: a GPU worker owns ``device`` (``CUDA_VISIBLE_DEVICES`` is set before
     CUDA starts) and runs batches of ``context["gpu_batch"]`` tasks; any other runs one at a time."""
     if device is None:
-        return dict(context, gpu_batch=1, gpu_device=None)
+        out = dict(context, gpu_batch=1, gpu_device=None)
+        if int(context.get("gpus") or 0):  # the GPU workers run the device: gpu tasks: no need to compile them
+            cpu = [p for p in context.get("protocol_warmups") or () if dict(p).get("device") != "gpu"]
+            out["protocol_warmups"] = cpu or [{}]
+        return out
     return dict(context, gpu_device=int(device))
 
 
