@@ -170,6 +170,8 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     gpu_batch = getattr(args, "gpu_batch", None)
     context = dict(spec.worker_context(), task_function=args.task_function, gpus=int(getattr(args, "gpus", 0) or 0),
                    gpu_batch=int(gpu_batch or 0) or GPU_BATCH)
+    # a GPU worker's launches stop at a step budget before the deadline (campaign.run.gpuworker)
+    context.update(deadline=getattr(args, "deadline", None), margin=float(getattr(args, "margin", 0.0) or 0.0))
     out = Path(args.out or spec.output)
     retries = spec.retries if args.retries is None else args.retries
     if retries < 0:
@@ -269,6 +271,7 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
         comm, workers_stopped = None, True
         counts = store.counts_by_status()
         store.close(completed=outcome["done"], failed=outcome["failed"], stopped=outcome["stopped"],
+                    suspended=outcome.get("suspended", 0),
                     seconds=round(time.monotonic() - t0, 3), master_cpu_seconds=round(cpu, 3))
     except WriteFault as fault:
         # A full disk (or a file system that failed) on the write path: stop at once. Everything
@@ -290,6 +293,9 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     msg = (f"campaign: {out}: {counts['done']} done, {counts['failed']} failed, {counts['pending']} pending "
            f"of {len(tasks)} tasks (this run: {outcome['done']} done, {outcome['failed']} failed)")
     _log(msg)
+    if outcome.get("suspended"):
+        _log(f"campaign: {outcome['suspended']} GPU packing(s) stopped at their step budget before the deadline; "
+             "their state is in the store and the next run goes on from it")
     if counts["failed"]:
         _log(f"campaign: see the failures with: campaign status {out}")
     if outcome["stopped"] is not None and counts["pending"]:
