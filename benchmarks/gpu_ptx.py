@@ -78,7 +78,8 @@ def forces_ptx(exponent) -> str:
     from numba import cuda, float64, int32
 
     from kernels.gpu import device
-    from kernels.gpu.block import N_ST, ROWS, WARP, make_block
+    from kernels.gpu.block import make_block
+    from kernels.gpu.state import N_ST, ROWS, WARP
 
     dev = cuda.jit(device=True)
     forces = make_block(dev, dev(device._sync), dev(device._slot_add), dev(device._put_sum),

@@ -18,8 +18,8 @@ from kernels.minimiser import _residual_core
 from kernels.cells import _candidate_pairs_core
 from kernels.gpu import BlockOverflow, Suspended, jam_batch
 from kernels.gpu import batch as gpu_batch
-from kernels.gpu import block as gpu_block
-from kernels.gpu.block import (FX, FY, N_FL, N_IV, N_ST, NNB, R, ROWS, RX, RY, S_ALPHA, S_LX, S_LY,
+from kernels.gpu import block as gpu_block, state as gpu_state
+from kernels.gpu.state import (FX, FY, N_FL, N_IV, N_ST, NNB, R, ROWS, RX, RY, S_ALPHA, S_LX, S_LY,
                                S_NCX, S_NCY, S_NG, S_RESV, S_RMAX, S_SIN_TOL, S_SKIN, S_TE, S_XY)
 from helpers import cuda_missing
 
@@ -148,12 +148,12 @@ def test_resumption_refuses_what_is_not_its_own():
     with pytest.raises(ValueError, match="velocities has shape"):
         Suspended.from_arrays(dict(arrays, velocities=arrays["velocities"][:, :5]), 1e-4)
     done = sus.state.copy()
-    done[gpu_block.S_CMD] = gpu_block.C_DONE
+    done[gpu_state.S_CMD] = gpu_state.C_DONE
     with pytest.raises(ValueError, match="not that of a suspended search"):
         Suspended.from_arrays(dict(arrays, state=done), 1e-4)
 
 
-@pytest.mark.parametrize("exponent", gpu_block.EXPONENTS)
+@pytest.mark.parametrize("exponent", gpu_state.EXPONENTS)
 def test_the_blocks_pair_is_the_potential_bit_for_bit(exponent):
     """The pair compiled for a fixed exponent (no pow for 2 and 2.5) gives the potential's bits."""
     pair = gpu_block.pair_for(exponent)
@@ -338,7 +338,8 @@ import numpy as np
 from numba import cuda, njit, float64
 from kernels.gpu import device
 from kernels.gpu.batch import _noop
-from kernels.gpu.block import make_shared_reduction, ROWS, WARP, N_ST
+from kernels.gpu.block import make_shared_reduction
+from kernels.gpu.state import ROWS, WARP, N_ST
 
 dev = cuda.jit(device=True)
 put_sum, put_max, total = dev(device._put_sum), dev(device._put_max), dev(device._total)

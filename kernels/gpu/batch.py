@@ -40,13 +40,15 @@ import time
 
 import numpy as np
 
-from kernels.gpu.block import (N_FL, N_IV, N_PARAMS, N_ST, P_ALPHA, P_BUDGET, P_DELTA, P_E_MIN,
-                               P_ENERGY_STEP, P_LX, P_LY, P_MAX_RADIUS, P_MAX_SEARCH, P_MAX_STEPS,
-                               P_MEAN_D, P_NCX, P_NCY, P_RMAX, P_RULE, P_SEARCH_TOL, P_SIN_TOL, P_SKIN,
-                               P_TOL, P_WINDOW, P_XY, R0, ROWS, RX, RY, S_BUSY, S_CMD, S_E_LAST,
-                               S_IT, S_LAUNCHES, S_MNFORCE, S_NFORCE, S_RES_LAST, S_SCALE, S_STATUS, S_STEP, S_STEPS,
-                               S_T_END, S_T_FIRST, S_W_LAST, ST_OVERFLOW, VX, VY, C_DONE, C_SUSPEND,
-                               make_block, make_shared_reduction, start_state)
+from kernels.gpu.block import make_block, make_shared_reduction
+from kernels.gpu.state import (N_FL, N_IV, N_PARAMS, N_ST, P_ALPHA, P_BUDGET, P_DELTA, P_E_MIN,
+                               P_ENERGY_STEP, P_LX, P_LY, P_MAX_RADIUS, P_MAX_SEARCH,
+                               P_MAX_STEPS, P_MEAN_D, P_NCX, P_NCY, P_RMAX, P_RULE, P_SEARCH_TOL,
+                               P_SIN_TOL, P_SKIN, P_TOL, P_WINDOW, P_XY, R0, ROWS, RX, RY,
+                               S_BUSY, S_CMD, S_E_LAST, S_IT, S_LAUNCHES, S_MNFORCE, S_NFORCE,
+                               S_RES_LAST, S_SCALE, S_STATUS, S_STEP, S_STEPS, S_T_END,
+                               S_T_FIRST, S_W_LAST, ST_OVERFLOW, VX, VY, C_DONE, C_SUSPEND,
+                               start_state)
 
 MAXNB = 32  # neighbour slots per disk (within r_i + r_j + skin: about 10-14 in a dense packing)
 CELL_CAP = 48  # slots per cell of the list's grid (about 2-3 disks per cell on average)
@@ -200,7 +202,8 @@ def _source_tag(exponent):
 
     h = hashlib.sha256(repr(exponent).encode())
     base = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    for rel in ("gpu/block.py", "gpu/batch.py", "rules.py", "space.py"):
+    for rel in ("gpu/block.py", "gpu/control.py", "gpu/state.py", "gpu/batch.py", "rules.py",
+                "space.py"):
         with open(os.path.join(base, rel), "rb") as fh:
             h.update(fh.read())
     return h.hexdigest()

@@ -6,7 +6,7 @@ t + 2 nt, ...`` in every *phase* (forces, FIRE's move, the neighbour list's rebu
 rattler rounds of the residual). Between phases the threads meet at a barrier.
 
 The search is a loop of *commands* (``C_*``), each a phase run by every thread, after which
-thread 0 alone runs the *control* (FIRE's adaptation, the convergence tests, the O'Hern search's
+thread 0 alone runs the *control* (``kernels.gpu.control``) (FIRE's adaptation, the convergence tests, the O'Hern search's
 next radius scale: ``kernels.rules``) on the phase's block sums and writes the next command and
 its scalars into the block's state ``sh`` (shared memory on the GPU); a barrier, and every
 thread reads them. The search's whole scalar state lives in ``sh``, never in a thread's
@@ -76,7 +76,8 @@ CPU search re-sorts after its first minimisation), the mean diameter of the time
 ``|v|^2`` after the kick from the block's sums (above). The rules (FIRE 2.0, the search, the
 convergence test, rattlers) are the CPU's.
 
-Per-packing arrays (views of the batch's arrays, ``kernels.gpu.batch``): ``xy`` (n, 2) float64,
+Per-packing arrays (views of the batch's arrays, ``kernels.gpu.batch``; their rows, the state's
+and the parameters' in ``kernels.gpu.state``): ``xy`` (n, 2) float64,
 the positions (a neighbour's x and y in one 16-byte word); ``fl`` (8, n) float64, the rows
 ``VX, VY`` (velocities), ``FX, FY`` (forces), ``RX, RY`` (positions at the lists' build), ``R0``
 (radii at scale 1), ``R`` (radii); ``nbr`` (MAXNB, n) int32 and ``ninv`` (MAXNB, n) float64:
@@ -94,105 +95,17 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from kernels import rules
+from kernels.gpu.control import make_control
+from kernels.gpu.state import (ALIVE, ALIVE2, CELL, C_BEGIN, C_DONE, C_RESIDUAL, C_RESUME,
+                               C_START, C_STEP, C_SUSPEND, EV_FORCES, EV_OVERFLOW,
+                               EV_RESIDUAL, EV_RESUMED, EV_START, EV_VIRIAL, EXPONENTS, FX, FY,
+                               NNB, N_ST, P_ALPHA, P_BUDGET, P_LX, P_LY, P_NCX, P_NCY, P_SIN_TOL,
+                               P_XY, R, R0, RX, RY, S_A, S_ALPHA, S_BUDGET, S_BUSY, S_CMD,
+                               S_DT, S_HALF2, S_LAUNCHES, S_LSTEPS, S_LX, S_LY, S_MIX, S_NCX,
+                               S_NCY, S_NG, S_RB, S_RESV, S_RETREAT, S_RMAX, S_SCALE, S_SIN_TOL,
+                               S_SKIN, S_TE, S_TW, S_T_END, S_T_FIRST, S_T_LAUNCH, S_X0, S_X1,
+                               S_X2, S_XY, VX, VY, WARP)
 from kernels.space import fold_py, near_image_py
-
-# the search's settings, one float64 row per packing (prm)
-P_E_MIN = 0
-P_WINDOW = 1
-P_TOL = 2
-P_SEARCH_TOL = 3
-P_MAX_SEARCH = 4
-P_MAX_STEPS = 5
-P_SKIN = 6  # in mean diameters
-P_DELTA = 7
-P_RULE = 8
-P_MAX_RADIUS = 9
-P_ENERGY_STEP = 10
-P_ALPHA = 11
-P_LX = 12
-P_LY = 13
-P_XY = 14
-P_MEAN_D = 15  # mean diameter at scale 1
-P_RMAX = 16  # largest radius at scale 1
-P_SIN_TOL = 17  # the rattlers' half-plane slack, sin(HALF_PLANE_TOL)
-P_NCX = 18  # cells allocated along x and y (the grid used is never finer)
-P_NCY = 19
-P_BUDGET = 20  # FIRE steps this launch may take (the search stops there and can go on)
-N_PARAMS = 21
-
-# the block's state (sh; st between launches): the command, the search, the minimisation under
-# way, the results, the device's clock, and the scratch of the step and the sums
-(S_CMD, S_PHASE, S_SUB, S_SCALE, S_DELTA, S_LAST_DIR, S_S1, S_G1, S_S2, S_G2, S_SLOPE,
- S_N_BELOW, S_IT, S_NFORCE, S_STEPS, S_E_GUESS, S_STATUS, S_E_LAST, S_W_LAST, S_RES_LAST,
- # the minimisation under way
- S_DT0, S_DT, S_A, S_NPOS, S_NNEG, S_STEP, S_MNFORCE, S_TOL, S_MSTATUS, S_MRES, S_ME, S_SKIN,
- S_RMAX, S_HALF2,
- # the device's clock (ns): the first launch's start, the end, block-time over all launches;
- # launches and steps of this launch
- S_T_FIRST, S_T_END, S_BUSY, S_LAUNCHES, S_LSTEPS, S_T_LAUNCH,
- # the step's scalars, the rebuild flag
- S_MIX, S_RETREAT, S_RB,
- # block sums: energy, contacts, their force, |F|^2, F.v, |v|^2, max |F|^2 (forces); three
- # for the other phases' own; the residual and the non-rattlers; the virial (each pair from
- # both sides)
- S_TE, S_TNC, S_TFS, S_TFF, S_TP, S_TVV, S_TFM, S_X0, S_X1, S_X2, S_RESV, S_NG, S_TW,
- # what every thread reads of the parameters
- S_LX, S_LY, S_XY, S_SIN_TOL, S_NCX, S_NCY, S_ALPHA, S_BUDGET,
- N_ST) = range(65)
-
-# commands (S_CMD)
-C_START = 0  # a fresh search: the control sets up the first minimisation
-C_BEGIN = 1  # a minimisation from rest: radii from the scale, v = 0, lists rebuilt, forces
-C_STEP = 2  # one FIRE step: the move, the lists when due, the forces
-C_RESIDUAL = 3  # the rattler-aware force residual
-C_VIRIAL = 4  # the virial at the minimisation's end
-C_SUSPEND = 5  # stopped at the step budget; the next launch goes on from here
-C_DONE = 6
-C_RESUME = 7  # (in a launch only) radii, lists from RX, RY, forces: the suspended step's top
-
-# what the control is told after a phase
-EV_FORCES = 0
-EV_RESUMED = 1  # forces recomputed on resumption: not counted again
-EV_RESIDUAL = 2
-EV_VIRIAL = 3
-EV_OVERFLOW = 4
-EV_START = 5
-
-# where the control is in a FIRE step when a residual comes back (S_SUB)
-SUB_CHECK = 0
-SUB_STALL = 1
-
-# the minimisation's purpose (S_PHASE)
-PH_SEARCH = 0
-PH_POLISH = 1
-
-#: status of a packing whose cell or neighbour row outgrew its slots (kernels.jamming's codes
-#: 0-4 are the CPU search's)
-ST_OVERFLOW = 5
-
-#: the reduction scratch's rows (sums and maxima reduced at once)
-ROWS = 7
-WARP = 32
-
-# rows of fl and iv
-VX, VY, FX, FY, RX, RY, R0, R = range(8)
-N_FL = 8
-NNB, CELL, ALIVE, ALIVE2 = range(4)
-N_IV = 4
-
-EXPONENTS = (2.0, 2.5, None)  # the exponents compiled without pow, and any other
-
-
-def start_state(st):
-    """A packing's state row before its first launch (``st`` of ``N_ST`` float64)."""
-    st[:] = 0.0
-    st[S_CMD] = C_START
-
-
-def warp_width(nt):
-    """Threads in a warp of a block of ``nt`` threads: 32, or ``nt`` when fewer."""
-    return WARP if nt >= WARP else nt
 
 
 def pair_for(exponent):
@@ -286,11 +199,7 @@ def make_block(jit, sync, slot_add, put_sum, put_max, total, now, exponent):
     pair = jit(pair_for(exponent))
     near = jit(near_image_py)
     fold = jit(fold_py)
-    fire_adapt = jit(rules.fire_adapt)
-    dt_from_diameter = jit(rules.dt_from_diameter)
-    search_step = jit(rules.search_step)
-    search_targets = jit(rules.search_targets)
-    search_start = jit(rules.search_start)
+    control = make_control(jit).control
 
     @jit
     def forces(t0, t1, nt, xy, fl, nbr, ninv, iv, red, sh):
@@ -654,210 +563,6 @@ def make_block(jit, sync, slot_add, put_sum, put_max, total, now, exponent):
                     res = math.sqrt(fm) / mean
             sh[S_RESV] = res
             sh[S_NG] = ng
-
-    @jit
-    def begin(sh, prm, tol, fresh):
-        """Thread 0: a minimisation from rest at the current scale (``fresh``: its own starting
-        time step, else the last one's: a polish at the same radii)."""
-        scale = sh[S_SCALE]
-        mean_d = prm[P_MEAN_D]
-        skin = prm[P_SKIN] * mean_d * scale
-        sh[S_SKIN] = skin
-        sh[S_RMAX] = prm[P_RMAX] * scale
-        sh[S_HALF2] = 0.25 * skin * skin
-        if fresh:
-            sh[S_DT0] = dt_from_diameter(mean_d * scale, prm[P_ALPHA], sh[S_E_GUESS])
-        sh[S_DT] = sh[S_DT0]
-        sh[S_A] = rules.A_START
-        sh[S_NPOS] = 0.0
-        sh[S_NNEG] = 0.0
-        sh[S_STEP] = 0.0
-        sh[S_MNFORCE] = 0.0
-        sh[S_TOL] = tol
-        sh[S_MRES] = math.inf
-        sh[S_RB] = 0.0
-        sh[S_CMD] = C_BEGIN
-
-    @jit
-    def end_minimisation(sh, status, res):
-        """Thread 0: the minimisation stops with ``status``; its virial next."""
-        sh[S_MSTATUS] = status
-        sh[S_MRES] = res
-        sh[S_CMD] = C_VIRIAL
-
-    @jit
-    def done(sh, status):
-        sh[S_STATUS] = status
-        sh[S_CMD] = C_DONE
-
-    @jit
-    def advance(sh, prm):
-        """Thread 0: past the tests, one FIRE step (``kernels.fire._fire_run``'s), or the end of
-        the minimisation at its step bound or in a stall."""
-        step = int(sh[S_STEP])
-        if step >= int(prm[P_MAX_STEPS]):
-            end_minimisation(sh, rules.MAX_STEPS, sh[S_MRES])
-            return
-        step += 1
-        sh[S_STEP] = step
-        sh[S_LSTEPS] += 1.0
-        p = sh[S_TP]
-        dt0 = sh[S_DT0]
-        n_pos, n_neg, dt, a = fire_adapt(p, step, int(sh[S_NPOS]), int(sh[S_NNEG]), sh[S_DT],
-                                         sh[S_A], rules.DT_MIN_FACTOR * dt0,
-                                         rules.DT_MAX_FACTOR * dt0)
-        sh[S_NPOS] = n_pos
-        sh[S_NNEG] = n_neg
-        sh[S_DT] = dt
-        sh[S_A] = a
-        if p <= 0.0 and n_neg > rules.N_NEG_MAX:
-            sh[S_SUB] = SUB_STALL
-            sh[S_CMD] = C_RESIDUAL
-            return
-        ff = sh[S_TFF]
-        # |v + dt F|^2 from the sums: v = 0 after a retreat
-        if p <= 0.0:
-            vv = dt * dt * ff
-            sh[S_RETREAT] = 1.0
-        else:
-            vv = sh[S_TVV] + 2.0 * dt * p + dt * dt * ff
-            sh[S_RETREAT] = 0.0
-        sh[S_MIX] = a * math.sqrt(vv / ff) if ff > 0.0 else 0.0
-        sh[S_CMD] = C_STEP
-
-    @jit
-    def evaluate(sh, prm, n):
-        """Thread 0: a minimisation has ended (its virial computed): polish it, take the
-        search's next radius scale (``kernels.protocol._ohern_search``'s rules) or finish."""
-        st = int(sh[S_MSTATUS])
-        e = sh[S_ME]
-        w = 0.5 * sh[S_TW]
-        res = sh[S_MRES]
-        sh[S_NFORCE] += sh[S_MNFORCE]
-        sh[S_STEPS] += sh[S_STEP]
-        e_min = prm[P_E_MIN]
-        tol = prm[P_TOL]
-        search_tol = prm[P_SEARCH_TOL]
-        e_max, inv_a, g_target, x_per_g = search_targets(e_min, prm[P_WINDOW], prm[P_ALPHA])
-        eg = e / n
-        if (sh[S_PHASE] == PH_SEARCH and st == rules.CONVERGED and e_min <= eg <= e_max
-                and search_tol > tol):
-            # polish to the final tolerance at the same radii
-            sh[S_PHASE] = PH_POLISH
-            begin(sh, prm, tol, False)
-            return
-        sh[S_PHASE] = PH_SEARCH
-        sh[S_E_LAST] = e
-        sh[S_W_LAST] = w
-        sh[S_RES_LAST] = res
-        if st == rules.CONVERGED and eg > 0.0:
-            sh[S_E_GUESS] = eg
-        if st == rules.MAX_STEPS:
-            done(sh, 2)  # max_steps
-            return
-        if st != rules.CONVERGED and st != rules.BELOW:
-            done(sh, 3)  # stalled
-            return
-        if st == rules.CONVERGED and e_min <= eg <= e_max:
-            done(sh, 0)  # converged
-            return
-        if sh[S_IT] >= prm[P_MAX_SEARCH]:
-            done(sh, 1)  # max_search
-            return
-        scale = sh[S_SCALE]
-        delta0 = prm[P_DELTA]
-        new, delta, last_dir, s1, g1, s2, g2, slope, n_below = search_step(
-            int(prm[P_RULE]), st == rules.CONVERGED and eg > 0.0,
-            st == rules.BELOW or eg < e_min, eg, scale, sh[S_DELTA], int(sh[S_LAST_DIR]),
-            sh[S_S1], sh[S_G1], sh[S_S2], sh[S_G2], sh[S_SLOPE], int(sh[S_N_BELOW]), delta0,
-            g_target, x_per_g, inv_a, prm[P_ENERGY_STEP])
-        sh[S_DELTA] = delta
-        sh[S_LAST_DIR] = last_dir
-        sh[S_S1] = s1
-        sh[S_G1] = g1
-        sh[S_S2] = s2
-        sh[S_G2] = g2
-        sh[S_SLOPE] = slope
-        sh[S_N_BELOW] = n_below
-        if new == scale:
-            done(sh, 1)  # max_search: the step is below the scale's float64 resolution
-            return
-        if new * prm[P_RMAX] > prm[P_MAX_RADIUS]:
-            done(sh, 4)  # too_dense
-            return
-        sh[S_SCALE] = new
-        sh[S_IT] += 1.0
-        begin(sh, prm, search_tol, True)
-
-    @jit
-    def control(sh, prm, n, event):
-        """Thread 0, after every phase: the next command and its scalars into ``sh``."""
-        if event == EV_START:
-            delta, last_dir, s1, g1, s2, g2, slope, n_below = search_start(prm[P_DELTA])
-            sh[S_PHASE] = PH_SEARCH
-            sh[S_SCALE] = 1.0
-            sh[S_DELTA] = delta
-            sh[S_LAST_DIR] = last_dir
-            sh[S_S1] = s1
-            sh[S_G1] = g1
-            sh[S_S2] = s2
-            sh[S_G2] = g2
-            sh[S_SLOPE] = slope
-            sh[S_N_BELOW] = n_below
-            sh[S_IT] = 1.0
-            sh[S_NFORCE] = 0.0
-            sh[S_STEPS] = 0.0
-            sh[S_STATUS] = 1.0
-            sh[S_RES_LAST] = math.inf
-            sh[S_E_GUESS] = max(prm[P_E_MIN], rules.E_FIRST_GUESS)
-            begin(sh, prm, prm[P_SEARCH_TOL], True)
-            return
-        if event == EV_OVERFLOW:
-            sh[S_NFORCE] += sh[S_MNFORCE]
-            sh[S_STEPS] += sh[S_STEP]
-            sh[S_E_LAST] = sh[S_ME]
-            done(sh, ST_OVERFLOW)
-            return
-        if event == EV_VIRIAL:
-            evaluate(sh, prm, n)
-            return
-        if event == EV_RESIDUAL:
-            res = sh[S_RESV]
-            if sh[S_SUB] == SUB_STALL:
-                end_minimisation(sh, rules.STALLED, res)
-                return
-            sh[S_MRES] = res
-            if res < sh[S_TOL]:
-                end_minimisation(sh, rules.CONVERGED, res)
-                return
-            advance(sh, prm)
-            return
-        # the forces of a step: first the budget, then FIRE's tests (kernels.fire._fire_run)
-        if event == EV_FORCES:
-            sh[S_MNFORCE] += 1.0
-        if sh[S_LSTEPS] >= sh[S_BUDGET]:
-            sh[S_CMD] = C_SUSPEND
-            return
-        energy = 0.5 * sh[S_TE]
-        nc = 0.5 * sh[S_TNC]
-        fs = 0.5 * sh[S_TFS]
-        sh[S_ME] = energy
-        e_abort = rules.ABORT_FRACTION * prm[P_E_MIN] * n
-        if e_abort > 0.0 and energy < e_abort:
-            end_minimisation(sh, rules.BELOW, -1.0)
-            return
-        if nc == 0.0:
-            end_minimisation(sh, rules.CONVERGED, 0.0)
-            return
-        mean_f = fs / nc
-        bound = math.sqrt(sh[S_TFM]) / mean_f if mean_f > 0.0 else 0.0
-        step = int(sh[S_STEP])
-        if (bound < sh[S_TOL] or step % rules.CHECK_EVERY == 0
-                or step >= int(prm[P_MAX_STEPS])):
-            sh[S_SUB] = SUB_CHECK
-            sh[S_CMD] = C_RESIDUAL
-            return
-        advance(sh, prm)
 
     @jit
     def scale_radii(t0, t1, nt, fl, scale, zero_v):

@@ -39,7 +39,8 @@ if not hasattr(np, "row_stack"):
 
 from numba import config, cuda, float64  # noqa: E402 (after the numpy alias)
 
-from kernels.gpu.block import N_ST, ROWS, WARP, make_block  # noqa: E402
+from kernels.gpu.block import make_block  # noqa: E402
+from kernels.gpu.state import N_ST, ROWS, WARP  # noqa: E402
 
 
 def _sync():
