@@ -144,7 +144,9 @@ def check_kernel(backend, threads):
             gpus.append(got)
             print(f"  the kernel: {len(seeds)} packings at N_G {n}, E_G {e:g} in {wall:.1f} s (the first "
                   "launch compiles)", flush=True)
+        t0 = time.time()
         whole = _gpu_batch(256, [1e-6], [0], backend, threads)[1][0]
+        t1 = time.time()
         part = _resumed(256, 1e-6, 0, backend, threads, 2000)
         emus = pending.get()
     rows = []
@@ -161,10 +163,16 @@ def check_kernel(backend, threads):
         print(f"  N_G {n} E_G {e:g}: {sum(r['bitwise_equal'] for r in same)}/8 bitwise equal, largest position "
               f"difference {max(r['max_position_difference'] for r in same):.2e}, force evaluations equal in "
               f"{sum(r['gpu_force_evaluations'] == r['emulation_force_evaluations'] for r in same)}/8", flush=True)
+    clock = whole.settings["device_clock"]
     resumed = {"N": 256, "E": 1e-6, "budget": 2000, "launches": part.settings["device_clock"]["launches"],
-               "bitwise_equal": _same(whole, part)}
+               "bitwise_equal": _same(whole, part),
+               # the store's busy fraction takes the device clock for epoch seconds: is it?
+               "device_clock_in_host_window": bool(t0 - 1.0 <= clock["start"] <= clock["end"] <= t1 + 1.0),
+               "device_start_minus_host_start_s": clock["start"] - t0}
     print(f"  stop and go on the GPU (N_G 256, every 2000 steps, {resumed['launches']} launches): "
-          f"{'the same bits' if resumed['bitwise_equal'] else 'OTHER BITS'} as uninterrupted", flush=True)
+          f"{'the same bits' if resumed['bitwise_equal'] else 'OTHER BITS'} as uninterrupted; the device clock "
+          f"{'reads' if resumed['device_clock_in_host_window'] else 'does NOT read'} epoch seconds (start - host "
+          f"{resumed['device_start_minus_host_start_s']:+.3f} s)", flush=True)
     return {"packings": rows, "resumed": resumed}
 
 
@@ -281,10 +289,10 @@ def run_campaign(spec, extra):
         st = subprocess.run([sys.executable, "-m", "campaign", "status", str(out), "--json"],
                             capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=str(ROOT)))
         info = json.loads(st.stdout) if st.returncode == 0 else {}
-    done = int(info.get("done", info.get("counts", {}).get("done", 0)) or 0)
-    fracs = [d.get("busy_fraction") for d in (info.get("gpu_packings") or []) if isinstance(d, dict)]
+    done = int(info.get("done") or 0)
+    fracs = [d.get("busy_fraction") for d in (info.get("gpu_busy") or {}).values()]
     row = {"spec": str(spec), "wall_s": wall, "packings": done, "packings_per_hour": 3600.0 * done / wall,
-           "busy_fraction": fracs[0] if fracs else None, "status": info}
+           "busy_fraction": fracs[0] if fracs else None, "gpu_busy": info.get("gpu_busy")}
     print(f"  campaign {spec}: {done} packings in {wall:.0f} s ({row['packings_per_hour']:.0f}/h), busy "
           f"fraction {row['busy_fraction']}", flush=True)
     return row
