@@ -294,7 +294,7 @@ def test_every_reader_ends_well_on_any_store(c):
             check_export(tmp / "p.csv", tasks, status, scalars)
 
 
-@settings(max_examples=6, deadline=None, derandomize=True, database=None,
+@settings(max_examples=4, deadline=None, derandomize=True, database=None,
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 @given(campaigns())
 def test_plot_ends_well_on_any_store(c):
