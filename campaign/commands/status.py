@@ -128,10 +128,14 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
     # GPU packings record what ran them beside the host ("node12 cuda:NVIDIA H100 ..."): counted per
     # device, read only for a spec that asks for them
     devices = {} if "gpu" in str(f.attrs.get("spec_yaml", "")) else None
+    from campaign.storage.checksums import check_identities, stored_spec
+
+    spec = stored_spec(f.attrs)
     for lo in range(0, T, BLOCK):
         hi = min(lo + BLOCK, T)
         st = status_all[lo:hi]
         v, N, E = t["variant"][lo:hi], t["N"][lo:hi], t["E"][lo:hi]
+        check_identities(f.filename, spec, v, N, E, lo)
         change = np.flatnonzero((v[1:] != v[:-1]) | (N[1:] != N[:-1]) | (E[1:] != E[:-1])) + 1
         for a, b in zip(np.r_[0, change].tolist(), np.r_[change, hi - lo].tolist()):
             key = (v[a].decode(errors="replace"), int(N[a]), float(E[a]))
