@@ -75,7 +75,7 @@ class _Progress:
 
 def main(args) -> int:
     from campaign.errors import UserError
-    from campaign.storage.checksums import run_is_writing
+    from campaign.storage.checksums import checksums_on, run_is_writing
     from campaign.storage.integrity import scan
     from campaign.storage.repair import repair
 
@@ -88,11 +88,11 @@ def main(args) -> int:
     finally:
         progress.end()
     out = report.to_json()
-    if args.repair and (not report.ok or report.unprotected):
+    if args.repair and (not report.ok or (report.unprotected and checksums_on())):
         fixable = report.fatal is None and not report.unrepairable()
         if fixable:
             out["repaired"] = repair(report)
-            out["repaired"]["block_checksums_added"] = report.unprotected
+            out["repaired"]["block_checksums_added"] = report.unprotected and checksums_on()
     if args.json:
         print(json.dumps(out, indent=1))
     else:
@@ -147,7 +147,7 @@ def _print(report, out, path):
             print(f"  `campaign verify {path} --repair` writes it anew with block checksums (it needs room for a "
                   "second copy)")
         return
-    if report.ok:
+    if report.ok:  # a sound store without block checksums, written anew with them
         _protected(out["repaired"], path)
         return
     lost = report.lost_rows()
@@ -162,7 +162,7 @@ def _print(report, out, path):
               f"again ({after['done']} done, {after['failed']} failed, {after['pending']} pending now). "
               f"`campaign run SPEC --out {path}` with the campaign's spec recomputes them (the spec is the file's "
               "'spec_yaml' attribute); the tasks are deterministic, so the store then equals an undamaged run's")
-        if report.unprotected:
+        if rep["block_checksums_added"]:
             _protected(rep, path)
         return
     bad = report.unrepairable()
