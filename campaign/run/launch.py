@@ -142,12 +142,14 @@ def watch_first_rank(interval: float = 0.5, look_for: float = 10.0) -> bool:
     local = os.environ.get("MPI_LOCALNRANKS", "")  # Hydra: how many of the job's tasks run on this host
 
     def watch():
-        t0, master = time.monotonic(), set()
+        t0, master, short = time.monotonic(), set(), 0
         while True:
             if not master and time.monotonic() - t0 < look_for:
                 ranks = _ranks_below(key_b, launcher)
                 master = {pid for pid, rank in ranks.items() if rank == b"0"}
-                if not master and local.isdigit() and len(set(ranks.values())) < int(local):
+                # twice in a row: a task the launcher has forked but not yet started has no rank variable
+                short = short + 1 if not master and local.isdigit() and len(set(ranks.values())) < int(local) else 0
+                if short >= 2:
                     os._exit(0)  # a task of this host (the master, not seen yet) is gone already
             if not _alive(launcher) or (master and not any(_alive(p) for p in master)):
                 os._exit(0)
