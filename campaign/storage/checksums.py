@@ -259,18 +259,20 @@ def _text(v):
 
 
 def stored_spec(attrs):
-    """The spec a store's root attributes hold (``spec_yaml``), or None when it cannot be read."""
+    """The spec that wrote a store (its ``spec_yaml``, which must hash to its ``spec_hash``), or None:
+    unreadable, or a file made otherwise (by hand, by another program) whose spec does not describe it."""
     from campaign.plan.spec import parse_spec
 
     try:
-        return parse_spec(str(_text(attrs.get("spec_yaml")) or ""), "the stored spec")
+        spec = parse_spec(str(_text(attrs.get("spec_yaml")) or ""), "the stored spec")
     except UserError:
         return None
+    return spec if spec.hash == _text(attrs.get("spec_hash")) else None
 
 
 def check_identities(path, spec, variant, N, E, lo=0):
     """StoreDamaged unless every row (from row ``lo``) of the store ``path`` is a task of its own
-    ``spec`` (its variant, N and E; nothing is checked without a spec): a block of the task table read
+    ``spec`` (``stored_spec``: its variant, N and E; nothing is checked without): a block of the task table read
     from another place (a damaged chunk index, in a store without block checksums) can read as rows
     of no task, and must not become a cell of a table."""
     if spec is None:

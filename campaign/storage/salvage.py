@@ -158,7 +158,7 @@ def _unprotected(old) -> bool:
     attributes read, and neither they nor its groups say it has them (a store too damaged to tell is
     not taken for one)."""
     try:
-        return old.attrs.get("schema") is not None and PROTECTION_ATTR not in old.attrs and not has_sums(old)
+        return old.attrs.get("schema") is not None and not has_sums(old)
     except Exception:  # noqa: BLE001 - unreadable attributes
         return False
 
