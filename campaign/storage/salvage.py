@@ -17,9 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from campaign.storage.checksums import (PROTECTION_ATTR, SUMS_ROWS, check_rows, checksums_on, configuration_problem,
-                                        create_fill_sums, failure_problem, good_scalar_name, has_sums, protection_text,
-                                        sums_name, write_configuration, write_failure, write_scalar_names, write_sums)
+from campaign.storage.checksums import (PROTECTION_ATTR, SUMS_GROUP, SUMS_ROWS, check_rows, checksums_on,
+                                        configuration_problem, create_fill_sums, failure_problem, good_scalar_name,
+                                        has_sums, protection_text, sums_name, write_configuration, write_failure,
+                                        write_scalar_names, write_sums)
 from campaign.storage.storefile import (DONE, FAILED, PENDING, ROW_FIELDS, create_file, dataset_kwargs,
                                         fill_value)
 
@@ -158,7 +159,7 @@ def _unprotected(old) -> bool:
     attributes read, and neither they nor its groups say it has them (a store too damaged to tell is
     not taken for one)."""
     try:
-        return old.attrs.get("schema") is not None and not has_sums(old)
+        return old.attrs.get("schema") is not None and PROTECTION_ATTR not in old.attrs and SUMS_GROUP not in old
     except Exception:  # noqa: BLE001 - unreadable attributes
         return False
 
