@@ -91,9 +91,10 @@ def _kill_and_resume(tmp_path, launch):
             time.sleep(0.5)
         time.sleep(3)
         procs = _processes_of(out)
+        argv = {pid: Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0") for pid in procs}
         masters = [pid for pid, rank in procs.items() if rank in (None, "0") and pid != p.pid
-                   and b"--multiprocessing-fork" not in Path(f"/proc/{pid}/cmdline").read_bytes()
-                   and b"python" in Path(Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[0].decode()).name.encode()]
+                   and b"--multiprocessing-fork" not in argv[pid]
+                   and b"python" in Path(argv[pid][0].decode()).name.encode()]  # not its wrapper shell
         if not masters:
             masters = [p.pid]
         master = min(masters)

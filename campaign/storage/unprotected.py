@@ -46,7 +46,8 @@ def identity_blocks(scan, col, lo, data):
         if not np.array_equal(data[a - lo:b - lo], want[a:b]):
             scan.add(Damage(f"tasks/{col}", f"rows {a}-{b - 1} are not the spec's {col} of those rows, in their "
                             "order: the block was read from another place (its chunk index is damaged)",
-                            span=(a, b), repair="rewrite", note="the task identities it held are rewritten from the spec"))
+                            span=(a, b), repair="rewrite",
+                            note="the task identities it held are rewritten from the spec"))
 
 
 def journal_rows(scan):
