@@ -22,16 +22,20 @@
 # (state, spool, logs and pid files live there too), starts munged, slurmctld and slurmd without
 # systemd, and waits until the node is idle. The configuration is SLURM as shipped where it matters
 # to the scripts (MpiDefault=none) and needs no cgroups (proctrack/linuxproc, task/none). The node
-# declares CPUS (default 4) CPUs whatever the machine has, so that 3-rank jobs run on 2 cores.
+# declares CPUS (default 4) CPUs whatever the machine has, so that 3-rank jobs run on 2 cores, and
+# GPUS (default 2; 0 for none) GPUs as a generic resource with no GPU behind them, so that slurmctld
+# accepts or refuses GPU jobs and sets CUDA_VISIBLE_DEVICES in them as on a GPU cluster.
 # Only addresses on this machine are used (127.0.0.1, free ports chosen at start).
 # `stop` signals the pids recorded by `start` (after checking that each still runs the daemon it was),
 # waits for them to exit and removes the directory. Both commands are idempotent.
 set -euo pipefail
 
 CPUS=${CPUS:-4}
+GPUS=${GPUS:-2}
 NODES=1
 
 die() { echo "testcluster: $*" >&2; exit 1; }
+[[ "$GPUS" =~ ^[0-9]+$ ]] || die "GPUS must be a number of GPUs per node (0 for none), got '$GPUS'"
 
 install_packages() {
     local missing=()
@@ -99,7 +103,7 @@ start_slurmd() {
 start() {
     install_packages
     [ "$(id -u)" -eq 0 ] || die "the test cluster runs its daemons and jobs as root; run it as root"
-    local dir ctld_port slurmd_port i k port nodes_line names state first_job
+    local dir ctld_port slurmd_port i k port nodes_line names state first_job gres gres_types
     dir=$(mktemp -d "${TMPDIR:-/tmp}/campaign-slurm.XXXXXX")
     touch "$dir/testcluster"
     trap 'echo "testcluster: start failed; logs follow" >&2; tail -n 30 "$dir"/log/* >&2 || true; stop "$dir"' ERR
@@ -112,19 +116,32 @@ start() {
     for i in $(seq 50); do [ -S "$dir/munge/munge.socket" ] && break; sleep 0.1; done
     munge -n --socket="$dir/munge/munge.socket" | unmunge --socket="$dir/munge/munge.socket" >/dev/null
 
+    # GPUs as a generic resource: GPUS per node, no GPU behind them (docs/CLUSTERS.md#gpu-jobs). SLURM
+    # 22.05 drops a gpu GRES without File= ("Removing file-less GPU"), and without a character device
+    # sets no CUDA_VISIBLE_DEVICES: each "GPU" is a device node in the cluster's directory with
+    # /dev/null's numbers (a regular file, where mknod is not allowed: counted, no CUDA_VISIBLE_DEVICES).
+    gres="" gres_types=""
+    if [ "$GPUS" -gt 0 ]; then
+        gres=" Gres=gpu:$GPUS" gres_types="GresTypes=gpu"
+        mkdir -p "$dir/dev"
+        for i in $(seq 0 $((GPUS - 1))); do
+            mknod "$dir/dev/gpu$i" c 1 3 2>/dev/null || : > "$dir/dev/gpu$i"
+        done
+        echo "Name=gpu Count=$GPUS File=$dir/dev/gpu[0-$((GPUS - 1))]" > "$dir/gres.conf"
+    fi
     ctld_port=$(free_port)
     slurmd_port=$(free_port)
     while [ "$slurmd_port" = "$ctld_port" ]; do slurmd_port=$(free_port); done
     if [ "$NODES" -eq 1 ]; then
         names=localhost
-        nodes_line="NodeName=localhost NodeHostname=localhost NodeAddr=127.0.0.1 CPUs=$CPUS RealMemory=1000 State=UNKNOWN"
+        nodes_line="NodeName=localhost NodeHostname=localhost NodeAddr=127.0.0.1 CPUs=$CPUS RealMemory=1000$gres State=UNKNOWN"
     else
         names=$(seq -s, -f 'n%g' 1 "$NODES")
         nodes_line=""
         for k in $(seq "$NODES"); do
             port=$(free_port)
             while [ "$port" = "$ctld_port" ] || echo "$nodes_line" | grep -q "Port=$port "; do port=$(free_port); done
-            nodes_line+="NodeName=n$k NodeHostname=n$k NodeAddr=127.0.0.1 Port=$port CPUs=$CPUS RealMemory=1000 State=UNKNOWN"$'\n'
+            nodes_line+="NodeName=n$k NodeHostname=n$k NodeAddr=127.0.0.1 Port=$port CPUs=$CPUS RealMemory=1000$gres State=UNKNOWN"$'\n'
         done
         { cat /etc/hosts; echo "127.0.0.1 $(echo "$names" | tr , ' ')  # testcluster nodes"; } > "$dir/hosts"
     fi
@@ -168,6 +185,7 @@ MinJobAge=600
 KillWait=10
 InactiveLimit=0
 MailProg=/bin/true
+$gres_types
 $nodes_line
 PartitionName=debug Nodes=$names Default=YES MaxTime=INFINITE State=UP
 EOF

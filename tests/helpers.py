@@ -4,6 +4,8 @@ Test modules import these instead of importing each other (``tests/test_docs.py`
 none does). The oracles the kernels are compared with are in ``references.py``.
 """
 
+import importlib
+import importlib.util
 import math
 from collections import deque
 from functools import lru_cache
@@ -368,3 +370,25 @@ def reseal(f, *names):
         if sums_name(name) in f:
             ds = f[sums_name(name)]
             write_sums(ds, 0, f[name][:], int(ds.attrs[SUMS_ROWS]))
+
+
+def cuda_missing(compiler=False):
+    """Why the CUDA kernel cannot run here (None when it can). Under numba's CUDA simulator it needs
+    ``numba.cuda`` only: numba-cuda's (the ``gpu`` and ``cuda`` extras) or numba's own, which numba
+    0.68 still ships. Compiled to PTX (``compiler``) it needs numba-cuda and its libNVVM: the
+    ``cuda`` extra's CUDA compiler libraries, which .ci/run installs and the quick suite does not."""
+    if not compiler:
+        try:
+            importlib.import_module("numba.cuda")
+        except Exception as exc:  # noqa: BLE001 - any reason it cannot be imported
+            return f"needs numba.cuda: pip install '.[cuda]' ({exc})"
+        return None
+    if importlib.util.find_spec("numba_cuda") is None:
+        return "needs numba-cuda and the CUDA compiler libraries: pip install '.[cuda]' (.ci/run does)"
+    try:
+        from cuda.pathfinder import load_nvidia_dynamic_lib
+
+        load_nvidia_dynamic_lib("nvvm")
+    except Exception as exc:  # noqa: BLE001 - any reason it cannot be loaded
+        return f"needs libNVVM (the cuda extra's CUDA compiler libraries): {exc}"
+    return None

@@ -191,7 +191,7 @@ class WarmProbe:
         return self.inner.run(payload, context)
 
 
-@pytest.mark.parametrize("launcher", ["local", "mpi"])
+@pytest.mark.parametrize("launcher", ["local", pytest.param("mpi", marks=pytest.mark.slow)])
 def test_kernels_are_compiled_once_by_the_master_before_any_worker_starts(tmp_path, launcher):
     mpiexec = Path(sys.executable).parent / "mpiexec"
     log, out = tmp_path / "warm.log", tmp_path / "o.h5"

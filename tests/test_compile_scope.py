@@ -65,6 +65,7 @@ def _cached_modules(cache):
     return {p.name.split(".")[0] for p in Path(cache).rglob("*.nbi")}
 
 
+@pytest.mark.slow
 def test_a_fire_task_compiles_only_fire_and_gets_the_same_bits(tmp_path):
     # another minimiser first (CG, then FIRE) in one process, from a cold cache (the Newton
     # endgame's compilation, most of a cold cache's minute, is left to tests/test_newton.py)
@@ -225,3 +226,23 @@ observables: [scalars]
     auto = base.replace("force_tolerance: 1.0e-6}", "force_tolerance: 1.0e-6, endgame: auto}")
     endgames = sorted(p.get("endgame", "none") for p in _warm_ups(expand(parse_spec(auto))))
     assert endgames == ["newton", "none"]  # N_G 4096 at 1e-14: Newton; N_G 64: FIRE
+
+
+def test_the_analysis_helper_compiles_what_a_task_analyses():
+    """A local run's master on a cold cache has a second process compile the analysis
+    (``campaign.run.worker._warm_analysis``) while it compiles the search: it analyses, with the
+    tasks' observables and bins, a stand-in of 16 disks that calls the kernels a packing's
+    analysis calls (contacts, rattlers, voids, fictitious contacts, every histogram filled); the
+    quickstart's spec here. Without the helper, or where it misses a kernel, the master compiles
+    it: only the time is at stake."""
+    from campaign.plan.spec import load_spec
+    from campaign.plan.tasks import expand, warm_ups
+    from campaign.run.worker import KernelTask, _warm_analysis
+
+    spec = load_spec(None)
+    context = dict(spec.worker_context(), task_function="kernels")
+    context["protocol_warmups"] = warm_ups(expand(spec))
+    context["edges"] = {h: [float(x) for x in e] for h, e in KernelTask().histogram_edges(context).items()}
+    scalars, hists, _ = _warm_analysis(context, quiet=False)
+    assert scalars["N_G"] >= 12 and scalars["N_R"] > 0 and scalars["N_V"] > 0 and scalars["N_F"] > 0, scalars
+    assert set(hists) == set(context["histograms"]) and all(h.sum() > 0 for h in hists.values()), hists

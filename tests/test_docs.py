@@ -169,3 +169,20 @@ def test_no_test_module_imports_another():
            for p in sorted((ROOT / "tests").rglob("*.py"))}
     bad = {k: v for k, v in bad.items() if v}
     assert not bad, f"shared code belongs in tests/helpers.py or tests/references.py: {bad}"
+
+
+# --------------------------------------------------------------------------- the README's commands
+
+def test_ci_runs_the_readmes_full_suite_command():
+    """CI runs what the README calls the full suite, every test (``--full``), with the CUDA
+    compiler libraries; the README's second command is the quick suite (no ``--full``, no GPU
+    toolkit)."""
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    full = re.search(r"runs every test: `([^`]+)`", readme)
+    assert full, "the README names the full-suite command"
+    command = full.group(1)
+    assert "--full" in command and ".[test,cuda]" in command, command
+    ci = [line.strip() for line in (ROOT / ".ci" / "run").read_text().splitlines()]
+    assert command in ci, f".ci/run does not run the README's full-suite command {command!r}"
+    block = re.search(r"```bash\n(.*?)```", (ROOT / "README.md").read_text(), re.S).group(1).splitlines()
+    assert block[1].endswith("pip install '.[test]' && .venv/bin/python -m pytest -q"), block[1]

@@ -45,6 +45,7 @@ def _can_mount():
 
 
 needs_root = pytest.mark.skipif(_can_mount() is not None, reason=str(_can_mount()))
+pytestmark = pytest.mark.slow  # real runs into full, nearly full and read-only file systems: .ci/run
 
 
 @contextlib.contextmanager

@@ -94,6 +94,7 @@ def _reduce(tmp_path, name, truth, E=SMALL_E, N=SIZES, seeds=16, seed=0, n_boot=
     return R.reduce_campaign([path], R.Settings(n_boot=n_boot), distributions=False)
 
 
+@pytest.mark.slow
 def test_the_default_covers_the_truth_at_its_nominal_rate_with_a_plateau(tmp_path):
     """40 synthetic campaigns of the small grid (N_G 64..512, 16 packings per cell) with the
     finite-size plateau: the N_G -> inf exponents and A_G* of the default reduction cover the

@@ -16,9 +16,12 @@ import kernels
 from kernels import potential
 from kernels.minimiser import _residual_core
 from kernels.cells import _candidate_pairs_core
-from kernels.gpu import BlockOverflow, jam_batch
+from kernels.gpu import BlockOverflow, Suspended, jam_batch
 from kernels.gpu import batch as gpu_batch
-from kernels.gpu.block import FX, FY, N_FL, N_IV, NNB, R, ROWS, X, Y
+from kernels.gpu import block as gpu_block, state as gpu_state
+from kernels.gpu.state import (FX, FY, N_FL, N_IV, N_ST, NNB, R, ROWS, RX, RY, S_ALPHA, S_LX, S_LY,
+                               S_NCX, S_NCY, S_NG, S_RESV, S_RMAX, S_SIN_TOL, S_SKIN, S_TE, S_XY)
+from helpers import cuda_missing
 
 ROOT = Path(__file__).resolve().parents[1]
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
@@ -34,7 +37,7 @@ def emulate(n, energies, seeds, threads=32, **kw):
     (64, [1e-3, 1e-7, 1e-11], {}),
     (128, [1e-5], {"exponent": 2.5}),
     (64, [1e-6], {"search": "halving", "sizes": ("lognormal", 0.2)}),
-    (1024, [1e-4], {}),
+    pytest.param(1024, [1e-4], {}, marks=pytest.mark.slow),
 ])
 def test_block_packings_are_jammed_in_the_window(n, energies, kw):
     """Every packing of the block: converged, E_G in [E, 1.1 E] recomputed from its positions,
@@ -95,37 +98,107 @@ def test_block_refuses_what_it_does_not_run():
         jam_batch(32, [1e-30], [0], backend="emulate")
 
 
+def _resumed(n, energies, seeds, budget, **kw):
+    """Each packing stopped every ``budget`` FIRE steps and resumed from its state, which goes
+    through the arrays a store keeps, until it ends; returns the packings and each one's launches."""
+    back = [None] * len(energies)
+    done = [None] * len(energies)
+    launches = [0] * len(energies)
+    while any(d is None for d in done):
+        todo = [k for k, d in enumerate(done) if d is None]
+        out = emulate(n, [energies[k] for k in todo], [seeds[k] for k in todo], budget=budget,
+                      resume=[back[k] for k in todo], **kw)
+        for k, got in zip(todo, out):
+            launches[k] += 1
+            if isinstance(got, Suspended):
+                stored = {name: np.array(a) for name, a in got.arrays().items()}
+                back[k] = Suspended.from_arrays(stored, energies[k])
+            else:
+                done[k] = got
+    return done, launches
+
+
+def test_a_suspended_search_goes_on_with_the_bits_of_an_uninterrupted_one():
+    """Stop and go: searches stopped at a step budget and resumed from their saved state end with
+    the bits of the uninterrupted searches (positions, radii, energy, pressure, residual), the
+    same minimisations and force evaluations; the device clock counts every launch."""
+    energies, seeds = [1e-3, 1e-9], [3, 4]
+    whole = emulate(64, energies, seeds, threads=16)
+    parts, launches = _resumed(64, energies, seeds, 700, threads=16)
+    assert launches[1] >= 3
+    for a, b, m in zip(whole, parts, launches):
+        assert a.status == b.status == "converged"
+        assert a.positions.tobytes() == b.positions.tobytes() and a.radii.tobytes() == b.radii.tobytes()
+        assert (a.energy, a.pressure, a.force_residual) == (b.energy, b.pressure, b.force_residual)
+        assert (a.force_evaluations, a.iterations) == (b.force_evaluations, b.iterations)
+        clock = b.settings["device_clock"]
+        assert clock["launches"] == m and a.settings["device_clock"]["launches"] == 1
+        assert clock["start"] < clock["end"] and 0 < clock["seconds"] <= clock["end"] - clock["start"]
+
+
+def test_resumption_refuses_what_is_not_its_own():
+    out = emulate(32, [1e-4], [1], threads=8, budget=50)
+    sus = out[0]
+    assert isinstance(sus, Suspended) and sus.steps == 50 and sus.force_evaluations >= 50
+    with pytest.raises(ValueError, match="Suspended packing of N=32 at E=1e-05"):
+        emulate(32, [1e-5], [1], threads=8, resume=[sus])
+    with pytest.raises(ValueError, match="budget"):
+        emulate(32, [1e-4], [1], threads=8, budget=0)
+    arrays = sus.arrays()
+    with pytest.raises(ValueError, match="velocities has shape"):
+        Suspended.from_arrays(dict(arrays, velocities=arrays["velocities"][:, :5]), 1e-4)
+    done = sus.state.copy()
+    done[gpu_state.S_CMD] = gpu_state.C_DONE
+    with pytest.raises(ValueError, match="not that of a suspended search"):
+        Suspended.from_arrays(dict(arrays, state=done), 1e-4)
+
+
+@pytest.mark.parametrize("exponent", gpu_state.EXPONENTS)
+def test_the_blocks_pair_is_the_potential_bit_for_bit(exponent):
+    """The pair compiled for a fixed exponent (no pow for 2 and 2.5) gives the potential's bits."""
+    pair = gpu_block.pair_for(exponent)
+    rng = np.random.default_rng(7)
+    for alpha in ([exponent] if exponent else [2.2, 2.7, 3.0]):  # (None: the exponents but 2, 2.5)
+        for q, r in zip(rng.uniform(10, 50, 200), rng.uniform(0, 0.12, 200)):
+            assert pair(r, q, alpha) == potential.pair_energy_force_py(r, q, alpha)
+    with pytest.raises(ValueError, match="exponent"):
+        gpu_block.pair_for(3.0)
+
+
 # --------------------------------------------------------------------------- the phases
 
 def _harness():
     """njit drivers of the emulated block's phases on one packing."""
-    block = gpu_batch.emulated_block()
+    block = gpu_batch.emulated_block(2.0)
     rebuild, forces, residual = block.rebuild, block.forces, block.residual
 
     @njit
-    def run(nt, fl, nbr, ninv, iv, cells, box, skin, rmax, ncx, ncy, alpha, sin_tol):
+    def run(nt, xy, fl, nbr, ninv, iv, cells, sh):
         red = np.zeros((ROWS, nt))
-        ok = rebuild(0, nt, nt, fl, nbr, ninv, iv, cells, red, box[0], box[1], box[2], skin, rmax,
-                     ncx, ncy)
-        e = forces(0, nt, nt, fl, nbr, ninv, iv, red, alpha, box[0], box[1], box[2] * box[1])
-        res = residual(0, nt, nt, fl, nbr, ninv, iv, red, alpha, box[0], box[1], box[2] * box[1],
-                       sin_tol)
-        return ok, e[0], res[0], res[1]
+        ok = rebuild(0, nt, nt, xy, fl, nbr, ninv, iv, cells, red, sh, True)
+        forces(0, nt, nt, xy, fl, nbr, ninv, iv, red, sh)
+        e = 0.5 * sh[S_TE]
+        residual(0, nt, nt, xy, fl, nbr, ninv, iv, red, sh)
+        return ok, e, sh[S_RESV], sh[S_NG]
 
     return run
 
 
 def _phases(pos, rad, box, skin, nt=8, maxnb=40, alpha=2.0):
     n = len(rad)
+    xy = np.array(pos, np.float64)
     fl = np.zeros((N_FL, n))
-    fl[X], fl[Y], fl[R] = pos[:, 0], pos[:, 1], rad
+    fl[R] = rad
     nbr = np.zeros((maxnb, n), np.int32)
     ninv = np.zeros((maxnb, n))
     iv = np.zeros((N_IV, n), np.int32)
     cells = np.zeros((n + 1, 64), np.int32)
-    out = _harness()(nt, fl, nbr, ninv, iv, cells, np.asarray(box, float), skin, rad.max(), 8, 8,
-                     alpha, np.sin(kernels.network.HALF_PLANE_TOL))
-    return out, fl, nbr, iv
+    sh = np.zeros(N_ST)
+    sh[S_LX], sh[S_LY], sh[S_XY] = box
+    sh[S_SKIN], sh[S_RMAX], sh[S_NCX], sh[S_NCY] = skin, rad.max(), 8, 8
+    sh[S_ALPHA], sh[S_SIN_TOL] = alpha, np.sin(kernels.network.HALF_PLANE_TOL)
+    out = _harness()(nt, xy, fl, nbr, ninv, iv, cells, sh)
+    return out, xy, fl, nbr, iv
 
 
 @settings(max_examples=25, deadline=None)
@@ -138,14 +211,15 @@ def test_rebuild_rows_are_the_brute_force_neighbours(n, seed, xy, nt):
     pos = rng.random((n, 2)) * box[:2]
     rad = rng.uniform(0.02, 0.06, n)
     skin = 0.03
-    (ok, *_), fl, nbr, iv = _phases(pos, rad, box, skin, nt=nt)
+    (ok, *_), xy, fl, nbr, iv = _phases(pos, rad, box, skin, nt=nt)
     assert ok
+    assert xy.tobytes() == np.stack([fl[RX], fl[RY]], 1).tobytes()  # the lists' reference, folded
     for i in range(n):
         want = []
         for j in range(n):
             if j == i:
                 continue
-            dx, dy = kernels.space.separation(fl[X, j] - fl[X, i], fl[Y, j] - fl[Y, i], box)
+            dx, dy = kernels.space.separation(xy[j, 0] - xy[i, 0], xy[j, 1] - xy[i, 1], box)
             if dx * dx + dy * dy < (rad[i] + rad[j] + skin) ** 2:
                 want.append(j)
         assert nbr[:iv[NNB, i], i].tolist() == want
@@ -156,7 +230,7 @@ def test_phases_forces_and_residual_match_the_cpu_kernels():
     jammed packing (up to the summation order), with the same non-rattler count."""
     p = kernels.jam(128, 1e-6, 3)
     box = np.array([1.0, 1.0, 0.0])
-    (ok, e, res, ng), fl, *_ = _phases(p.positions, p.radii, box, 0.3 * np.mean(p.radii))
+    (ok, e, res, ng), _, fl, *_ = _phases(p.positions, p.radii, box, 0.3 * np.mean(p.radii))
     assert ok
     f = potential.forces(p.positions, p.radii, (1.0, 1.0))
     scale = np.abs(f).max()
@@ -184,13 +258,16 @@ def test_gpu_and_cpu_packings_agree_in_the_mean():
 
 # --------------------------------------------------------------------------- the CUDA kernel
 
+@pytest.mark.slow
+@pytest.mark.skipif(cuda_missing(compiler=True) is not None, reason=str(cuda_missing(compiler=True)))
 def test_kernel_compiles_for_a_real_gpu():
     """The batch kernel goes through numba-cuda's CUDA compiler to sm_90 PTX (libNVVM from the
-    test extra's numba-cuda[cu13]; no GPU needed: the device's compute capability is given), as
+    cuda extra's numba-cuda[cu13]; no GPU needed: the device's compute capability is given), as
     the launch compiles it: without contraction (every float64 multiply, add and subtract rounded
     on its own, ``.rn``, which the assembler never fuses; fused multiply-adds left only inside
     libdevice's functions; ``a x + y`` contracted by default, not so) and without link-time
-    optimisation (whose code generation in nvJitLink would contract again)."""
+    optimisation (whose code generation in nvJitLink would contract again); its block sums by warp
+    shuffles, its clock the device's."""
     code = """
 import re
 import numba.cuda.dispatcher as d
@@ -199,9 +276,9 @@ class Hopper:
 d.get_current_device = lambda: Hopper()
 from numba import cuda, float64, int32
 from kernels.gpu import device
-f3, f2, i3 = float64[:, :, ::1], float64[:, ::1], int32[:, :, ::1]
-sig = (f3, i3, f3, i3, i3, f2, f2)
-k = device.kernel(256)
+f3, f2, i3, i1 = float64[:, :, ::1], float64[:, ::1], int32[:, :, ::1], int32[::1]
+sig = (i1, f3, f3, i3, f3, i3, i3, f2, f2)
+k = device.kernel(256, 2.0)
 assert k.targetoptions.get("lto") is False, k.targetoptions
 def axpy(x, a, y):
     x[0] = a[0] * x[0] + y[0]
@@ -212,6 +289,7 @@ with device._uncontracted():
     ptx, _ = cuda.compile_ptx(k.py_func, sig, device=False, cc=(9, 0))
 assert "fma.rn.f64" in plain and "fma.rn.f64" not in exact, "the default contracts nothing: the check is void"
 assert ".target sm_90" in ptx and "bar.sync" in ptx and "atom.global.add" in ptx, ptx[:400]
+assert "shfl.sync.down" in ptx and "%globaltimer" in ptx
 loose = re.findall(r"\\b(?:mul|add|sub)\\.f64", ptx)
 assert not loose and re.findall(r"\\bmul\\.rn\\.f64", ptx), loose[:5]
 print("ok", len(ptx))
@@ -219,6 +297,99 @@ print("ok", len(ptx))
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                        env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert r.returncode == 0 and r.stdout.startswith("ok"), r.stderr[-3000:]
+
+
+REGISTERS = """
+import sys
+sys.path.insert(0, "benchmarks")
+import gpu_ptx
+ptxas = gpu_ptx.find_ptxas()
+if ptxas is None:
+    print("no ptxas")
+    raise SystemExit(0)
+loop = gpu_ptx.pair_loop(gpu_ptx.forces_ptx(2.0))
+ptx = gpu_ptx.kernel_ptx(512, 2.0)
+wide, narrow = gpu_ptx.assemble(ptxas, ptx, 128), gpu_ptx.assemble(ptxas, ptx, 64)
+print(len(loop), wide["registers"], wide["spill_store_bytes"], wide["spill_load_bytes"],
+      narrow["registers"], narrow["stack_bytes"])
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(cuda_missing(compiler=True) is not None, reason=str(cuda_missing(compiler=True)))
+def test_the_kernel_fits_its_register_budgets():
+    """The block's budget, assembled by ptxas for sm_90 (benchmarks/gpu_ptx.py): a 512-thread
+    block fits an SM at 128 registers a thread without a byte of spills, 64 registers (2048
+    threads an SM, the default) spill at most a few hundred bytes of stack, and the forces' pair
+    loop stays under 80 PTX instructions."""
+    r = subprocess.run([sys.executable, "-c", REGISTERS], capture_output=True, text=True, timeout=900,
+                       cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert r.returncode == 0, r.stderr[-3000:]
+    if r.stdout.strip() == "no ptxas":
+        pytest.skip("no ptxas (the cuda extra's nvidia-cuda-nvcc, or PTXAS)")
+    loop, wide, st, ld, narrow, stack = map(int, r.stdout.split())
+    assert 0 < loop <= 80
+    assert wide <= 128 and st == 0 and ld == 0
+    assert narrow <= 64 and stack <= 256
+
+
+REDUCE = """
+import numpy as np
+from numba import cuda, njit, float64
+from kernels.gpu import device
+from kernels.gpu.batch import _noop
+from kernels.gpu.block import make_shared_reduction
+from kernels.gpu.state import ROWS, WARP, N_ST
+
+dev = cuda.jit(device=True)
+put_sum, put_max, total = dev(device._put_sum), dev(device._put_max), dev(device._total)
+
+@cuda.jit
+def kernel(vals, out):
+    t = cuda.threadIdx.x
+    red = cuda.shared.array((ROWS, WARP), dtype=float64)
+    sh = cuda.shared.array(N_ST, dtype=float64)
+    put_sum(red, 0, t, vals[0, t])
+    put_sum(red, 1, t, vals[1, t])
+    put_max(red, 2, t, vals[2, t])
+    total(t, t + 1, cuda.blockDim.x, red, sh, 3, 2, 1)
+    cuda.syncthreads()
+    if t == 0:
+        for k in range(3):
+            out[k] = sh[3 + k]
+
+ps, pm, tot = make_shared_reduction(njit, njit(_noop))
+
+@njit
+def emulated(vals, nt):
+    red = np.zeros((ROWS, nt))
+    sh = np.zeros(N_ST)
+    for t in range(nt):
+        ps(red, 0, t, vals[0, t])
+        ps(red, 1, t, vals[1, t])
+        pm(red, 2, t, vals[2, t])
+    tot(0, nt, nt, red, sh, 3, 2, 1)
+    return sh[3:6].copy()
+
+rng = np.random.default_rng(11)
+for nt in (1, 2, 8, 32, 64, 128):
+    vals = rng.standard_normal((3, nt)) * 10.0 ** rng.integers(-9, 9, (3, nt))
+    out = np.full(3, np.nan)
+    kernel[1, nt](vals, out)
+    want = emulated(vals, nt)
+    assert out.tobytes() == want.tobytes(), (nt, out, want)
+    assert want[2] == vals[2].max() and abs(want[0] - vals[0].sum()) <= 1e-12 * np.abs(vals[0]).sum()
+print("ok")
+"""
+
+
+def test_the_kernels_block_sums_are_the_emulations_bit_for_bit():
+    """The kernel's block sums (warp shuffles, then the first warp over the warps' sums) give the
+    bits of the emulation's trees over shared memory, for blocks of one thread to four warps:
+    run under numba's CUDA simulator, with the shuffle kernels.gpu.device gives it."""
+    r = subprocess.run([sys.executable, "-c", REDUCE], capture_output=True, text=True, timeout=300,
+                       env=dict(os.environ, PYTHONPATH=str(ROOT), NUMBA_ENABLE_CUDASIM="1"))
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr[-3000:]
 
 
 SIM_SPEC = """\
@@ -231,6 +402,8 @@ store: {configurations: true}
 """
 
 
+@pytest.mark.slow
+@pytest.mark.skipif(cuda_missing() is not None, reason=str(cuda_missing()))
 def test_tiny_gpu_campaign_under_the_cuda_simulator_equals_the_emulation(tmp_path):
     """A device: gpu campaign runs end to end with the CUDA kernel under numba's simulator, and
     its packing is the emulation's bit for bit (the kernel and the emulation are one code)."""
@@ -274,6 +447,15 @@ def test_spec_device_keys_give_their_own_ids(tmp_path):
     assert ids("{device: cpu}") == cpu
     gpu = ids("{device: gpu}")
     assert set(gpu).isdisjoint(cpu)
+    # the block's version is part of a GPU packing's identity: another block, other packings
+    import campaign.plan.spec as spec_module
+
+    block = spec_module.GPU_BLOCK
+    try:
+        spec_module.GPU_BLOCK = block + 1
+        assert set(ids("{device: gpu}")).isdisjoint(gpu) and ids("{}") == cpu
+    finally:
+        spec_module.GPU_BLOCK = block
     assert ids("{device: gpu, gpu_threads: 256}") == gpu
     assert set(ids("{device: gpu, gpu_threads: 64}")).isdisjoint(gpu)
     for bad, msg in (("{device: gpu, gpu_threads: 48}", "power of two"),
@@ -303,7 +485,7 @@ def _stored(path):
         return {k: f["scalars"][k][:] for k in names}, size, f["tasks/status"][:]
 
 
-@pytest.mark.parametrize("launch", ["local", "mpi"])
+@pytest.mark.parametrize("launch", ["local", pytest.param("mpi", marks=pytest.mark.slow)])
 def test_gpu_workers_take_batches_and_store_the_same_bits(tmp_path, launch):
     """GPU workers (--gpus) run tasks of one variant and N_G together; the store holds the same
     values as a run without GPU workers (synthetic tasks: the batching, not the kernels)."""
@@ -343,26 +525,6 @@ def test_run_refuses_bad_gpu_options(tmp_path):
         r = subprocess.run([sys.executable, "-m", "campaign", "run", str(spec), "--out", str(tmp_path / "x.h5"),
                             *args], env=env, capture_output=True, text=True, timeout=60)
         assert r.returncode == 2 and msg in r.stderr and "Traceback" not in r.stderr, r.stderr
-
-
-def test_slurm_writes_gpu_jobs(tmp_path):
-    """campaign slurm --gpus-per-task: SLURM gives every rank its GPU, every worker is a GPU worker;
-    without it the script has no GPU line."""
-    spec = tmp_path / "b.yaml"
-    spec.write_text(BATCH_SPEC)
-
-    def script(*extra):
-        r = subprocess.run([sys.executable, "-m", "campaign", "slurm", str(spec), "--no-estimate", "--nodes", "2",
-                            "--ntasks-per-node", "5", *extra], capture_output=True, text=True, timeout=60,
-                           env=dict(os.environ, PYTHONPATH=str(ROOT)))
-        assert r.returncode == 0, r.stderr
-        return r.stdout
-
-    gpu = script("--gpus-per-task", "1", "--partition", "gpu")
-    assert "#SBATCH --gpus-per-task=1\n" in gpu and "#SBATCH --partition=gpu\n" in gpu
-    assert [ln for ln in gpu.splitlines() if "campaign run" in ln][0].endswith(" --gpus 1")
-    cpu = script()
-    assert "--gpus" not in cpu and "#SBATCH --gpus" not in cpu
 
 
 def test_gpu_worker_keeps_to_the_devices_it_was_given(monkeypatch):
@@ -421,6 +583,7 @@ def test_a_gpu_task_that_overflows_fails_with_its_reason(monkeypatch):
     assert s["ok"] and s["scalars"]["identities_ok"] == 1.0 and s["host"].endswith(" emulation")
 
 
+@pytest.mark.slow
 def test_calibrate_gpu_prices_gpu_tasks_in_gpu_hours(tmp_path):
     """campaign calibrate --gpu adds the block's measured step-time ratios to a calibration (here of
     the emulation: a GPU is not at hand); validate then prices device: gpu tasks in GPU-hours as the
@@ -470,7 +633,7 @@ observables: [scalars]
 """
 
 
-@pytest.mark.parametrize("launch", ["local", "mpi"])
+@pytest.mark.parametrize("launch", ["local", pytest.param("mpi", marks=pytest.mark.slow)])
 def test_gpu_tasks_go_to_gpu_workers(tmp_path, launch):
     """With GPU workers, device: gpu tasks run only on them (never emulated beside them on a CPU
     worker); CPU tasks run on the CPU workers, and on a GPU worker once no GPU task waits."""

@@ -211,6 +211,7 @@ HOSTILE = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(HOSTILE))
 def test_hostile_spec_in_a_real_process(tmp_path, name):
     p = tmp_path / "s.yaml"
@@ -311,6 +312,7 @@ def test_analyze_exits_0_or_2_in_time_on_broken_configurations(tmp_path_factory,
     assert_clean(code, err)
 
 
+@pytest.mark.slow
 def test_analyze_of_a_truncated_npz_and_hdf5_in_a_real_process(tmp_path):
     arrays = {"positions": np.array([[0.5, 0.5], [2.5, 2.5]]), "radii": np.array([0.5, 0.5]),
               "box": np.array([4.0, 4.0])}

@@ -345,6 +345,7 @@ for k in range(n):
 """
 
 
+@pytest.mark.slow
 def test_random_byte_flips_never_crash_and_repair_restores(reference, tmp_path):
     """30 single-bit flips at random offsets of a finished store. Every command exits 0, 1 or 2, with a
     message when not 0 and never a traceback; the process never dies (a segfault would end it early).
@@ -390,6 +391,7 @@ def _campaign(*argv, cwd):
     return p.returncode, p.stdout, p.stderr
 
 
+@pytest.mark.slow
 def test_real_campaign_damaged_found_by_every_reader_and_repaired(tmp_path):
     """The kernels' packings, in real processes: a flipped byte in a configuration's positions (contiguous,
     uncompressed) and one in a compressed chunk of scalars/A_G. Before checksums, export and reduce gave the

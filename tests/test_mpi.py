@@ -106,6 +106,7 @@ def test_results_identical_whatever_the_launcher(runs, label):
     assert attrs == ref_attrs
 
 
+@pytest.mark.slow
 def test_sigkill_of_the_whole_mpi_job_then_resume(runs, tmp_path):
     import signal
     import time
@@ -144,6 +145,7 @@ def test_bad_spec_under_mpi_exits_2_without_hanging(tmp_path):
     assert r.returncode == 2 and "grid.N_G: empty" in r.stderr
 
 
+@pytest.mark.slow
 def test_master_fault_aborts_the_job(tmp_path, runs):
     _, spec, _ = runs
     r = _campaign(["run", str(spec), "--out", str(tmp_path / "o.h5"), "--task-function", "no_such_module:fn"],
@@ -154,6 +156,7 @@ def test_master_fault_aborts_the_job(tmp_path, runs):
 
 # ---------------------------------------------------------------------------- the real kernels
 
+@pytest.mark.slow
 def test_ci_campaign_with_the_kernels_is_identical_for_1_2_3_workers(tmp_path):
     """campaigns/ci.yaml end to end: in-process, 2 local workers and 3 MPI workers give the same file."""
     spec = ROOT / "campaigns" / "ci.yaml"
@@ -196,6 +199,7 @@ store: {configurations: true}
 """
 
 
+@pytest.mark.slow
 def test_system_variants_under_mpi_jam_each_variants_system(tmp_path):
     """Each worker rank jams with its task's system: the same file as in-process, Hertz packings
     in their window under the Hertz potential, polydisperse radii all different."""
@@ -241,6 +245,7 @@ store: {configurations: true}
 """
 
 
+@pytest.mark.slow
 def test_newton_endgame_is_identical_for_1_2_3_workers(tmp_path):
     """The Newton endgame is as deterministic as FIRE: in-process, 2 local workers and 3 MPI
     ranks store bit-identical packings; the endgame did factorise, and the FIRE variant keeps
@@ -279,6 +284,7 @@ def test_newton_endgame_is_identical_for_1_2_3_workers(tmp_path):
             assert f[f"configurations/{t}/positions"][()].tobytes() == g[f"configurations/{t}/positions"][()].tobytes()
 
 
+@pytest.mark.slow
 def test_large_ladder_starts_do_not_deadlock_under_mpi(tmp_path):
     """Ladder steps of 20000 disks (a 480 kB start, beyond MPI's eager limit) to one busy worker:
     the master's blocking send and the worker's result would wait for each other forever if the

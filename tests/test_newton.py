@@ -42,6 +42,7 @@ def _minimize(method, pos, rad, box, tol=1e-9):
     return pos, r
 
 
+@pytest.mark.slow
 def test_newton_reaches_fires_minimum():
     """From the same start (a jammed packing compressed by a third of a typical overlap and
     shaken by 0.3 of one, relaxed by FIRE to the hand-over residual) Newton lands on FIRE's
@@ -71,6 +72,7 @@ def test_newton_reaches_fires_minimum():
     assert same >= 10
 
 
+@pytest.mark.slow
 def test_an_accepted_step_never_raises_the_energy():
     pos, rad, box = _perturbed(128, 1e-10, 4, amplitude=3.0)
     md = 2 * rad.mean()
@@ -101,6 +103,7 @@ def _lowest_modes(p):
     return ev / ev[-1], len(hb.pairs_i) - (2 * len(hb.nodes) - 1)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("n, e, seed", [(96, 1e-12, 5), (512, 1e-13, 1), (512, 1e-15, 2)])
 def test_the_end_point_is_a_certified_minimum(n, e, seed):
     """At a Newton packing the load-bearing network's Hessian has the two translations as its
@@ -116,6 +119,7 @@ def test_the_end_point_is_a_certified_minimum(n, e, seed):
     assert excess >= 0
 
 
+@pytest.mark.slow
 def test_reproducible_bits():
     a = kernels.jam(128, 1e-13, seed=9, endgame="newton")
     b = kernels.jam(128, 1e-13, seed=9, endgame="newton")
@@ -124,6 +128,7 @@ def test_reproducible_bits():
     assert a.force_evaluations == b.force_evaluations and a.factorizations == b.factorizations
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("alpha", [2.0, 2.5, 3.0])
 def test_newton_packings_are_in_their_window_and_balanced(alpha):
     e = {2.0: 1e-14, 2.5: 1e-17, 3.0: 1e-20}[alpha]

@@ -123,6 +123,7 @@ def _kill_and_resume(tmp_path, launch):
     return gone
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_local_workers_die_with_a_killed_master(tmp_path):
     gone = _kill_and_resume(tmp_path, lambda cmd: cmd + ["--workers", "2"])
@@ -130,6 +131,7 @@ def test_local_workers_die_with_a_killed_master(tmp_path):
     assert gone < 10
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux") or not MPIEXEC.exists(), reason="reads /proc; mpiexec")
 def test_mpi_workers_die_with_a_killed_master(tmp_path):
     # Hydra's clean-up off and a wrapper shell between it and each task (Hydra ends the other tasks of one

@@ -155,6 +155,7 @@ def _trial(ref, group, clean, tmp, offset, bit):
     return got, code
 
 
+@pytest.mark.slow
 def test_every_chunk_index_damaged(store, tmp_path):
     """In every chunk-index node, one chunk key's row offset moved by one block (a chunk listed off its
     place): no reader exits 0 with another output than the clean store's, and what a reader refuses,
@@ -174,6 +175,7 @@ def test_every_chunk_index_damaged(store, tmp_path):
     assert refused >= len(keys) // 2  # most of it changes what a reader reads: all of that is refused
 
 
+@pytest.mark.slow
 def test_random_flips(store, tmp_path):
     ref, group, clean = store
     size = Path(ref).stat().st_size

@@ -334,6 +334,7 @@ def test_reduce_reads_a_file_written_by_the_engine(tmp_path, capsys):
     assert set(red.distributions) >= {"z_g", "z_v", "alpha_e"}
 
 
+@pytest.mark.slow
 def test_reduce_while_a_run_is_writing(tmp_path, capsys):
     """A real run writes the file meanwhile: reduce uses what is done and says what is missing."""
     import os

@@ -567,6 +567,7 @@ def test_a_store_written_before_gamma_resumes_and_reduces(tmp_path, capsys, monk
     assert cli.main(["verify", str(out)]) == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("n", [2, 3])
 def test_the_same_bits_with_one_two_and_three_workers(real, tmp_path, n):
     """Both cells and the shear ladder under mpiexec -n 2 and -n 3 (oversubscribed): every stored

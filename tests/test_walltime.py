@@ -98,6 +98,7 @@ def _status(path):
                                      capture_output=True, text=True, check=True).stdout)
 
 
+@pytest.mark.slow
 def test_sigusr1_stops_cleanly_and_the_rerun_completes(tmp_path):
     spec = tmp_path / "s.yaml"
     spec.write_text(SPEC)
@@ -116,6 +117,7 @@ def test_sigusr1_stops_cleanly_and_the_rerun_completes(tmp_path):
     assert _status(out)["done"] == 20
 
 
+@pytest.mark.slow
 def test_slurm_script_body_runs_out_of_time_then_a_second_job_completes(tmp_path):
     spec = tmp_path / "s.yaml"
     spec.write_text(SPEC)

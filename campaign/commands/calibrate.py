@@ -344,7 +344,8 @@ def _gpu_ratios(args) -> dict:
     plan = GPU_QUICK if args.quick else GPU_PLAN
     sizes, ratios = [], []
     for n in plan["sizes"]:
-        gpu, cpu = time_steps(n, args.gpu_batch, plan["steps"], backend)
+        r = time_steps(n, args.gpu_batch, plan["steps"], backend)
+        gpu, cpu = r["gpu"], r["cpu"]
         sizes.append(int(n))
         ratios.append(gpu / cpu)
         if not args.quiet:

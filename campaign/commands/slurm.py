@@ -15,13 +15,17 @@ HELP = "write a SLURM batch script for a campaign (and print or submit a chain o
 def configure(p):
     p.add_argument("spec", metavar="SPEC", help="campaign spec (YAML)")
     p.add_argument("--nodes", type=int, default=1, help="nodes (default 1)")
-    p.add_argument("--ntasks-per-node", type=int, default=32, help="MPI ranks per node (default 32)")
+    p.add_argument("--ntasks-per-node", type=int, default=None,
+                   help="MPI ranks per node of a CPU job, one per core (default 32)")
     p.add_argument("--time", default="24:00:00", help="wall time per job, [D-]HH:MM:SS (default 24:00:00)")
     p.add_argument("--partition", help="SLURM partition")
     p.add_argument("--account", help="SLURM account")
-    p.add_argument("--gpus-per-task", type=int, default=0, metavar="G",
-                   help="GPU jobs: G GPUs per rank (#SBATCH --gpus-per-task), every worker a GPU worker "
-                        "(campaign run --gpus G); the master's rank gets its GPUs too (docs/GPU.md)")
+    p.add_argument("--gpus-per-node", type=int, default=0, metavar="G",
+                   help="a GPU job: G GPUs per node (#SBATCH --gpus-per-node), one worker rank each (campaign run "
+                        "--gpus G), and the master beside them on the first node without a GPU; the spec needs "
+                        "`device: gpu` tasks (docs/CLUSTERS.md#gpu-jobs)")
+    p.add_argument("--cpus-per-task", type=int, default=None, metavar="C",
+                   help="a GPU job: C of the node's cores per rank (default 1; (G + 1) x C must fit a node)")
     p.add_argument("--launcher", choices=("srun", "srun-pmix", "srun-site", "mpiexec"), default="srun",
                    help="start the ranks with srun --mpi=pmi2 (default; the MPICH the package installs), "
                         "srun --mpi=pmix, srun with the cluster's default MPI plugin (a site MPI), or the MPI "
@@ -50,11 +54,12 @@ def main(args) -> int:
         return _main(args, cal)
 
 
-def _estimate(spec, results, cal):
-    """The estimated core-seconds of the tasks not done yet in ``results`` (all, when it does not
-    exist or another spec wrote it) and of the longest of them."""
+def _estimate(spec, results, cal, options):
+    """What the tasks not done yet in ``results`` (all, when it does not exist or another spec wrote
+    it) cost a job of ``options`` (``campaign.run.slurm.JobWork``), and how many they are."""
     from campaign.errors import UserError
-    from campaign.plan.tasks import estimate, expand, task_cost
+    from campaign.plan.tasks import expand
+    from campaign.run.slurm import job_work
     from campaign.storage.store import DONE, read_summary
 
     tasks = expand(spec)
@@ -67,12 +72,13 @@ def _estimate(spec, results, cal):
         except UserError:
             pass
     if not left:
-        return None, 0.0, 0
-    return estimate(left, cal), max(task_cost(t) for t in left), len(left)
+        return None, 0
+    return job_work(left, cal, options), len(left)
 
 
 def _main(args, cal) -> int:
-    from campaign.run.slurm import SlurmOptions, advice_text, advise, chain_commands, render_script
+    from campaign.run.slurm import (SlurmOptions, advice_text, advise, chain_commands, refuse_without_gpu_tasks,
+                                    render_script)
     from campaign.plan.spec import load_spec
 
     spec = load_spec(args.spec)
@@ -80,17 +86,21 @@ def _main(args, cal) -> int:
     options = SlurmOptions(nodes=args.nodes, ntasks_per_node=args.ntasks_per_node, time=args.time,
                            partition=args.partition, account=args.account, launcher=args.launcher,
                            warn_seconds=args.warn, margin_seconds=args.margin,
-                           gpus_per_task=args.gpus_per_task)
+                           gpus_per_node=args.gpus_per_node, cpus_per_task=args.cpus_per_task).checked()
+    if options.gpu:
+        refuse_without_gpu_tasks(spec, f"--gpus-per-node {options.gpus_per_node}",
+                                 "drop --gpus-per-node for a CPU job of one rank per core (--ntasks-per-node)")
     text = render_script(name=spec.name, spec=Path(args.spec), out=results, tasks=spec.n_tasks, options=options)
     if (args.chain or args.submit) and not args.out:
         raise UserError("--chain and --submit need --out FILE: the jobs submit the script file")
     if not args.no_estimate:
-        total, longest, n_left = _estimate(spec, results, cal)
-        if total is None:
+        work, n_left = _estimate(spec, results, cal, options)
+        if work is None:
             print(f"{results}: every task is done; nothing left to run", file=sys.stderr)
         else:
             head = "" if n_left == spec.n_tasks else f"{n_left} of {spec.n_tasks} tasks left in {results}; "
-            sys.stderr.write(head + advice_text(advise(total, longest, options), total, options, args.chain))
+            sys.stderr.write(head + advice_text(advise(work.total, work.longest, options), work, options,
+                                                args.chain))
     if args.out:
         Path(args.out).write_text(text)
         Path(args.out).chmod(0o755)

@@ -4,6 +4,9 @@ Works while a run is writing the file (it opens it read-only, without locking). 
 run is writing it comes from the run's progress file (``campaign.storage.progress.writer_state``):
 on the same host its process must still exist; from another host the file must have been
 updated within the last ``STALE_SECONDS``.
+
+With GPU packings it also says how busy each GPU kept its device (``GpuBusy``) and which packings
+wait suspended in the store for the next run (stop and go, docs/GPU.md).
 """
 
 from __future__ import annotations
@@ -54,7 +57,8 @@ def main(args) -> int:
                           "groups": [{"variant": k[0], "N": k[1], "E": k[2], "done": d, "failed": f, "pending": p}
                                      for k, d, f, p in groups],
                           "gpu_workers": live.get("gpu_workers") if active else None,
-                          "gpu_packings": s["devices"], "failures": failures}, indent=1))
+                          "gpu_packings": s["devices"], "gpu_busy": s["busy"], "suspended": s["suspended"],
+                          "failures": failures}, indent=1))
         return 0
     print(f"{args.file}: campaign {attrs.get('name', '?')!s}, {totals['tasks']} tasks")
     print("  " + progress_text(state))
@@ -74,6 +78,12 @@ def main(args) -> int:
         print("  " + "; ".join(([f"GPU workers now: {gpu_now}"] if gpu_now else []) +
                                ([("GPU packings: " + ", ".join(f"{n} on {d}" for d, n in sorted(s["devices"].items())))]
                                 if s["devices"] else [])))
+    for device, b in sorted(s["busy"].items()):
+        print(f"  GPU busy on {device}: {100 * b['busy_fraction']:.1f}% ({b['block_seconds']:.4g} block-seconds over "
+              f"{b['slot_seconds']:.4g} slot-seconds; {b['gpus']} GPU(s), {b['runs']} run(s), {b['packings']} packings)")
+    if s["suspended"]["tasks"]:
+        print(f"  suspended GPU packings: {s['suspended']['tasks']} ({s['suspended']['steps']} FIRE steps so far), "
+              "kept in the store; the next run goes on from them")
     width = max(7, max(len(k[0]) for k, *_ in groups)) if groups else 7
     print(f"  {'variant':<{width}} {'N':>7} {'E':>9} {'done':>6} {'failed':>6} {'pending':>7}")
     for (v, n, e), d, f, p in groups:
@@ -128,6 +138,10 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
     # GPU packings record what ran them beside the host ("node12 cuda:NVIDIA H100 ..."): counted per
     # device, read only for a spec that asks for them
     devices = {} if "gpu" in str(f.attrs.get("spec_yaml", "")) else None
+    clock = None  # the device clock's scalars, when the store has them
+    if devices is not None and all(f"device_{k}" in f["scalars"] for k in ("start", "end", "seconds", "slots")):
+        clock = {k: f["scalars"][f"device_{k}"] for k in ("start", "end", "seconds", "slots")}
+    busy = GpuBusy(run_spans(f.attrs.get("runs", "[]")))
     from campaign.storage.checksums import check_identities, stored_spec
 
     spec = stored_spec(f.attrs)
@@ -146,10 +160,14 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
             c[2] += int(np.count_nonzero(part == PENDING))
         done = np.flatnonzero(st == DONE)
         if devices is not None and len(done):
-            for h in t["host"][lo:hi][done]:
+            hosts = t["host"][lo:hi][done]
+            for h in hosts:
                 device = h.decode(errors="replace").partition(" ")[2]
                 if device:
                     devices[device] = devices.get(device, 0) + 1
+            if clock is not None:
+                busy.add(hosts, t["rank"][lo:hi][done], *(clock[k][lo:hi][done] for k in ("start", "end", "seconds",
+                                                                                          "slots")))
         pick = done[(np.arange(done_seen, done_seen + len(done)) % stride) == 0]
         done_seen += len(done)
         if len(pick):
@@ -173,7 +191,138 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
               "pending": int(np.count_nonzero(status_all == PENDING)), "tasks": T}
     sample = {k: (np.concatenate(x) if x else np.zeros(0)) for k, x in sample.items()}
     return {"attrs": {k: f.attrs[k] for k in f.attrs}, "cells": cells, "totals": totals,
-            "failures": failures, "sample": sample, "status": status_all, "devices": devices or {}}
+            "failures": failures, "sample": sample, "status": status_all, "devices": devices or {},
+            "busy": busy.result(), "suspended": _suspended(f, status_all, np, PENDING)}
+
+
+def _suspended(f, status, np, PENDING):
+    """Suspended GPU packings the store keeps for pending tasks: ``{"tasks", "steps"}`` (FIRE steps
+    so far, summed); one that cannot be read is not counted (its task starts over)."""
+    out = {"tasks": 0, "steps": 0}
+    try:
+        g = f["checkpoints"] if "checkpoints" in f else None
+        names = list(g.keys()) if g is not None else []
+    except Exception:  # noqa: BLE001 - `campaign verify` says what is damaged
+        return out
+    if not names:
+        return out
+    kept, pending = set(names), set()
+    for lo in range(0, len(status), BLOCK):  # the ids of pending rows, a block at a time
+        rows = np.flatnonzero(status[lo:lo + BLOCK] == PENDING)
+        if len(rows):
+            pending.update(kept.intersection(f["tasks/id"][lo:lo + BLOCK][rows].astype(str).tolist()))
+    for tid in names:
+        if tid not in pending:
+            continue
+        try:
+            steps = int(g[tid].attrs["steps"])
+        except Exception:  # noqa: BLE001
+            continue
+        out["tasks"] += 1
+        out["steps"] += steps
+    return out
+
+
+def run_spans(runs_json) -> list:
+    """``(start, end)`` in epoch seconds of each run of a store's ``runs`` attribute (a run without
+    an end, killed or still running: until the next run's start, else open)."""
+    import datetime
+    import math
+
+    try:
+        runs = json.loads(runs_json)
+    except (TypeError, ValueError):
+        return []
+
+    def epoch(text):
+        try:
+            return datetime.datetime.strptime(str(text), "%Y-%m-%dT%H:%M:%S%z").timestamp()
+        except (TypeError, ValueError):
+            return None
+
+    starts = [epoch(r.get("start")) if isinstance(r, dict) else None for r in runs]
+    out = []
+    for k, r in enumerate(runs):
+        if starts[k] is None:
+            continue
+        end = epoch(r.get("end"))
+        if end is None:
+            later = [s for s in starts[k + 1:] if s is not None]
+            end = later[0] if later else math.inf
+        out.append((starts[k], end))
+    return sorted(out)
+
+
+class GpuBusy:
+    """The GPUs' busy fraction from the GPU packings' device clocks (``scalars/device_*``).
+
+    A GPU is a worker's device: one (host column, rank) of the task table (``host`` is "node12
+    cuda:NAME"; the device's label is what follows the host's name). Its packings are split by the
+    run during which each ended (``runs``: ``run_spans``; the device clock counts epoch seconds: the
+    host's in the emulation, ``%globaltimer`` on a GPU, which the driver starts from the host's
+    clock; a packing that ended in no run's span makes a window of its own kind). In each (GPU,
+    run) window, from its first packing's start (not before the run's) to its last packing's end:
+
+        busy = sum of block-seconds / (resident slots x (last end - first start))
+
+    and per device label the windows' block-seconds over their slot-seconds: the time between two
+    runs (the next job waiting in the queue) is never counted as idle, the time inside a run is,
+    tail included. A packing resumed from an earlier run counts at most the block-seconds that fit
+    its own span inside the window (its device clock holds the earlier runs' too)."""
+
+    def __init__(self, spans):
+        import numpy as np
+
+        self.spans = spans
+        self.starts = np.array([a for a, _ in spans], np.float64)
+        self.windows = {}  # (label, host, rank, run) -> [first start, last end, block-seconds, slots, packings]
+
+    def add(self, hosts, ranks, start, end, seconds, slots):
+        """GPU packings: their host column's values, ranks and device clocks (arrays alike)."""
+        import numpy as np
+
+        start, end, seconds, slots = (np.asarray(x, np.float64) for x in (start, end, seconds, slots))
+        for k, h in enumerate(hosts):
+            label = h.decode(errors="replace").partition(" ")[2] if isinstance(h, bytes) else str(h).partition(" ")[2]
+            s, e, b, n = start[k], end[k], seconds[k], slots[k]
+            if not label or not (np.isfinite(s) and np.isfinite(e) and np.isfinite(b) and e > s):
+                continue
+            run = self._run(e)
+            lo = max(s, self.spans[run][0]) if run >= 0 else s
+            key = (label, h, int(ranks[k]), run)
+            w = self.windows.get(key)
+            if w is None:
+                w = self.windows[key] = [lo, e, 0.0, 1.0, 0]
+            w[0], w[1] = min(w[0], lo), max(w[1], e)
+            w[2] += min(b, e - lo)
+            w[3] = max(w[3], n if np.isfinite(n) and n >= 1 else 1.0)
+            w[4] += 1
+
+    def _run(self, end) -> int:
+        """The run during which a packing that ended at ``end`` ran (-1: none)."""
+        import numpy as np
+
+        k = int(np.searchsorted(self.starts, end + 1.0, side="right")) - 1
+        if k >= 0 and end <= self.spans[k][1] + 1.0:
+            return k
+        return -1
+
+    def result(self) -> dict:
+        """Per device label: ``busy_fraction``, ``block_seconds``, ``slot_seconds``, ``gpus``,
+        ``runs`` and ``packings``."""
+        out = {}
+        for (label, h, rank, run), (first, last, block, slots, n) in self.windows.items():
+            d = out.setdefault(label, {"block_seconds": 0.0, "slot_seconds": 0.0, "gpus": set(), "runs": set(),
+                                       "packings": 0})
+            d["block_seconds"] += block
+            d["slot_seconds"] += slots * (last - first)
+            d["gpus"].add((h, rank))
+            d["runs"].add(run)
+            d["packings"] += n
+        for d in out.values():
+            d["busy_fraction"] = d["block_seconds"] / d["slot_seconds"] if d["slot_seconds"] > 0 else None
+            d["gpus"], d["runs"] = len(d["gpus"]), len(d["runs"])
+        return out
 
 
 def _journal_only(path, status):

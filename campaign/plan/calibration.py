@@ -195,7 +195,7 @@ class Calibration:
         ends), or None without a GPU calibration."""
         if not self.gpu:
             return None
-        cpu = {k: v for k, v in dict(protocol or {}).items() if k not in ("device", "gpu_threads")}
+        cpu = {k: v for k, v in dict(protocol or {}).items() if k not in ("device", "gpu_threads", "gpu_block")}
         ratio = float(np.interp(math.log(N), np.log(self.gpu["N"]), self.gpu["ratio"]))
         return self.seconds(N, E, cpu, exponent) * ratio
 

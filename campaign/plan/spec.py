@@ -60,6 +60,11 @@ DEVICES = ("cpu", "gpu")
 #: threads per block of a GPU packing (``gpu_threads``): a power of two; it fixes the order of the
 #: block's sums, so it is part of the packing's identity (the default, 256, is left out of it)
 GPU_THREADS_DEFAULT = 256
+#: the GPU block's trajectories, part of a GPU packing's identity (protocol key ``gpu_block``, set
+#: with ``device: gpu``, never written in a spec): 2 since 0.3.0, whose block sums FIRE's |v|^2
+#: after the kick from the step's sums and the energy over both sides of each pair (version 1: the
+#: first block, before 0.3.0, whose stores record 0.2.7: data/gpu-equivalence*.h5)
+GPU_BLOCK = 2
 
 TOP_KEYS = ("name", "seed", "system", "grid", "protocol", "variants", "observables", "bins",
             "store", "run", "output")
@@ -736,6 +741,8 @@ def _protocol(c, value, path, allow, base=None):
         out["gpu_threads"] = t
         if t == GPU_THREADS_DEFAULT:
             del out["gpu_threads"]  # the default block: its packings keep their ids
+    if out.get("device") == "gpu":
+        out["gpu_block"] = GPU_BLOCK
     if out.get("device") == "gpu" and any(k in out for k in ("stop", "route", "endgame", "cell", "start")) \
             or out.get("device") == "gpu" and out.get("minimizer", "fire") != "fire":
         c.err(path + ("device",), "device 'gpu' runs FIRE on the O'Hern route in a fixed cell from random "

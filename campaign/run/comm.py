@@ -86,15 +86,65 @@ def _local_main(conn, context, rank):
         except (EOFError, OSError):
             return True  # the next recv says the master is gone
 
-    _worker.worker_loop(recv, send, context, rank, poll)
+    outbox = _Outbox(conn) if context.get("gpu_device") is not None else None
+    try:
+        _worker.worker_loop(recv, outbox.send if outbox else send, context, rank, poll)
+    finally:
+        if outbox is not None:
+            outbox.close()
+
+
+class _Outbox:
+    """A GPU worker's sends to the master, made by a thread of their own: the worker never blocks
+    on a send, so that it always reads what the master sends it. Both send large messages (a
+    suspended packing's state, a task resumed from one, stored configurations): a worker blocked
+    sending into a full pipe while the master blocks sending into the worker's would wait forever."""
+
+    def __init__(self, conn):
+        import queue
+        import threading
+
+        self.conn, self.queue = conn, queue.SimpleQueue()
+        self.thread = threading.Thread(target=self._run, name="campaign-outbox", daemon=True)
+        self.thread.start()
+
+    def send(self, msg):
+        self.queue.put(msg)
+
+    def _run(self):
+        while True:
+            msg = self.queue.get()
+            if msg is None:
+                return
+            try:
+                self.conn.send(msg)
+            except (BrokenPipeError, OSError):
+                os._exit(0)  # the master is gone: its tasks stay pending in the store
+
+    def close(self):
+        """Send what is queued, then end the thread."""
+        self.queue.put(None)
+        self.thread.join()
 
 
 def gpu_context(context: dict, device: int | None) -> dict:
     """A worker's context: a GPU worker owns ``device`` (``CUDA_VISIBLE_DEVICES`` is set before
     CUDA starts) and runs batches of ``context["gpu_batch"]`` tasks; any other runs one at a time."""
     if device is None:
-        return dict(context, gpu_batch=1, gpu_device=None)
+        out = dict(context, gpu_batch=1, gpu_device=None)
+        if int(context.get("gpus") or 0):  # the GPU workers run the device: gpu tasks: no need to compile them
+            cpu = [p for p in context.get("protocol_warmups") or () if dict(p).get("device") != "gpu"]
+            out["protocol_warmups"] = cpu or [{}]
+        return out
     return dict(context, gpu_device=int(device))
+
+
+def gpu_capacity(gpu_batch: int) -> int:
+    """Tasks the master keeps outstanding at a GPU worker: a batch for each launch it keeps in
+    flight and one more gathering (``campaign.run.gpuworker``)."""
+    from campaign.run.gpuworker import IN_FLIGHT
+
+    return (IN_FLIGHT + 1) * int(gpu_batch)
 
 
 class LocalComm:
@@ -108,9 +158,9 @@ class LocalComm:
         ctx = mp.get_context("spawn")
         self.n_workers = n_workers
         self.conns, self.procs = {}, {}
-        # workers 1..gpus own GPU 0..gpus-1 and take batches of gpu_batch tasks: the master keeps two
-        # batches in flight at each (one runs while the other's results are made: campaign.run.gpuworker)
-        self.capacity = {w: 2 * int(context.get("gpu_batch") or 1) for w in range(1, min(gpus, n_workers) + 1)}
+        # workers 1..gpus own GPU 0..gpus-1 and take batches of gpu_batch tasks: the master keeps a batch
+        # outstanding at each for every launch in flight and one gathering (campaign.run.gpuworker)
+        self.capacity = {w: gpu_capacity(context.get("gpu_batch") or 1) for w in range(1, min(gpus, n_workers) + 1)}
         for w in range(1, n_workers + 1):
             parent, child = ctx.Pipe(duplex=True)
             wctx = gpu_context(context, w - 1 if w in self.capacity else None)
@@ -222,9 +272,9 @@ class MPIComm:
         return set()
 
     def set_capacity(self, gpu_batch: int):
-        """Every worker rank owns a GPU (``campaign run --gpus``) and takes batches of ``gpu_batch``;
-        two batches in flight at each (``LocalComm``)."""
-        self.capacity = {w: 2 * int(gpu_batch) for w in range(1, self.n_workers + 1)}
+        """Every worker rank owns a GPU (``campaign run --gpus``) and takes batches of ``gpu_batch``
+        (as many outstanding as ``LocalComm``'s GPU workers: ``gpu_capacity``)."""
+        self.capacity = {w: gpu_capacity(gpu_batch) for w in range(1, self.n_workers + 1)}
 
     def send(self, worker, payload):
         self.comm.send(payload, dest=worker, tag=TAG_TASK)
@@ -269,14 +319,27 @@ def mpi_worker(comm, context: dict) -> None:
             if got is not None:
                 obj = got[0].recv()
                 return ("stop",) if got[1] == TAG_STOP else ("task", obj)
+            if sending:
+                sent()
             backoff.wait()
 
+    sending = []  # a GPU worker's sends in progress (isend): it never blocks on one (comm._Outbox)
+    gpu = context.get("gpu_device") is not None or int(context.get("gpus") or 0) > 0
+
     def send(msg):
-        comm.send(msg, dest=0, tag=TAG_RESULT)
+        if not gpu:
+            comm.send(msg, dest=0, tag=TAG_RESULT)
+            return
+        sending.append(comm.isend(msg, dest=0, tag=TAG_RESULT))
+        sent()
+
+    def sent():
+        sending[:] = [r for r in sending if not r.Test()]
 
     def poll():
         # MPI moves a message into reach only as its progress engine runs: a single probe right
         # after a receive can miss what is already on its way, so try for up to a millisecond
+        sent()
         deadline = time.monotonic() + 1e-3
         while not probed:
             got = probe()
@@ -287,10 +350,25 @@ def mpi_worker(comm, context: dict) -> None:
         return bool(probed)
 
     watch_master(context.get("master"))
+    try:
+        _worker.worker_loop(recv, send, rank_gpu(context, rank), rank, poll)
+    finally:
+        if sending:
+            MPI.Request.Waitall(sending)
+
+
+def rank_gpu(context: dict, rank: int) -> dict:
+    """A worker rank's context under ``--gpus K``: every worker rank is a GPU worker, on GPU
+    ``node_rank mod K`` of the GPUs it sees (the node's ranks share them in turn). The master is its
+    node's rank 0 (the block layouts of srun and mpiexec), so K workers beside it still take K
+    different GPUs. ``CUDA_VISIBLE_DEVICES`` is set at once, before anything (the node's warm-up)
+    can start CUDA; the worker loop sets it again to the same device."""
     gpus = int(context.get("gpus") or 0)
-    if gpus:  # one rank per GPU: the node's ranks share its GPUs in turn, by their rank on the node
-        context = gpu_context(context, node_rank(rank) % gpus)
-    _worker.worker_loop(recv, send, context, rank, poll)
+    if not gpus or "gpu_device" in context:
+        return context
+    context = gpu_context(context, node_rank(rank) % gpus)
+    os.environ["CUDA_VISIBLE_DEVICES"] = _worker.visible_device(context["gpu_device"])
+    return context
 
 
 def watch_master(master, interval: float = 0.5) -> None:

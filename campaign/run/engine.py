@@ -89,13 +89,14 @@ def provenance(launcher, n_workers, mpi=None) -> dict:
 
 
 def mpi_worker(comm) -> int:
-    from campaign.run.comm import mpi_worker as serve
+    from campaign.run.comm import mpi_worker as serve, rank_gpu
 
     context = comm.bcast(None, root=0)
     if context is None:  # the master refused to start (bad spec, refused file): it says why
         return 0
     comm.gather(socket.gethostname(), root=0)
     try:
+        context = rank_gpu(context, comm.Get_rank())  # before the node's warm-up can start CUDA
         node_warm_up(comm, context, first_warms=True)
         serve(comm, context)
     except BaseException:  # noqa: BLE001 - a worker-side fault must not hang the job
@@ -169,12 +170,18 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     gpu_batch = getattr(args, "gpu_batch", None)
     context = dict(spec.worker_context(), task_function=args.task_function, gpus=int(getattr(args, "gpus", 0) or 0),
                    gpu_batch=int(gpu_batch or 0) or GPU_BATCH)
+    # a GPU worker's launches stop at a step budget before the deadline (campaign.run.gpuworker)
+    context.update(deadline=getattr(args, "deadline", None), margin=float(getattr(args, "margin", 0.0) or 0.0))
     out = Path(args.out or spec.output)
     retries = spec.retries if args.retries is None else args.retries
     if retries < 0:
         raise UserError(f"--retries must be >= 0, got {retries}")
     if context["gpus"] < 0 or (gpu_batch is not None and gpu_batch < 1):
         raise UserError(f"--gpus must be >= 0 and --gpu-batch >= 1, got {args.gpus} and {args.gpu_batch}")
+    if context["gpus"]:
+        from campaign.run.slurm import refuse_without_gpu_tasks
+
+        refuse_without_gpu_tasks(spec, f"--gpus {context['gpus']}", "run it without --gpus (a worker per core)")
     if mpi_comm is not None:
         launcher, n_workers = "mpi", mpi_comm.Get_size() - 1
     elif args.launcher == "inline":
@@ -218,7 +225,14 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
             if sys.stderr.isatty() and not args.quiet:
                 _log(f"campaign: compiling the kernels (once; cached in {os.environ.get('NUMBA_CACHE_DIR')})")
             t_warm, cpu_warm = time.monotonic(), time.process_time()
-            fn.warm_up(context)
+            # beside GPU workers, none of the device: gpu kernels: the CUDA kernel is compiled in memory,
+            # not cached on disk, so the master's compilation would serve no worker, and it would hold a
+            # CUDA context on a GPU that a worker uses (with no CPU protocol left it warms the default
+            # one, whose analysis kernels the GPU workers load from the node's numba cache); a local
+            # run's master compiles the analysis in a second process beside the search
+            warm = dict(context, warm_helper=launcher == "local" and n_workers > 1)
+            fn.warm_up(dict(warm, protocol_warmups=[p for p in context["protocol_warmups"] or [{}]
+                                                    if p.get("device") != "gpu"]) if context["gpus"] else warm)
             if not args.quiet:  # the per-node start-up cost a job of a chain pays (docs: slurm/README.md)
                 _log(f"campaign: kernels ready in {time.monotonic() - t_warm:.1f} s, "
                      f"{time.process_time() - cpu_warm:.1f} s of CPU: {_compiled()} "
@@ -257,6 +271,7 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
         comm, workers_stopped = None, True
         counts = store.counts_by_status()
         store.close(completed=outcome["done"], failed=outcome["failed"], stopped=outcome["stopped"],
+                    suspended=outcome.get("suspended", 0),
                     seconds=round(time.monotonic() - t0, 3), master_cpu_seconds=round(cpu, 3))
     except WriteFault as fault:
         # A full disk (or a file system that failed) on the write path: stop at once. Everything
@@ -278,6 +293,9 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     msg = (f"campaign: {out}: {counts['done']} done, {counts['failed']} failed, {counts['pending']} pending "
            f"of {len(tasks)} tasks (this run: {outcome['done']} done, {outcome['failed']} failed)")
     _log(msg)
+    if outcome.get("suspended"):
+        _log(f"campaign: {outcome['suspended']} GPU packing(s) stopped at their step budget before the deadline; "
+             "their state is in the store and the next run goes on from it")
     if counts["failed"]:
         _log(f"campaign: see the failures with: campaign status {out}")
     if outcome["stopped"] is not None and counts["pending"]:

@@ -13,7 +13,13 @@ worker would wait for that worker while it waits to send its result.
   it is recorded as failed and the campaign goes on.
 * ``can_dispatch(task, ahead) -> bool``: a hook asked before each dispatch, with
   the tasks already queued at that worker; ``False`` stops dispatching (the next
-  task would not fit in the wall time left: campaign.run.walltime).
+  task would not fit in the wall time left: campaign.run.walltime). A ``device: gpu``
+  task for a GPU worker is asked with ``suspendable=True``: it may stop at a step budget.
+* Stop and go (GPU workers, docs/GPU.md): a worker hands back a packing it stopped at
+  its step budget as ``("suspended", index, attempt, record)``; the store keeps its
+  state (``Store.suspend``), the task stays pending and is not dispatched again in this
+  run, and a task with a kept state goes out with it (``payload["resume"]``), to a CPU
+  worker only when nothing is in flight there (a large payload, as a ladder step's).
 * First SIGINT/SIGTERM/SIGUSR1 (SLURM's warning before the time limit): stop
   dispatching, collect the running tasks for up to
   ``grace`` seconds; a second signal (or the end of the grace time) abandons
@@ -80,6 +86,8 @@ class Master:
                          and status[parent[i]] == FAILED]
         self.in_flight = {w: deque() for w in range(1, comm.n_workers + 1)}
         self.alive = set(self.in_flight) - set(getattr(comm, "dead", ()))
+        self.n_suspended = 0         # packings GPU workers handed back at their step budget
+        self.gpu_time_up = False     # a GPU worker said no launch fits before the deadline
         self.stop_reason = None      # why dispatching stopped early (signal name, wall time, ...)
         self.stop_since = None
         self.signals = 0
@@ -120,7 +128,7 @@ class Master:
         """The queue worker ``w`` takes from now: a GPU worker its GPU tasks, then CPU tasks; a CPU
         worker CPU tasks, and GPU tasks (emulated) only when no GPU worker is left."""
         if w in self.capacity:
-            return self.queues[bool(self.queues[True].queued())]
+            return self.queues[bool(self.queues[True].queued()) and not self.gpu_time_up]
         if not self.queues[False].queued() and not (self.alive & set(self.capacity)):
             return self.queues[True]
         return self.queues[False]
@@ -141,21 +149,35 @@ class Master:
             return 1
         return depth
 
+    def _gpu_share(self, w):
+        """Tasks outstanding at GPU worker ``w``: its capacity (a batch per launch in flight and one
+        gathering), but no more than its share of the GPU tasks left, so that every GPU worker
+        gets batches when there are fewer tasks than capacity."""
+        gpu = [v for v in self.capacity if v in self.alive]
+        held = sum(len(self.in_flight[v]) for v in gpu)
+        share = -(-(self.queues[True].queued() + held) // max(1, len(gpu)))
+        return max(1, min(self.capacity[w], share))
+
     def _dispatch(self, w):
         q = self.in_flight[w]
-        # a GPU worker keeps a batch in flight (it runs the tasks of one variant and N_G together)
-        depth = max(self._depth(), self.capacity.get(w, 1))
         queue = self._queue_for(w)
+        gpu = w in self.capacity and queue is self.queues[True]
+        # a GPU worker keeps batches in flight (it runs the tasks of one variant and N_G together)
+        depth = self._gpu_share(w) if gpu else self._depth()
         while len(q) < depth and queue.queued() and self.stop_reason is None:
             i = queue.peek()
             task = self.tasks[i]
-            if task.parent is not None and q:
-                # a ladder step carries its parent's packing (hundreds of kB at N_G 8192): only to a
-                # worker waiting for work. A busy worker sends its result before it reads again, so
-                # a payload beyond the pipe's buffer (or MPI's eager limit) sent to it now would
-                # block this send while the worker blocks sending its result here: a deadlock
+            if (task.parent is not None or (not gpu and self.store.has_suspended(i))) and q:
+                # a ladder step carries its parent's packing, a suspended task its state (hundreds of
+                # kB at N_G 8192): only to a worker waiting for work. A busy worker sends its result
+                # before it reads again, so a payload beyond the pipe's buffer (or MPI's eager limit)
+                # sent to it now would block this send while the worker blocks sending its result
+                # here: a deadlock. (A GPU worker sends without blocking: campaign.run.comm._Outbox.)
                 return
-            if self.can_dispatch is not None and not self.can_dispatch(task, [self.tasks[j] for j in q]):
+            suspendable = gpu and bool(self.on_gpu[i])
+            if self.can_dispatch is not None and not (
+                    self.can_dispatch(task, [self.tasks[j] for j in q], suspendable=True) if suspendable
+                    else self.can_dispatch(task, [self.tasks[j] for j in q])):
                 self.stop_reason = "wall time"
                 self.log("\ncampaign: the next task would not fit in the time left; no new tasks")
                 return
@@ -176,6 +198,9 @@ class Master:
                 payload["start"] = start
             if i in self.children:
                 payload["return_configuration"] = True
+            state = self.store.suspended(i)
+            if state is not None:  # a packing stopped at a step budget by an earlier run: on from there
+                payload["resume"] = state
             q.append(i)
             self.comm.send(w, payload)
 
@@ -270,6 +295,19 @@ class Master:
                         self._woken = False
                         for v in sorted(self.alive):
                             self._dispatch(v)
+                elif msg[0] == "suspended":
+                    _, i, attempt, record = msg
+                    try:
+                        self.in_flight[w].remove(i)
+                    except ValueError:
+                        continue
+                    self.attempts[i] -= 1  # not an attempt that failed: the task stays pending
+                    if record is not None:
+                        self.store.suspend(i, record)
+                    self.n_suspended += 1
+                    self.gpu_time_up = True  # the worker has no time for a launch: send it no GPU task
+                    if w in self.alive:
+                        self._dispatch(w)
                 elif msg[0] == "dead":
                     self.alive.discard(w)
                     lost = list(self.in_flight[w])
@@ -293,9 +331,14 @@ class Master:
                 self._tick(finished, cost)
             abandoned = self._running()
             self._tick(force=True)
-            return {"done": self.n_done, "failed": self.n_failed, "abandoned": abandoned,
-                    "stopped": self.stop_reason,
-                    "remaining": self._queued() + abandoned + len(self.blocked)}
+            if self.n_suspended and self.stop_reason is None:
+                self.stop_reason = "wall time"  # GPU workers stopped their packings before the deadline
+            out = {"done": self.n_done, "failed": self.n_failed, "abandoned": abandoned,
+                   "stopped": self.stop_reason,
+                   "remaining": self._queued() + abandoned + len(self.blocked) + self.n_suspended}
+            if self.n_suspended:
+                out["suspended"] = self.n_suspended  # handed back at their step budget, kept in the store
+            return out
         finally:
             for sig, handler in old.items():
                 signal.signal(sig, handler)

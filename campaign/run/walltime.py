@@ -5,6 +5,11 @@ job's environment) and the run's start plus ``--time-limit``. A task is dispatch
 by the learned cost model (campaign.plan.costmodel), it and the tasks already queued at its worker
 finish before ``deadline - margin``. The model is refitted from the store's finished rows as
 results come in, so estimates follow what this machine actually takes.
+
+A ``device: gpu`` task for a GPU worker stops at a step budget instead (stop and go:
+``campaign.run.gpuworker``): it is dispatched whatever its cost while at least
+``GPU_MIN_SECONDS`` are left before ``deadline - margin``; what it does not finish is kept in the
+store and the next run goes on from there.
 """
 
 from __future__ import annotations
@@ -19,6 +24,11 @@ from campaign.plan.costmodel import CostModel
 from campaign.errors import UserError
 from campaign.run.slurm import parse_time
 from campaign.storage.store import DONE
+
+
+#: seconds before ``deadline - margin`` a GPU task still goes out: time to launch, run some
+#: steps and hand the packing back
+GPU_MIN_SECONDS = 2.0
 
 
 def parse_limit(text) -> float:
@@ -104,7 +114,11 @@ class Deadline:
     def left(self) -> float:
         return self.end - self.margin - self.clock()
 
-    def __call__(self, task, ahead=()) -> bool:
+    def __call__(self, task, ahead=(), suspendable=False) -> bool:
+        """Whether ``task`` (behind the tasks ``ahead`` at its worker) finishes in the time left;
+        a ``suspendable`` one (a GPU worker's: it stops at a step budget) whether the minimum is left."""
+        if suspendable:
+            return self.left() >= GPU_MIN_SECONDS
         model = self.model()
         need = model.task_seconds(task) + sum(model.task_seconds(t) for t in ahead)
         return need <= self.left()

@@ -11,6 +11,10 @@ The per-task work is a *task function* chosen by name in the run context:
   ``CAMPAIGN_SYNTHETIC_FLAKY`` (tasks that raise on their first attempt only),
   ``CAMPAIGN_SYNTHETIC_CRASH`` (tasks that kill their worker process). Each is a
   comma-separated list of ``seed:K`` (seed index K), ``N:K`` or task-id prefixes.
+  ``CAMPAIGN_SYNTHETIC_STEPS="SECONDS:STEPS"`` makes a GPU worker's ``device: gpu`` task a search
+  of ``STEPS x (1 + seed % 3)`` steps of ``SECONDS`` each (slept, one packing after the other, as
+  the block's emulation runs them) that stops at a launch's step budget and goes on from its
+  state (``SyntheticState``): the stop and go of ``campaign.run.gpuworker`` without the kernels.
 * ``"package.module:attribute"``: any object with ``run(payload, context)``
   and ``histogram_edges(context)`` (and optionally ``warm_up(context)``).
 
@@ -45,14 +49,32 @@ class KernelTask:
 
     def warm_up(self, context) -> None:
         """Compile (or load from the numba cache) every kernel a task will use: one small packing
-        per protocol of ``context["protocol_warmups"]`` (the engine's list of distinct choices)."""
+        per protocol of ``context["protocol_warmups"]`` (the engine's list of distinct choices).
+        With ``context["warm_helper"]`` (a local run's master on several cores) and a cold cache,
+        a second process compiles the analysis while this one compiles the search
+        (``_warm_analysis``); this one then loads the analysis from the cache."""
+        helper = _start_analysis_helper(context) if context.get("warm_helper") else None
         for protocol in context.get("protocol_warmups") or [{}]:
             if protocol.get("device") == "gpu":
                 from kernels.gpu import simulated
 
                 if simulated():  # numba's CUDA simulator compiles nothing (and is slow)
                     continue
-            self.run({"N": 16, "E": 1e-3, "entropy": [0], "protocol": protocol}, context)
+            payload = {"N": 16, "E": 1e-3, "entropy": [0], "protocol": protocol}
+            if helper is not None:
+                helper = self._warm_beside(helper, payload, context)
+            else:
+                self.run(payload, context)
+        if helper is not None:
+            helper.join()
+
+    def _warm_beside(self, helper, payload, context):
+        """The search's kernels here while ``helper`` compiles the analysis; then, once it has
+        finished, the analysis loaded from the cache. Returns None (the helper is done)."""
+        got = self._jam(payload, context)
+        helper.join()
+        self._analyse(payload, context, *got)
+        return None
 
     def run(self, payload, context):
         return self._analyse(payload, context, *self._jam(payload, context))
@@ -94,29 +116,69 @@ class KernelTask:
         failed it."""
         return self.finish_batch(self.start_batch(payloads, context))
 
-    def start_batch(self, payloads, context):
+    def start_batch(self, payloads, context, budget=None, resume=None):
         """Launch ``jam_batch``'s packings (on a GPU it returns at once): the handle of
-        ``finish_batch`` (``campaign.run.gpuworker``)."""
-        from kernels.gpu.batch import start_batch
+        ``finish_batch`` (``campaign.run.gpuworker``). ``budget``: FIRE steps each packing may take
+        in this launch (None: unbounded); ``resume``: per task None or the ``Suspended`` packing it
+        goes on from; a task without one goes on from its payload's ``resume`` (the arrays of a
+        packing the store kept suspended), if it has one."""
+        from kernels.gpu.batch import Suspended, start_batch
 
         system, exponent, protocol = self._setup(payloads[0], context)
         protocol.pop("device")
+        protocol.pop("gpu_block", None)  # (the block's version: its identity, not a setting)
         threads = protocol.pop("gpu_threads", None)
+        resume = list(resume) if resume is not None else [None] * len(payloads)
+        for k, p in enumerate(payloads):
+            if resume[k] is None and p.get("resume") is not None:
+                resume[k] = Suspended.from_arrays(p["resume"], p["E"])
         t0 = time.perf_counter()
         handle = start_batch(payloads[0]["N"], [p["E"] for p in payloads],
-                             [list(p["entropy"]) for p in payloads], threads=threads,
+                             [list(p["entropy"]) for p in payloads], threads=threads, budget=budget,
+                             resume=resume if any(r is not None for r in resume) else None,
                              box=tuple(system["box"]), exponent=exponent, **protocol)
         return handle, t0, len(payloads)
 
+    def batch_done(self, started) -> bool:
+        """Whether a launch of ``start_batch`` has ended (never waits)."""
+        from kernels.gpu.batch import batch_done
+
+        return batch_done(started[0])
+
+    def slots(self, started) -> int:
+        """Blocks the device holds at once for a launch of ``start_batch`` (its occupancy)."""
+        from kernels.gpu.batch import occupancy
+
+        return int(occupancy(started[0])["slots"])
+
+    def clock(self, item):
+        """Block-seconds and FIRE steps (force evaluations for a finished packing: one per step
+        but for a few) of a launch's item: what ``campaign.run.gpuworker.StepBudget`` learns from."""
+        if hasattr(item, "arrays"):  # suspended
+            return float(item.device_clock["seconds"]), float(item.steps)
+        p = item[0]
+        return float(p.settings["device_clock"]["seconds"]), float(p.force_evaluations)
+
     def finish_batch(self, started):
-        """Wait for a batch ``start_batch`` launched: ``(packing, seconds)`` per task, or the
-        exception that failed it."""
+        """Collect a batch ``start_batch`` launched (waiting for it to end): ``(packing, seconds)``
+        per task, a ``Suspended`` packing that reached the launch's budget, or the exception that
+        failed it. Every packing's device clock gets the launch's resident slots (``slots``)."""
         from kernels.gpu.batch import finish_batch
 
         handle, t0, n = started
         out = finish_batch(handle)
         share = (time.perf_counter() - t0) / n
-        return [p if isinstance(p, Exception) else (p, share) for p in out]
+        slots = self.slots(started)
+        got = []
+        for p in out:
+            if isinstance(p, Exception) or hasattr(p, "arrays"):
+                got.append(p)
+                continue
+            clock = p.settings.get("device_clock")
+            if clock is not None:
+                clock["slots"] = slots
+            got.append((p, share))
+        return got
 
     def run_batch(self, payloads, context):
         """``run`` for a batch of ``device: gpu`` tasks (``batch_key`` equal): one launch, then
@@ -165,16 +227,78 @@ class KernelTask:
         if context.get("configurations") or payload.get("return_configuration"):
             config = {"positions": np.asarray(p.positions, np.float64), "radii": np.asarray(p.radii, np.float64),
                       "box": np.asarray(p.box, np.float64), "species": np.asarray(p.species, np.int32)}
-        device = getattr(p, "settings", {}).get("device")
+        settings = getattr(p, "settings", {})
+        clock = settings.get("device_clock")
+        if clock is not None:  # a GPU packing's device clock (docs/STORE.md: the busy fraction)
+            scalars.update(device_start=float(clock["start"]), device_end=float(clock["end"]),
+                           device_seconds=float(clock["seconds"]), device_launches=float(clock["launches"]),
+                           device_slots=float(clock.get("slots", np.nan)))
+        device = settings.get("device")
         if device:  # a GPU packing: what ran it, recorded beside the host
             return scalars, hists, config, device
         return scalars, hists, config
 
 
+def _analysis_cached() -> bool:
+    """Whether numba's cache already holds the analysis (its rotation kernel, which only the
+    analysis calls, has an index file); True where that cannot be told (then no helper)."""
+    try:
+        from kernels.network import _rotation_core
+
+        return os.path.exists(_rotation_core._cache._cache_file._index_path)
+    except Exception:  # noqa: BLE001 - numba's internals differ: compile in one process, as before
+        return True
+
+
+def _start_analysis_helper(context):
+    """A process compiling the analysis of the tasks' observables into the numba cache
+    (``_warm_analysis``), or None when the cache has it already or this machine has one core."""
+    if (os.cpu_count() or 1) < 2 or _analysis_cached():
+        return None
+    import multiprocessing
+
+    helper = multiprocessing.get_context("spawn").Process(target=_warm_analysis, args=(context,), daemon=True)
+    helper.start()
+    return helper
+
+
+def stand_in():
+    """16 disks in a unit box with contacts, voids, fictitious contacts and rattlers (a jittered
+    lattice of offset rows, overlaps up to 15%), with the types of a packing of ``kernels.jam``
+    (a task's box, its size or a tilted cell's, is also a float64 vector): what
+    ``_warm_analysis`` analyses."""
+    from types import SimpleNamespace
+
+    box = np.ones(2)
+    rng = np.random.default_rng(0)
+    j, i = np.divmod(np.arange(16), 4)
+    frac = np.stack([(i + 0.5 * (j % 2)) / 4.0, j / 4.0], axis=1) + 0.01 * rng.standard_normal((16, 2))
+    positions = np.ascontiguousarray((frac % 1.0) * box)
+    radii = 0.5 * 1.15 * np.sqrt(box[0] * box[1]) / 4.0 * (1.0 + 0.05 * rng.uniform(-1.0, 1.0, 16))
+    return SimpleNamespace(positions=positions, radii=radii, box=box, species=np.zeros(16, dtype=np.int32),
+                           force_residual=0.0, iterations=0, force_evaluations=0, status="converged",
+                           status_code=0, factorizations=0)
+
+
+def _warm_analysis(context, quiet=True):
+    """Compile what ``KernelTask._analyse`` calls for the tasks' observables, bins and (first)
+    system, on ``stand_in``'s configuration. In the helper process (``quiet``) a failure only
+    leaves the master to compile what is missing."""
+    protocols = context.get("protocol_warmups") or [{}]
+    payload = {"N": 16, "E": 1e-3, "entropy": [0], "protocol": protocols[0]}
+    task = KernelTask()
+    try:
+        return task._analyse(payload, context, stand_in(), 0.0)
+    except Exception:  # noqa: BLE001 - see above
+        if not quiet:
+            raise
+        return None
+
+
 def visible_device(k: int) -> str:
     """``CUDA_VISIBLE_DEVICES`` for a worker's ``k``-th GPU: the k-th (cyclically) of the devices
-    the process may already see (SLURM's ``--gpus-per-task`` binds each rank to its own), else GPU
-    ``k`` of the node."""
+    the process may already see (SLURM lists the node's GPUs of the job, or the one it bound the
+    rank to), else GPU ``k`` of the node."""
     seen = [d for d in os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",") if d.strip()]
     return seen[k % len(seen)].strip() if seen else str(k)
 
@@ -229,12 +353,23 @@ class SyntheticTask:
         return [got if isinstance(got, Exception) else self.analyse(p, context, *got)
                 for p, got in zip(payloads, self.finish_batch(self.start_batch(payloads, context)))]
 
-    # a GPU worker's pipeline (campaign.run.gpuworker): the "packing" is the task's own outcome
-    def start_batch(self, payloads, context):
+    # a GPU worker's event loop (campaign.run.gpuworker): the "packing" is the task's own outcome
+    def start_batch(self, payloads, context, budget=None, resume=None):
+        stepping = _synthetic_steps()
+        resume = resume or [None] * len(payloads)
         out = []
-        for p in payloads:
+        for p, state in zip(payloads, resume):
             try:
-                out.append((self.run(p, context), float(len(payloads))))
+                launches = None
+                if stepping is not None and (p.get("protocol") or {}).get("device") == "gpu":
+                    if state is None and p.get("resume") is not None:
+                        state = SyntheticState.from_arrays(p["resume"], p)
+                    got = _synthetic_search(p, state, budget, *stepping)
+                    if isinstance(got, SyntheticState):
+                        out.append(got)
+                        continue
+                    launches = got
+                out.append((self.run(p, context), float(len(payloads)), launches))
             except Exception as exc:  # noqa: BLE001 - that task fails, the batch goes on
                 out.append(exc)
         return out
@@ -242,9 +377,20 @@ class SyntheticTask:
     def finish_batch(self, started):
         return started
 
-    def analyse(self, payload, context, got, size):
+    def slots(self, started):
+        return 1  # one packing after the other
+
+    def clock(self, item):
+        if isinstance(item, SyntheticState):
+            return item.device_clock["seconds"], float(item.steps)
+        return float("nan"), float("nan")
+
+    def analyse(self, payload, context, got, size, launches=None):
         scalars, hists, config = got
-        return dict(scalars, batch_size=size), hists, config
+        scalars = dict(scalars, batch_size=size)
+        if launches is not None:
+            scalars["device_launches"] = float(launches)
+        return scalars, hists, config
 
     def run(self, payload, context):
         env = os.environ
@@ -280,6 +426,56 @@ class SyntheticTask:
             config = {"positions": pos, "radii": np.where(np.arange(N) < N // 2, 1.4, 1.0) * 0.01,
                       "box": np.array([1.0, 1.0]), "species": (np.arange(N) >= N // 2).astype(np.int32)}
         return scalars, hists, config
+
+
+def _synthetic_steps():
+    """``CAMPAIGN_SYNTHETIC_STEPS`` as (seconds per step, steps), or None."""
+    text = os.environ.get("CAMPAIGN_SYNTHETIC_STEPS", "")
+    if not text:
+        return None
+    seconds, steps = text.split(":")
+    return float(seconds), int(steps)
+
+
+def _synthetic_search(payload, state, budget, seconds, steps):
+    """Run a synthetic search (``CAMPAIGN_SYNTHETIC_STEPS``) on from ``state`` for at most
+    ``budget`` steps: its launches when it ends, else the ``SyntheticState`` it stopped in."""
+    need = steps * (1 + int(payload["seed"]) % 3)
+    done, launches = (0, 1) if state is None else (state.steps, state.launches + 1)
+    run = need - done if budget is None else min(need - done, int(budget))
+    time.sleep(run * seconds)
+    if done + run < need:
+        return SyntheticState(payload, done + run, launches, seconds)
+    return launches
+
+
+class SyntheticState:
+    """A synthetic search stopped at a step budget, shaped as ``kernels.gpu.batch.Suspended``:
+    its arrays (as large as a packing's of N disks) are a function of the task and the steps done,
+    so that a task that goes on from any other state fails instead of ending as it should."""
+
+    def __init__(self, payload, steps, launches, seconds):
+        self.payload, self.steps, self.launches, self.seconds = payload, int(steps), int(launches), seconds
+        self.force_evaluations = self.steps
+        self.device_clock = {"seconds": self.steps * seconds, "launches": self.launches}
+
+    @staticmethod
+    def _positions(payload, steps):
+        rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(list(payload["entropy"]) + [steps])))
+        return rng.random((int(payload["N"]), 2))
+
+    def arrays(self):
+        pos = self._positions(self.payload, self.steps)
+        return {"positions": pos, "velocities": pos.T * 0.5, "reference": pos.T.copy(),
+                "state": np.array([self.steps, self.launches, self.seconds], np.float64)}
+
+    @classmethod
+    def from_arrays(cls, arrays, payload):
+        steps, launches, seconds = (float(x) for x in arrays["state"][:3])
+        got = cls(payload, int(steps), int(launches), seconds)
+        if not np.array_equal(np.asarray(arrays["positions"]), cls._positions(payload, int(steps))):
+            raise RuntimeError(f"synthetic task {payload['id']} resumed from a state that is not its own")
+        return got
 
 
 def resolve(name: str):
@@ -435,8 +631,11 @@ def worker_loop(recv, send, context: dict, rank: int, poll=None) -> None:
     Batches: with ``poll()`` (True when a message is waiting) and ``context["gpu_batch"]`` > 1, a
     ``device: gpu`` task is run together with the tasks already waiting behind it that share its
     ``batch_key``, up to ``gpu_batch`` of them, in one launch; a task of another key waits for the
-    next round. A task function with ``start_batch``, ``finish_batch`` and ``analyse`` runs them
-    in a pipeline (``campaign.run.gpuworker``): a batch is analysed while the next one runs.
+    next round. A GPU worker whose task function has ``start_batch``, ``finish_batch`` and
+    ``analyse`` hands its messages to an event loop instead (``campaign.run.gpuworker.GpuLoop``):
+    several launches in flight, each gathered before it starts, their packings analysed while the
+    GPU runs the others, and, with a deadline, launches that stop at a step budget and hand their
+    suspended packings back (``("suspended", index, attempt, record)``).
     """
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1):
         try:
@@ -457,19 +656,17 @@ def worker_loop(recv, send, context: dict, rank: int, poll=None) -> None:
             pass
     send(("ready", rank))
     limit = int(context.get("gpu_batch") or 1) if context.get("gpu_device") is not None else 1
-    held = None  # a message read while filling a batch that belongs to the next round
-    pipeline = None
-    if limit > 1 and poll is not None and all(hasattr(fn, m) for m in ("start_batch", "finish_batch", "analyse")):
-        from campaign.run.gpuworker import Pipeline
+    if (context.get("gpu_device") is not None and poll is not None
+            and all(hasattr(fn, m) for m in ("start_batch", "finish_batch", "analyse"))):
+        from campaign.run.gpuworker import GpuLoop
 
-        pipeline = Pipeline(fn, context, rank, send, _summary)
+        GpuLoop(fn, context, rank, recv, send, poll, _summary,
+                lambda payload: run_task(fn, payload, context, rank), batch_key, limit=limit).serve()
+        return
+    held = None  # a message read while filling a batch that belongs to the next round
     while True:
-        if pipeline is not None and held is None and not poll():
-            pipeline.flush()  # nothing more to launch now: the master waits for these results
         msg, held = (held, None) if held is not None else (recv(), None)
         if msg is None or msg[0] == "stop":
-            if pipeline is not None:
-                pipeline.flush()
             return
         payload = msg[1]
         if fn is None:
@@ -480,7 +677,7 @@ def worker_loop(recv, send, context: dict, rank: int, poll=None) -> None:
             continue
         key = batch_key(payload)
         batch = [payload]
-        if key is not None and limit > 1 and poll is not None and (pipeline or hasattr(fn, "run_batch")):
+        if key is not None and limit > 1 and poll is not None and hasattr(fn, "run_batch"):
             while len(batch) < limit and poll():
                 nxt = recv()
                 if nxt is not None and nxt[0] == "task" and batch_key(nxt[1]) == key:
@@ -488,11 +685,6 @@ def worker_loop(recv, send, context: dict, rank: int, poll=None) -> None:
                 else:
                     held = nxt if nxt is not None else ("stop",)
                     break
-        if pipeline is not None and key is not None:
-            pipeline.run(batch)
-            continue
-        if pipeline is not None:
-            pipeline.flush()
         summaries = (run_tasks(fn, batch, context, rank) if len(batch) > 1
                      else [run_task(fn, payload, context, rank)])
         for p, summary in zip(batch, summaries):

@@ -33,7 +33,7 @@ SLAB_BYTES = 16 << 20
 CONFIG_WEIGHT = 64 << 10
 IDENTITY = ("id", "variant", "N", "E", "seed")
 SHUFFLE, DEFLATE, FLETCHER32 = 2, 1, 3  # HDF5's filter ids
-ROOT_MEMBERS = ("tasks", "scalars", "histograms", "configurations", "failures", "reduced", "checksums")
+ROOT_MEMBERS = ("tasks", "scalars", "histograms", "configurations", "failures", "reduced", "checksums", "checkpoints")
 ROOT_ATTRS = ("schema", "format_version", "name", "spec_yaml", "spec_hash", "package_version", "git_commit", "versions",
               "runs", "hosts", "start_time", "end_time", "block_checksums")
 SCALAR_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
@@ -117,6 +117,75 @@ def check_configuration(g, path, name, keys=CONFIG_KEYS):
     out, problem = configuration_problem(g, keys)
     if problem is not None:
         raise StoreDamaged(damaged_message(path, name, problem))
+    return out
+
+
+#: a suspended GPU packing's state (``/checkpoints/<id>``, ``kernels.gpu.batch.Suspended.arrays``)
+CHECKPOINT_KEYS = ("positions", "velocities", "reference", "state")
+#: its counters, attributes of its group (integers; ``device_seconds`` a float)
+CHECKPOINT_ATTRS = ("steps", "force_evaluations", "device_seconds", "launches")
+
+
+def checkpoint_crc(arrays, attrs) -> int:
+    """CRC-32 of a suspended packing: the bytes of its four arrays (float64) in the order of
+    ``CHECKPOINT_KEYS``, then the UTF-8 JSON of its counters in the order of ``CHECKPOINT_ATTRS``."""
+    crc = 0
+    for k in CHECKPOINT_KEYS:
+        crc = zlib.crc32(np.ascontiguousarray(arrays[k], np.float64).data, crc)
+    counters = [int(attrs[k]) if k != "device_seconds" else float(attrs[k]) for k in CHECKPOINT_ATTRS]
+    return zlib.crc32(json.dumps(counters).encode("utf-8"), crc) & 0xFFFFFFFF
+
+
+def write_checkpoint(parent, tid, arrays, attrs):
+    """Create the group ``parent/tid`` of a suspended packing: its four arrays, its counters and
+    their checksum (always written: a checkpoint that does not match it is not resumed)."""
+    g = parent.create_group(tid)
+    for k in CHECKPOINT_KEYS:
+        g.create_dataset(k, data=np.ascontiguousarray(arrays[k], np.float64))
+    for k in CHECKPOINT_ATTRS:
+        g.attrs[k] = float(attrs[k]) if k == "device_seconds" else int(attrs[k])
+    g.attrs[CHECKSUM_ATTR] = np.uint32(checkpoint_crc(arrays, attrs))
+    return g
+
+
+def checkpoint_problem(g):
+    """``(arrays, counters, problem)``: a suspended packing's group read back and None, or what is
+    wrong with it (it cannot be read, or does not match its checksum): such a task starts over."""
+    try:
+        arrays = {k: np.asarray(g[k][()], np.float64) for k in CHECKPOINT_KEYS}
+        attrs = {k: g.attrs[k] for k in CHECKPOINT_ATTRS}
+        stored = _crc_value(g.attrs[CHECKSUM_ATTR])
+        counters = {k: float(v) if k == "device_seconds" else int(v) for k, v in attrs.items()}
+    except Exception as exc:  # noqa: BLE001 - whatever stops us reading it, it is damaged
+        return None, None, f"cannot be read ({reason(exc)})"
+    if stored != checkpoint_crc(arrays, counters):
+        return None, None, "does not match its checksum (crc32): its bytes changed after they were written"
+    return arrays, counters, None
+
+
+def checkpoint_damage(f, rows_of=None):
+    """``(name, problem)`` of every damaged part of a store's ``/checkpoints`` (``campaign verify``):
+    a checkpoint that cannot be read or does not match its checksum, one named after no task
+    (``rows_of(names)``: their task rows, -1 for none; None: names not checked), an index that
+    cannot be listed."""
+    try:
+        names = list(f["checkpoints"].keys()) if "checkpoints" in f else []
+    except Exception as exc:  # noqa: BLE001
+        return [("checkpoints", f"its index cannot be read ({reason(exc)})")]
+    rows = rows_of(names) if rows_of is not None and names else None
+    out = []
+    for k, key in enumerate(names):
+        name = f"checkpoints/{_text(key)}"
+        if rows is not None and rows[k] < 0:
+            out.append((name, "is named after no task of this store (its name is damaged)"))
+            continue
+        try:
+            g = f["checkpoints"][key]
+        except Exception:  # noqa: BLE001 - checkpoint_problem says it cannot be read
+            g = None
+        problem = checkpoint_problem(g)[2]
+        if problem is not None:
+            out.append((name, problem))
     return out
 
 

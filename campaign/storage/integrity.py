@@ -38,7 +38,7 @@ import numpy as np
 from campaign.errors import UserError
 from campaign.storage.checksums import (BLOCK_FILTERS, CHECKSUM_ATTR, CONFIG_KEYS, CONFIG_WEIGHT, EDGES_NOTE,
                                         FLETCHER32, IDENTITY, ROOT_ATTRS, ROOT_MEMBERS, SLAB_BYTES,
-                                        _text, configuration_problem, failure_problem,
+                                        _text, checkpoint_damage, configuration_problem, failure_problem,
                                         good_scalar_name, is_filter_failure, looks_like_store, reason,
                                         scalar_names_listed)
 from campaign.storage.checksums import (BLOCK_MISMATCH, PROTECTION_ATTR, SUMS_GROUP, SUMS_ROWS, has_sums,
@@ -130,6 +130,8 @@ class Scan:
             self._edges()
             self._configurations()
             self._failures()
+            for name, how in checkpoint_damage(f, self._rows_of if self.ids is not None else None):
+                self.add(Damage(name, how, repair="remove", note="left out: its task starts over"))  # stop and go
             self._rows()
             journal_rows(self)
             self._reduced()

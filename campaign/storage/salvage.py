@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from campaign.storage.checksums import (PROTECTION_ATTR, SUMS_GROUP, SUMS_ROWS, check_rows, checksums_on,
-                                        configuration_problem, create_fill_sums, failure_problem, good_scalar_name,
-                                        has_sums, protection_text, sums_name, write_configuration, write_failure,
-                                        write_scalar_names, write_sums)
+from campaign.storage.checksums import (PROTECTION_ATTR, SUMS_GROUP, SUMS_ROWS, check_rows, checkpoint_problem,
+                                        checksums_on, configuration_problem, create_fill_sums, failure_problem,
+                                        good_scalar_name, has_sums, protection_text, sums_name, write_checkpoint,
+                                        write_configuration, write_failure, write_scalar_names, write_sums)
 from campaign.storage.storefile import (DONE, FAILED, PENDING, ROW_FIELDS, create_file, dataset_kwargs,
                                         fill_value)
 
@@ -151,6 +151,30 @@ def _salvage_into(f, old_path, tasks, edges, B, state, drop=(), renames=None, ch
             status[lo:hi] = st
             attempts[lo:hi] = data["tasks/attempts"]
             wall[lo:hi] = data["tasks/wall"]
+        _carry_checkpoints(f, old, tasks, status)
+
+
+def _carry_checkpoints(f, old, tasks, status):
+    """The suspended packings (``/checkpoints``) of tasks still pending that read and match their
+    checksum; the others' tasks start over."""
+    try:
+        names = list(old["checkpoints"].keys()) if "checkpoints" in old else []
+    except (OSError, KeyError, ValueError, RuntimeError):
+        return
+    if not names:
+        return
+    row = {t.id: t.index for t in tasks}
+    for tid in names:
+        i = row.get(tid if isinstance(tid, str) else str(tid))
+        if i is None or status[i] != PENDING:
+            continue
+        try:
+            g = old[f"checkpoints/{tid}"]
+        except (OSError, KeyError, ValueError, RuntimeError):
+            continue
+        arrays, counters, problem = checkpoint_problem(g)
+        if problem is None:
+            write_checkpoint(f.require_group("checkpoints"), tid, arrays, counters)
 
 
 

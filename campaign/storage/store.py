@@ -45,6 +45,12 @@ failed write step): never flushed or closed normally again, since its cache then
 that never reached the disk (its writes go to memory); the journal holds every finished task and
 the next start salvages the store. Either way the run stops with a ``WriteFault`` (exit status 3).
 
+Suspended GPU packings (stop and go, docs/GPU.md) take the same path: a ``suspended`` record
+in the journal first (``Store.suspend``), then the group ``/checkpoints/<id>`` (the packing's
+state and counters, with a checksum) at the next flush; the task stays pending, and the group is
+removed in the write step that commits the task's row. A checkpoint that cannot be read or does
+not match its checksum is ignored (``Store.suspended``): its task starts over.
+
 Calls go one way: here -> ``storespace``, ``salvage``, ``storefile``, ``checksums``,
 ``journal``, ``faults``; none of them imports this module.
 """
@@ -62,9 +68,10 @@ import numpy as np
 from campaign.errors import OutOfSpace, StoreDamaged, UserError
 from campaign.storage.faults import GuardedFile, write_fault
 from campaign.storage.storefile import BLOCK_ROWS  # rows per chunk of every per-task dataset
-from campaign.storage.checksums import (CONFIG_KEYS, BlockMismatch, check_configuration, check_rows, checksums_on,
-                                        create_fill_sums, has_sums, sums_name, unprotected_note, write_configuration,
-                                        write_failure, write_scalar_names, write_sums)
+from campaign.storage.checksums import (CHECKPOINT_ATTRS, CHECKPOINT_KEYS, CONFIG_KEYS, BlockMismatch,
+                                        check_configuration, check_rows, checkpoint_problem, checksums_on,
+                                        create_fill_sums, has_sums, sums_name, unprotected_note, write_checkpoint,
+                                        write_configuration, write_failure, write_scalar_names, write_sums)
 from campaign.storage.journal import (  # noqa: F401 - part of this module's interface
     MAX_RECORD, Journal, decode_payload, encode_record, read_journal, scan_journal)
 from campaign.storage.storefile import (  # noqa: F401 - part of this module's interface
@@ -201,6 +208,12 @@ class Store:
         if self._sums is None and checksums_on():  # a store of 0.2.7 or older: it stays as it is
             self.log(f"campaign: {unprotected_note(self.path)} (this run adds none to it)")
         self.have_configs = set(self.f["configurations"].keys()) if "configurations" in self.f else set()
+        try:  # suspended packings (stop and go); a group that cannot be listed holds none we trust
+            self.have_checkpoints = set(self.f["checkpoints"].keys()) if "checkpoints" in self.f else set()
+        except Exception:  # noqa: BLE001 - its tasks start over
+            self.log(f"campaign: {self.path}: the suspended packings (checkpoints) cannot be listed; their "
+                     "tasks start over")
+            self.have_checkpoints = set()
         self.have_failures = set(self.f["failures"].keys()) if "failures" in self.f else set()
         self.scalar_names = set(self.f["scalars"].keys())
         try:
@@ -213,6 +226,8 @@ class Store:
             if meta.get("type") == "task":
                 self._stage(meta, arrays)
                 replayed += 1
+            elif meta.get("type") == "suspended":
+                self._stage_suspended(meta, arrays)
             elif meta.get("type") == "run":
                 self._merge_run(meta["run"])
             if self.staged_bytes > BUFFER_BYTES:
@@ -248,6 +263,8 @@ class Store:
         self.block_bytes: dict[int, int] = {}           # block -> bytes staged
         self.staged_bytes = 0
         self.in_journal: set[int] = set()               # rows with a record in the journal
+        self.suspended_staged: dict[int, tuple] = {}     # row -> suspended packing's (meta, arrays)
+        self.bad_checkpoints: set[str] = set()          # ids whose checkpoint was found damaged
         self.last_flush = time.monotonic()
 
     def n_final(self) -> int:
@@ -289,13 +306,19 @@ class Store:
             if cfg is not None:  # asked for by the spec, or a ladder parent's
                 for k in ("positions", "radii", "box", "species"):
                     arrays["c/" + k] = np.asarray(cfg[k])
+        self._append(meta, arrays)
+        self._stage(meta, arrays)
+        self.maybe_flush()
+
+    def _append(self, meta, arrays):
+        """A record into the journal (before anything touches the HDF5 file)."""
         size = self.journal.size
         try:
             self.journal.append(meta, arrays)
         except OutOfSpace:
             # the journal repeats what is staged for the store: writing the store and cutting the
             # journal back (a checkpoint) may free enough; if not (OutOfSpace again), the run stops
-            if not (self.staged or self.in_journal):
+            if not (self.staged or self.in_journal or self.suspended_staged):
                 raise
             self.checkpoint()
             size = self.journal.size
@@ -303,8 +326,93 @@ class Store:
             self.log(f"campaign: {self.path.parent} was full: wrote the store and cut its journal back early, "
                      "which made room; going on")
         self.space.note_record(self.journal.size - size)
-        self._stage(meta, arrays)
+
+    # ---- suspended packings (stop and go)
+    def suspend(self, index: int, record: dict):
+        """Keep the state of task ``index``'s packing, stopped at a step budget (a GPU worker's
+        ``record``: ``arrays``, the four arrays of ``kernels.gpu.batch.Suspended.arrays``, and its
+        counters ``steps``, ``force_evaluations``, ``device_seconds``, ``launches``). The task stays
+        pending; the next dispatch of it resumes from this state (``suspended``)."""
+        if self.status[index] != PENDING:
+            return
+        t = self.tasks[index]
+        meta = {"type": "suspended", "index": int(index), "id": t.id, "run_id": self.run["run_id"]}
+        meta.update({k: float(record[k]) if k == "device_seconds" else int(record[k]) for k in CHECKPOINT_ATTRS})
+        arrays = {"k/" + k: np.ascontiguousarray(record["arrays"][k], np.float64) for k in CHECKPOINT_KEYS}
+        self._append(meta, arrays)
+        self._stage_suspended(meta, arrays)
         self.maybe_flush()
+
+    def _stage_suspended(self, meta, arrays):
+        i = int(meta["index"])
+        if not (0 <= i < self.T) or self.tasks[i].id != meta["id"]:
+            raise UserError(f"{str(self.journal.path)!r} does not match the spec (task {i})")
+        if self.status[i] == DONE:
+            return
+        self.suspended_staged[i] = (meta, arrays)
+        self.bad_checkpoints.discard(meta["id"])
+
+    def has_suspended(self, index: int) -> bool:
+        """Whether task ``index`` has a suspended packing kept (cheap: no read)."""
+        return index in self.suspended_staged or self.tasks[index].id in self.have_checkpoints
+
+    def suspended(self, index: int):
+        """The arrays of task ``index``'s suspended packing (the four of ``CHECKPOINT_KEYS``), or
+        None: it has none, or it cannot be read or does not match its checksum (then its task starts
+        over, and the run says so once)."""
+        got = self.suspended_staged.get(index)
+        if got is not None:
+            return {k: got[1]["k/" + k] for k in CHECKPOINT_KEYS}
+        tid = self.tasks[index].id
+        if tid not in self.have_checkpoints or tid in self.bad_checkpoints:
+            return None
+        arrays, _, problem = checkpoint_problem(self._checkpoint_group(tid))
+        if problem is not None:
+            self.bad_checkpoints.add(tid)
+            self.log(f"campaign: {self.path}: the suspended packing of task {tid} (checkpoints/{tid}) {problem}; "
+                     "the task starts over")
+            return None
+        return arrays
+
+    def _checkpoint_group(self, tid):
+        try:
+            return self.f[f"checkpoints/{tid}"]
+        except Exception:  # noqa: BLE001 - checkpoint_problem says it cannot be read
+            return None
+
+    def suspended_counts(self) -> dict:
+        """Suspended packings kept: ``{"tasks", "steps"}`` (FIRE steps so far, summed)."""
+        steps = 0
+        n = 0
+        for i, (meta, _) in self.suspended_staged.items():
+            n += 1
+            steps += int(meta["steps"])
+        staged = {self.tasks[i].id for i in self.suspended_staged}
+        for tid in self.have_checkpoints - staged - self.bad_checkpoints:
+            try:
+                steps += int(self.f[f"checkpoints/{tid}"].attrs["steps"])
+                n += 1
+            except Exception:  # noqa: BLE001 - not one we can resume
+                pass
+        return {"tasks": n, "steps": steps}
+
+    def _write_checkpoints(self):
+        """The staged suspended packings into ``/checkpoints`` (one write step), each replacing the
+        task's earlier one."""
+        rows = sorted(self.suspended_staged.items())
+        need = sum(sum(a.nbytes for a in arrays.values()) + 6144 for _, (_, arrays) in rows)
+        need += 96 * len(self.have_checkpoints)  # the group's name heap doubles when it fills
+        with self.space.write_step(self.io, need, "writing suspended packings into the store", len(self.scalar_names)):
+            g = self.f.require_group("checkpoints")
+            for i, (meta, arrays) in rows:
+                tid = self.tasks[i].id
+                if tid in g:
+                    del g[tid]
+                write_checkpoint(g, tid, {k: arrays["k/" + k] for k in CHECKPOINT_KEYS},
+                                 {k: meta[k] for k in CHECKPOINT_ATTRS})
+                self.have_checkpoints.add(tid)
+            self.f.flush()
+        self.suspended_staged.clear()
 
     def _staged_row(self, index):
         return self.staged.get(index // self.B, {}).get(index)
@@ -372,6 +480,7 @@ class Store:
         if not (0 <= i < self.T) or self.tasks[i].id != meta["id"]:
             raise UserError(f"{str(self.journal.path)!r} does not match the spec (task {i})")
         status = int(meta["status"])
+        self.suspended_staged.pop(i, None)  # its suspended packing, if any, is removed with the row
         self.n_status[int(self.status[i])] -= 1
         self.n_status[status] += 1
         self.status[i] = status
@@ -405,7 +514,7 @@ class Store:
     def maybe_flush(self):
         now = time.monotonic()
         if (self.staged_bytes > BUFFER_BYTES or self.journal.size > JOURNAL_BYTES
-                or (self.staged and now - self.last_flush >= FLUSH_SECONDS)):
+                or ((self.staged or self.suspended_staged) and now - self.last_flush >= FLUSH_SECONDS)):
             self.flush()
 
     def flush(self, force=False):
@@ -427,6 +536,9 @@ class Store:
         if blocks:
             self.journal.sync()  # the journal is durable before the store changes
             self._write_blocks(blocks)
+        if self.suspended_staged:
+            self.journal.sync()
+            self._write_checkpoints()
         self.last_flush = time.monotonic()
         if self.journal.size > JOURNAL_BYTES:
             self.checkpoint()
@@ -512,6 +624,10 @@ class Store:
                 if tid in self.have_failures:
                     del f[f"failures/{tid}"]
                     self.have_failures.discard(tid)
+                if tid in self.have_checkpoints:  # finished: its suspended packing is of no more use
+                    del f[f"checkpoints/{tid}"]
+                    self.have_checkpoints.discard(tid)
+                    self.bad_checkpoints.discard(tid)
                 if int(meta["status"]) == FAILED:
                     write_failure(f["failures"], tid, {"message": meta["message"], "traceback": meta["traceback"],
                                                        "attempts": int(meta["attempts"]), "rank": int(meta["rank"]),
@@ -570,6 +686,9 @@ class Store:
         if self.staged:
             self.journal.sync()
             self._write_blocks(list(self.staged))
+        if self.suspended_staged:
+            self.journal.sync()
+            self._write_checkpoints()
         with self.space.write_step(self.io, 0, "flushing the store at a checkpoint", len(self.scalar_names)):
             self.f.flush()
         try:
