@@ -142,6 +142,7 @@ def test_mpi_workers_die_with_a_killed_master(tmp_path):
     assert gone < 10
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux") or not MPIEXEC.exists(), reason="reads /proc; mpiexec")
 def test_mpi_workers_die_with_a_master_killed_while_starting(tmp_path):
     """`mpiexec -n 3`, the master SIGKILLed at moments of the start-up: while MPI starts, while it plans

@@ -8,9 +8,9 @@ XYZ, `analyze` of a configuration for the store that keeps them) and `verify`. N
 as documented (0 or 2 for the readers, 0 or 1 for verify), and no reader exits 0 with an output other
 than the clean store's.
 
-The same chunk-index damage in stores as 0.2.7 wrote them, without block checksums (tests/data; the
-second store with `-m slow`): no traceback from any reader, nor from `verify --repair`, though most of it
-reads silently; and once `verify --repair` added their checksums, none of it reads silently.
+The same chunk-index damage in stores as 0.2.7 wrote them, without block checksums (tests/data): no
+traceback from any reader, nor from `verify --repair`, though most of it reads silently; and once
+`verify --repair` added their checksums, none of it reads silently.
 """
 
 import contextlib
@@ -194,7 +194,7 @@ def test_random_flips(store, tmp_path):
 DATA = Path(__file__).resolve().parent / "data"
 
 
-@pytest.fixture(scope="module", params=["configs", pytest.param("plain", marks=pytest.mark.slow)])
+@pytest.fixture(scope="module", params=["configs", "plain"])
 def old_store(request, tmp_path_factory):
     """A store as 0.2.7 wrote it (the same specs, no block checksums: tests/data/v027_stores.py), and a copy
     that `campaign verify --repair` wrote anew with them; every reader gives the two the same outputs."""
@@ -216,6 +216,7 @@ def old_store(request, tmp_path_factory):
     return d / "old.h5", d / "new.h5", group, clean
 
 
+@pytest.mark.slow
 def test_v027_store_chunk_index_damaged(old_store, tmp_path):
     """A store without block checksums, one chunk key's row offset moved by a block in every chunk-index
     node: no reader ends in a traceback (most of the damage reads silently: nothing recorded what the rows
@@ -238,6 +239,7 @@ def test_v027_store_chunk_index_damaged(old_store, tmp_path):
           f"{found} found by verify, 0 tracebacks")
 
 
+@pytest.mark.slow
 def test_upgraded_store_chunk_index_damaged(old_store, tmp_path):
     """The same store once `verify --repair` added its block checksums: chunk-index damage in every node is
     refused or changes nothing a reader reads, as in a store written with them."""

@@ -30,7 +30,7 @@ def _cli(*argv):
     return code, out.getvalue(), err.getvalue()
 
 
-@pytest.fixture(params=["plain", "configs"])
+@pytest.fixture(params=["configs", pytest.param("plain", marks=pytest.mark.slow)])
 def old(request, tmp_path):
     for suffix in ("", ".journal"):
         shutil.copy(DATA / f"v027-{request.param}.h5{suffix}", tmp_path / f"s.h5{suffix}")

@@ -41,8 +41,8 @@ from campaign.storage.checksums import (BLOCK_FILTERS, CHECKSUM_ATTR, CONFIG_KEY
                                         _text, checkpoint_damage, configuration_problem, failure_problem,
                                         good_scalar_name, is_filter_failure, looks_like_store, reason,
                                         scalar_names_listed)
-from campaign.storage.checksums import (BLOCK_MISMATCH, PROTECTION_ATTR, SUMS_GROUP, SUMS_ROWS, has_sums,
-                                        mismatched_blocks, sums_name)
+from campaign.storage.checksums import (BLOCK_MISMATCH, SUMS_GROUP, SUMS_ROWS, has_sums, mismatched_blocks,
+                                        sums_name)
 from campaign.storage.damage import Damage, Report
 from campaign.storage.unprotected import expected_identities, identities, identity_blocks, journal_rows
 
@@ -74,7 +74,6 @@ class Scan:
         self.failure_ids = set()  # rows with a failure record (readable or not)
         self.config_rows = set()  # rows with a configuration group (sound or not)
         self.summed = has_sums(f)  # the store keeps block checksums
-        self.report.unprotected = not self.summed
         self.status_bad = []      # blocks of the status column that do not match their checksums
         self.expected = None      # without block checksums: the spec's task identities, column by column
 
@@ -168,7 +167,6 @@ class Scan:
                 unreadable.append(Damage(f"/@{k}", f"cannot be read ({reason(exc)})",
                                          repair="none" if k in ("spec_yaml", "spec_hash") else "remove"))
         r.name = _text(attrs.get("name")) or ""
-        r.protection = _text(attrs.get(PROTECTION_ATTR)) or ""
         schema = _text(attrs.get("schema"))
         for k in attrs:
             if k not in ROOT_ATTRS:

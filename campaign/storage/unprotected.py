@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from campaign.storage.checksums import good_scalar_name
+from campaign.storage.checksums import PROTECTION_ATTR, _text, good_scalar_name
 from campaign.storage.damage import Damage
 
 
@@ -28,8 +28,14 @@ def identities(spec) -> dict:
 
 def expected_identities(scan):
     """``identities`` of the scanned store's spec when the store has no block checksums (what its
-    task table is checked against, ``identity_blocks``), else None."""
+    task table is checked against, ``identity_blocks``), else None; and the report's ``unprotected``
+    and ``protection`` (the store's ``block_checksums`` attribute: how it came to have them)."""
     r = scan.report
+    r.unprotected = not scan.summed
+    try:
+        r.protection = _text(scan.f.attrs.get(PROTECTION_ATTR)) or ""
+    except Exception:  # noqa: BLE001 - unreadable root attributes: reported by the scan
+        r.protection = ""
     return identities(r.spec) if not scan.summed and r.spec is not None and r.spec.n_tasks == r.T else None
 
 
