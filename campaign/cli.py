@@ -53,8 +53,29 @@ def build_parser(names=SUBCOMMANDS) -> argparse.ArgumentParser:
     return parser
 
 
+#: Commands that read stores and name one without block checksums (docs/STORE.md, "Stores written
+#: before the block checksums"); ``verify`` says it in its report, ``run`` when it resumes one.
+READERS = ("status", "reduce", "plot", "export", "analyze", "draw")
+
+
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    try:
+        return _main(argv)
+    finally:
+        if "campaign.storage.checksums" in sys.modules:
+            from campaign.storage.checksums import unprotected_note, unprotected_seen
+            from campaign.storage.storefile import FORMAT_VERSION, SCHEMA
+
+            seen = unprotected_seen()
+            command = next((a for a in argv if a in SUBCOMMANDS), None)
+            if command in READERS:
+                for path, schema, version in seen:
+                    if schema == SCHEMA and version == FORMAT_VERSION:
+                        print(f"campaign {command}: {unprotected_note(path)}", file=sys.stderr)
+
+
+def _main(argv) -> int:
     # Import only the module of the subcommand asked for (fast start-up).
     wanted = [a for a in argv if a in SUBCOMMANDS][:1]
     parser = build_parser(wanted or SUBCOMMANDS)

@@ -3,7 +3,10 @@
 A real `campaign run` (synthetic tasks of several seconds each) is killed with SIGKILL while its workers
 compute; 10 s later no worker process is alive; a rerun completes the campaign with the bits of an
 uninterrupted run. Locally (two worker processes) and under `mpiexec -n 3`, there with Hydra's own
-clean-up disabled, so that the workers' watch of the master is what ends them.
+clean-up disabled. And under `mpiexec -n 3` with a wrapper shell between Hydra and each task, the master
+killed at moments of the start-up, before and after it sends the workers their settings: Hydra ends
+the other tasks of a task killed by a signal by itself, -disable-auto-cleanup or not, but not those of
+a wrapper that exits with a status, so that there the workers' own watch is what ends them.
 """
 
 import os
@@ -17,7 +20,7 @@ import h5py
 import numpy as np
 import pytest
 
-from helpers import processes
+from helpers import mpich_segments, processes, remove_segments_of_killed_jobs
 
 ROOT = Path(__file__).resolve().parents[1]
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
@@ -88,8 +91,10 @@ def _kill_and_resume(tmp_path, launch):
             time.sleep(0.5)
         time.sleep(3)
         procs = _processes_of(out)
+        argv = {pid: Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0") for pid in procs}
         masters = [pid for pid, rank in procs.items() if rank in (None, "0") and pid != p.pid
-                   and b"--multiprocessing-fork" not in Path(f"/proc/{pid}/cmdline").read_bytes()]
+                   and b"--multiprocessing-fork" not in argv[pid]
+                   and b"python" in Path(argv[pid][0].decode()).name.encode()]  # not its wrapper shell
         if not masters:
             masters = [p.pid]
         master = min(masters)
@@ -129,7 +134,73 @@ def test_local_workers_die_with_a_killed_master(tmp_path):
 @pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux") or not MPIEXEC.exists(), reason="reads /proc; mpiexec")
 def test_mpi_workers_die_with_a_killed_master(tmp_path):
-    # Hydra's clean-up off: the workers' own watch of the master ends them
-    gone = _kill_and_resume(tmp_path, lambda cmd: [str(MPIEXEC), "-disable-auto-cleanup", "-n", "3"] + cmd)
+    # Hydra's clean-up off and a wrapper shell between it and each task (Hydra ends the other tasks of one
+    # killed by a signal whatever the option says): the workers' own watch of the master ends them
+    gone = _kill_and_resume(tmp_path, lambda cmd: [str(MPIEXEC), "-disable-auto-cleanup", "-n", "3", "sh", "-c",
+                                                   '"$@"; exit $?', "sh"] + cmd)
     print("workers gone", round(gone, 2), "s after the SIGKILL")
     assert gone < 10
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not sys.platform.startswith("linux") or not MPIEXEC.exists(), reason="reads /proc; mpiexec")
+def test_mpi_workers_die_with_a_master_killed_while_starting(tmp_path):
+    """`mpiexec -n 3`, the master SIGKILLed at moments of the start-up: while MPI starts, while it plans
+    (the workers wait for its settings), as its progress file appears (it sends the settings next) and
+    just after: 10 s later no worker is alive. Each task is started by a shell that waits for it (as a
+    site's wrapper script does), and Hydra's clean-up is off: Hydra then sees the master's shell exit
+    with a status, not a signal, and ends no other task by itself (without the wrapper it ends them
+    all whatever -disable-auto-cleanup says), so that the workers' own watch is what ends them."""
+    spec = tmp_path / "s.yaml"
+    spec.write_text(SPEC)
+    phases, segments = [], mpich_segments()  # the killed jobs' shared memory is removed below
+    for k, moment in enumerate(("seen", "planning", "progress", "after")):
+        out = tmp_path / f"o{k}.h5"
+        cmd = [str(MPIEXEC), "-disable-auto-cleanup", "-n", "3", "sh", "-c", '"$@"; exit $?', "sh", sys.executable,
+               "-m", "campaign", "run", str(spec), "--out", str(out), "--quiet"]
+        p = subprocess.Popen(cmd, env=_env("20"), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                             start_new_session=True)
+        progress = Path(str(out) + ".progress.json")
+        try:
+            deadline, master, seen = time.monotonic() + 60, None, None
+            while time.monotonic() < deadline:
+                procs = _ranked(out)
+                master = next((pid for pid, (rank, py) in procs.items() if rank == "0" and py), None)
+                seen = seen or (time.monotonic() if master else None)
+                ready = {"seen": master is not None, "planning": seen and time.monotonic() - seen > 1.0,
+                         "progress": progress.exists(), "after": progress.exists()}[moment]
+                if ready:
+                    break
+                time.sleep(0.01)
+            if moment == "after":
+                time.sleep(0.3)
+            procs = _ranked(out)
+            workers = [pid for pid, (rank, _) in procs.items() if rank != "0"]
+            assert master is not None and len(workers) >= 2, procs
+            phases.append(progress.exists())
+            os.kill(master, signal.SIGKILL)
+            t0 = time.monotonic()
+            while _alive(workers) and time.monotonic() - t0 < 10:
+                time.sleep(0.2)
+            assert not _alive(workers), (f"workers {_alive(workers)} still alive 10 s after the master's death "
+                                         f"({moment})")
+            print(moment, "workers gone", round(time.monotonic() - t0, 2), "s after the SIGKILL")
+        finally:
+            for pid in [p.pid] + list(_ranked(out)):
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except OSError:
+                    pass
+            p.wait(timeout=30)
+            remove_segments_of_killed_jobs(segments)
+    assert False in phases and True in phases  # killed before the settings were sent, and after
+
+
+def _ranked(out):
+    """pid -> (PMI_RANK, is it the Python process rather than its shell) of every task of the launch
+    writing OUT."""
+    got = {}
+    for pid, args, env in processes():
+        if str(out).encode() in args and b"PMI_RANK" in env:
+            got[pid] = (env[b"PMI_RANK"].decode(), b"python" in Path(args[0].decode()).name.encode())
+    return got

@@ -7,6 +7,10 @@ flips at random offsets (a fixed seed). After each: `status --json`, `reduce --j
 XYZ, `analyze` of a configuration for the store that keeps them) and `verify`. No traceback, exit codes
 as documented (0 or 2 for the readers, 0 or 1 for verify), and no reader exits 0 with an output other
 than the clean store's.
+
+The same chunk-index damage in stores as 0.2.7 wrote them, without block checksums (tests/data): no
+traceback from any reader, nor from `verify --repair`, though most of it reads silently; and once
+`verify --repair` added their checksums, none of it reads silently.
 """
 
 import contextlib
@@ -183,3 +187,71 @@ def test_random_flips(store, tmp_path):
         assert not _silent(clean, got), (off, bit, _silent(clean, got))
         refused += any(code == 2 for code, _ in got.values())
     print("random flips refused by a reader:", refused)
+
+
+# --------------------------------------------------------------------------- stores written before block checksums
+
+DATA = Path(__file__).resolve().parent / "data"
+
+
+@pytest.fixture(scope="module", params=["configs", "plain"])
+def old_store(request, tmp_path_factory):
+    """A store as 0.2.7 wrote it (the same specs, no block checksums: tests/data/v027_stores.py), and a copy
+    that `campaign verify --repair` wrote anew with them; every reader gives the two the same outputs."""
+    d = tmp_path_factory.mktemp("v027-" + request.param)
+    for name in ("old", "new"):
+        for suffix in ("", ".journal"):
+            shutil.copy(DATA / f"v027-{request.param}.h5{suffix}", d / f"{name}.h5{suffix}")
+    with h5py.File(d / "old.h5", "r") as f:
+        assert "checksums" not in f and "block_checksums" not in f.attrs and f.attrs["package_version"] == "0.2.7"
+        group = "/configurations/" + sorted(f["configurations"])[0] if "configurations" in f else None
+    clean = _readers(d / "old.h5", d / "clean-old", group)
+    assert all(code == 0 for code, _ in clean.values()), clean
+    code, out, err = _cli("verify", d / "new.h5", "--repair")
+    assert code == 0 and "PROTECTED: wrote" in out and "cannot be found" in out, (code, out, err)
+    with h5py.File(d / "new.h5", "r") as f:
+        assert "checksums" in f and f.attrs["block_checksums"].startswith("added")
+    upgraded = _readers(d / "new.h5", d / "clean-new", group)
+    assert not _silent(clean, upgraded), _silent(clean, upgraded)
+    return d / "old.h5", d / "new.h5", group, clean
+
+
+@pytest.mark.slow
+def test_v027_store_chunk_index_damaged(old_store, tmp_path):
+    """A store without block checksums, one chunk key's row offset moved by a block in every chunk-index
+    node: no reader ends in a traceback (most of the damage reads silently: nothing recorded what the rows
+    were), and `verify --repair`, which adds the checksums, ends with its report (0 or 1), never a
+    traceback. What it finds: the chunks whose index entry is inconsistent, and the task table's blocks
+    whose identities are not the spec's."""
+    old, _, group, clean = old_store
+    keys = chunk_keys(Path(old).read_bytes())
+    assert len(keys) >= 10
+    refused = silent = found = 0
+    for off in keys:
+        got, verify = _trial(old, group, clean, tmp_path, off, int(np.log2(BLOCK)))
+        refused += any(code == 2 for code, _ in got.values())
+        silent += bool(_silent(clean, got))
+        found += verify == 1
+        code, out, err = _cli("verify", tmp_path / "d.h5", "--repair", "--quiet")
+        assert code in (0, 1) and "Traceback" not in err, (off, code, err)
+        assert code == 1 or "PROTECTED: wrote" in out, (off, out)
+    print(f"0.2.7 store, chunk-index damage: {len(keys)} nodes, {refused} refused by a reader, {silent} silent, "
+          f"{found} found by verify, 0 tracebacks")
+
+
+@pytest.mark.slow
+def test_upgraded_store_chunk_index_damaged(old_store, tmp_path):
+    """The same store once `verify --repair` added its block checksums: chunk-index damage in every node is
+    refused or changes nothing a reader reads, as in a store written with them."""
+    _, new, group, clean = old_store
+    keys = chunk_keys(Path(new).read_bytes())
+    assert len(keys) >= 10
+    refused = 0
+    for off in keys:
+        got, verify = _trial(new, group, clean, tmp_path, off, int(np.log2(BLOCK)))
+        assert not _silent(clean, got), (off, _silent(clean, got), got)
+        if any(code == 2 for code, _ in got.values()):
+            refused += 1
+            assert verify == 1, off
+    print(f"upgraded 0.2.7 store, chunk-index damage: {len(keys)} nodes, {refused} refused by a reader, 0 silent")
+    assert refused >= len(keys) // 2

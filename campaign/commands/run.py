@@ -86,6 +86,10 @@ def main(args) -> int:
     if split and not use_mpi:
         _refuse_split_launch(split_launch_error(1) + ("" if args.launcher == "auto" else
                                                       f" (--launcher {args.launcher} makes each task a master.)"))
+    if use_mpi:  # a worker ends with its master from now on: while MPI starts, before the settings come
+        from campaign.run.launch import watch_first_rank
+
+        watch_first_rank()
 
     from campaign.errors import UserError
     from campaign.run.walltime import deadline
@@ -100,8 +104,7 @@ def main(args) -> int:
     if args.task_function is None:
         args.task_function = os.environ.get("CAMPAIGN_TASK_FUNCTION") or "kernels"
     if use_mpi:
-        from mpi4py import MPI
-
+        MPI = _start_mpi()
         comm = MPI.COMM_WORLD
         refused = split_launch_error(comm.Get_size())
         if refused:
@@ -115,6 +118,35 @@ def main(args) -> int:
     from campaign.run.engine import run_campaign
 
     return run_campaign(args)
+
+
+def _start_mpi():
+    """mpi4py's MPI, started (``MPI_Init_thread``, as mpi4py starts it: every thread level, errors as
+    exceptions, finalised at exit) without holding the interpreter: MPI's start waits for every task of
+    the job, the master included, and the watch of the master (``watch_first_rank``, a thread) must run
+    meanwhile. mpi4py's own start holds the interpreter throughout; it is the fallback."""
+    import atexit
+    import ctypes
+
+    import mpi4py
+
+    mpi4py.rc.initialize = False
+    from mpi4py import MPI
+
+    if MPI.Is_initialized():
+        return MPI
+    try:
+        init = ctypes.CDLL(MPI.__file__).MPI_Init_thread  # a foreign call: the interpreter is released
+    except (OSError, AttributeError):
+        MPI.Init_thread()
+        return MPI
+    provided = ctypes.c_int()
+    if init(None, None, ctypes.c_int(MPI.THREAD_MULTIPLE), ctypes.byref(provided)) != 0 or not MPI.Is_initialized():
+        raise RuntimeError("MPI_Init_thread failed")
+    for comm in (MPI.COMM_SELF, MPI.COMM_WORLD):
+        comm.Set_errhandler(MPI.ERRORS_RETURN)  # mpi4py's default: a failed call raises MPI.Exception
+    atexit.register(lambda: MPI.Is_finalized() or MPI.Finalize())
+    return MPI
 
 
 def _refuse_split_launch(message):

@@ -142,10 +142,14 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
     if devices is not None and all(f"device_{k}" in f["scalars"] for k in ("start", "end", "seconds", "slots")):
         clock = {k: f["scalars"][f"device_{k}"] for k in ("start", "end", "seconds", "slots")}
     busy = GpuBusy(run_spans(f.attrs.get("runs", "[]")))
+    from campaign.storage.checksums import check_identities, stored_spec
+
+    spec = stored_spec(f.attrs)
     for lo in range(0, T, BLOCK):
         hi = min(lo + BLOCK, T)
         st = status_all[lo:hi]
         v, N, E = t["variant"][lo:hi], t["N"][lo:hi], t["E"][lo:hi]
+        check_identities(f.filename, spec, v, N, E, lo)
         change = np.flatnonzero((v[1:] != v[:-1]) | (N[1:] != N[:-1]) | (E[1:] != E[:-1])) + 1
         for a, b in zip(np.r_[0, change].tolist(), np.r_[change, hi - lo].tolist()):
             key = (v[a].decode(errors="replace"), int(N[a]), float(E[a]))

@@ -24,6 +24,11 @@ run` of the same spec recomputes them, giving the file an undamaged run would ha
 identities and bin edges are rewritten from the spec. It cannot recover a file whose superblock
 or root group is gone, nor a store whose stored spec is damaged (docs/STORE.md, "Checksums,
 verify and repair").
+
+A store written before the block checksums (0.2.7 and older) is checked for what can stand in for
+them (each block's task identities against the spec, the journal's records against their rows), and
+--repair writes it anew with them, damaged rows dropped; damage older than that which no check
+sees cannot be found (docs/STORE.md, "Stores written before the block checksums").
 """
 
 
@@ -34,7 +39,8 @@ def configure(parser):
     parser.epilog = EPILOG
     parser.add_argument("file", metavar="FILE", help="campaign store (HDF5) written by 'campaign run'")
     parser.add_argument("--repair", action="store_true",
-                        help="drop the damaged rows (their tasks become pending, for 'campaign run' to recompute)")
+                        help="drop the damaged rows (their tasks become pending, for 'campaign run' to recompute); "
+                             "a store without block checksums gets them")
     parser.add_argument("--json", action="store_true", help="print the report as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
 
@@ -69,7 +75,7 @@ class _Progress:
 
 def main(args) -> int:
     from campaign.errors import UserError
-    from campaign.storage.checksums import run_is_writing
+    from campaign.storage.checksums import checksums_on, run_is_writing
     from campaign.storage.integrity import scan
     from campaign.storage.repair import repair
 
@@ -82,10 +88,11 @@ def main(args) -> int:
     finally:
         progress.end()
     out = report.to_json()
-    if args.repair and not report.ok:
+    if args.repair and (not report.ok or (report.unprotected and checksums_on())):
         fixable = report.fatal is None and not report.unrepairable()
         if fixable:
             out["repaired"] = repair(report)
+            out["repaired"]["block_checksums_added"] = report.unprotected and checksums_on()
     if args.json:
         print(json.dumps(out, indent=1))
     else:
@@ -103,6 +110,8 @@ def _size(n) -> str:
 
 
 def _print(report, out, path):
+    from campaign.storage.checksums import PROTECTED_SINCE
+
     c = report.checked
     print(f"{path}: campaign {report.name or '?'}, {report.T} tasks ({report.counts['done']} done, "
           f"{report.counts['failed']} failed, {report.counts['pending']} pending)")
@@ -114,8 +123,15 @@ def _print(report, out, path):
     print(f"  read {c['datasets']} datasets ({c['chunks']} chunks, {_size(c['bytes'])} stored), "
           f"{c['configurations']} configurations and {c['failures']} failure records in {c['seconds']:.1f} s")
     bare_ds, bare_conf = report.unchecked["datasets"], report.unchecked["configurations"]
+    if report.unprotected:
+        print(f"  UNPROTECTED: no block checksums (written before {PROTECTED_SINCE}): a chunk listed off its place in "
+              "HDF5's chunk index reads as other rows without an error. Checked instead: each block's task "
+              "identities against the spec, every chunk's own checksum and index entry, the journal's records")
+    elif report.protection.startswith("added"):
+        print(f"  block checksums {report.protection}")
     if not bare_ds and not bare_conf:
-        print("  every dataset and configuration carries a checksum")
+        print("  every chunk and configuration carries its own checksum" if report.unprotected else
+              "  every dataset and configuration carries a checksum")
     else:
         parts = []
         if bare_ds:
@@ -125,8 +141,14 @@ def _print(report, out, path):
         print(f"  {' and '.join(parts)} carry no checksums (written before checksums were added): they were "
               "checked only as far as HDF5 checks them without (a compressed chunk's deflate stream has its own "
               "Adler-32; an uncompressed configuration nothing)")
-    if report.ok:
+    if report.ok and "repaired" not in out:
         print("  OK: no damage found")
+        if report.unprotected:
+            print(f"  `campaign verify {path} --repair` writes it anew with block checksums (it needs room for a "
+                  "second copy)")
+        return
+    if report.ok:  # a sound store without block checksums, written anew with them
+        _protected(out["repaired"], path)
         return
     lost = report.lost_rows()
     print(f"  DAMAGED: {len(report.damage)} part(s); {len(lost)} finished task(s) cannot be trusted")
@@ -140,6 +162,8 @@ def _print(report, out, path):
               f"again ({after['done']} done, {after['failed']} failed, {after['pending']} pending now). "
               f"`campaign run SPEC --out {path}` with the campaign's spec recomputes them (the spec is the file's "
               "'spec_yaml' attribute); the tasks are deterministic, so the store then equals an undamaged run's")
+        if rep["block_checksums_added"]:
+            _protected(rep, path)
         return
     bad = report.unrepairable()
     if bad:
@@ -149,3 +173,13 @@ def _print(report, out, path):
     else:
         print(f"  `campaign verify {path} --repair` drops the rows that cannot be trusted (their tasks become "
               f"pending), then `campaign run SPEC --out {path}` recomputes them")
+
+
+def _protected(rep, path):
+    """What writing an unprotected store anew with block checksums did, and what it could not do."""
+    print(f"  PROTECTED: wrote {path} anew with block checksums ({rep['rows_after']['done']} done, "
+          f"{rep['rows_after']['failed']} failed, {rep['rows_after']['pending']} pending); from now on every reader "
+          "checks each block it reads. Damage done before this, which the checks above could not see (a chunk of "
+          "scalars or histograms listed off its place whose rows read as plausible values), cannot be found: the "
+          "new checksums are of the rows as they read now. If in doubt, rerun the spec into a new file "
+          "(`campaign run SPEC --out NEW.h5`: packings are pure functions of the spec) and compare")

@@ -41,10 +41,11 @@ def _group_stats(values, cell, C):
     c = cell[ok]
     v = values[ok]
     n = np.bincount(c, minlength=C).astype(float)
-    with np.errstate(invalid="ignore", divide="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         mean = np.bincount(c, weights=v, minlength=C) / n
         d = v - mean[c]
-        var = np.bincount(c, weights=d * d, minlength=C) / (n - 1)
+        # a cell with fewer than two values has no spread (0 / -1 would give a finite -0.0)
+        var = np.where(n >= 2, np.bincount(c, weights=d * d, minlength=C) / np.maximum(n - 1, 1), np.nan)
         std = np.sqrt(var)
         sem = std / np.sqrt(n)
     return n, mean, std, sem

@@ -220,6 +220,9 @@ def load_finished(paths) -> Finished:
                 if err is None:
                     raise
                 raise err from None
+        from campaign.storage.checksums import check_identities, stored_spec
+
+        check_identities(path, stored_spec(file_attrs), variant, cols["N"], cols["E"])
         attrs = attrs or file_attrs
         if edges is None:
             edges = hedges

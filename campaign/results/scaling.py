@@ -130,17 +130,21 @@ def scaling_fits(fin, g: Grid, s, cells, notes, exponents=None):
         for quantity, absc, key, bkey in FITS:
             res = np.full(C, np.nan)
             rec = {"variant": v, "N_G": n, "quantity": quantity, "abscissa": absc}
-            if have and len(usable):
+            # this size's cells, computed afresh for every quantity: nothing of an earlier size or
+            # quantity may carry over (a size without a usable cell has none)
+            ok, n_pos, bx, by = np.zeros(len(usable), bool), 0, None, None
+            if have:
                 x = cells[f"mean_{absc}"][usable]
                 y = cells[f"mean_{quantity}"][usable]
                 ye = cells[f"sem_{quantity}"][usable]
                 # x = 0 is a legitimate abscissa (an isostatic cell: Delta Z = 0 exactly)
-                ok = np.isfinite(x) & (x >= 0) & np.isfinite(y) & np.isfinite(ye) & (ye > 0)
+                with np.errstate(invalid="ignore"):
+                    ok = np.isfinite(x) & (x >= 0) & np.isfinite(y) & np.isfinite(ye) & (ye > 0)
                 n_pos = int(np.count_nonzero(x[ok] > 0))
-                bx = by = None
                 if boot is not None:
                     bx = boot[:, ok, cols.index(absc)]
                     by = boot[:, ok, cols.index(quantity)]
+            if have and len(usable):
                 if n_pos < 3:  # the size's cells, or why it cannot enter the shared fit
                     entry = f"{n_pos} cell(s) with a positive mean {absc} in the fit range (3 needed)"
                 elif bx is None and s.n_boot > 1:

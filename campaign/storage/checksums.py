@@ -35,7 +35,7 @@ IDENTITY = ("id", "variant", "N", "E", "seed")
 SHUFFLE, DEFLATE, FLETCHER32 = 2, 1, 3  # HDF5's filter ids
 ROOT_MEMBERS = ("tasks", "scalars", "histograms", "configurations", "failures", "reduced", "checksums", "checkpoints")
 ROOT_ATTRS = ("schema", "format_version", "name", "spec_yaml", "spec_hash", "package_version", "git_commit", "versions",
-              "runs", "hosts", "start_time", "end_time")
+              "runs", "hosts", "start_time", "end_time", "block_checksums")
 SCALAR_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
@@ -327,6 +327,37 @@ def _text(v):
     return v if isinstance(v, str) else None
 
 
+def stored_spec(attrs):
+    """The spec that wrote a store (its ``spec_yaml``, which must hash to its ``spec_hash``), or None:
+    unreadable, or a file made otherwise (by hand, by another program) whose spec does not describe it."""
+    from campaign.plan.spec import parse_spec
+
+    try:
+        spec = parse_spec(str(_text(attrs.get("spec_yaml")) or ""), "the stored spec")
+    except UserError:
+        return None
+    return spec if spec.hash == _text(attrs.get("spec_hash")) else None
+
+
+def check_identities(path, spec, variant, N, E, lo=0):
+    """StoreDamaged unless every row (from row ``lo``) of the store ``path`` is a task of its own
+    ``spec`` (``stored_spec``: its variant, N and E; nothing is checked without): a block of the task table read
+    from another place (a damaged chunk index, in a store without block checksums) can read as rows
+    of no task, and must not become a cell of a table."""
+    if spec is None:
+        return
+    variant = np.array([_text(x) if isinstance(x, bytes) else str(x) for x in np.asarray(variant).ravel()])
+    N, E = np.asarray(N), np.asarray(E)
+    bad = ~np.isin(variant, [v.name for v in spec.variants])
+    for v in spec.variants:
+        bad |= (variant == v.name) & ~(np.isin(N, list(spec.N)) & np.isin(E, list(v.E)))
+    if bad.any():
+        i = np.flatnonzero(bad)
+        raise StoreDamaged(damaged_message(
+            path, "tasks", f"rows {lo + int(i[0])}-{lo + int(i[-1])} hold {len(i)} row(s) of no task of its own spec "
+            f"(the first: variant {str(variant[i[0]])!r}, N = {N[i[0]]}, E = {E[i[0]]!r}): its task table is damaged"))
+
+
 # --------------------------------------------------------------------------- block checksums
 #
 # Fletcher32 guards the bytes of each chunk, not which chunk a row is read from: a damaged chunk
@@ -439,12 +470,55 @@ def create_fill_sums(f, name, T, B, row_shape, dtype, fill):
     return create_sums(f, name, B, fill_sums(T, B, row_shape, dtype, fill))
 
 
+#: The root attribute of a store that keeps block checksums (since 0.3.0): how it came to have them
+#: (``protection_text``). A store with neither it nor ``/checksums`` was written without them (0.2.7
+#: and older): unprotected. With the attribute and without the group, the group's link is damaged.
+PROTECTION_ATTR = "block_checksums"
+#: The version that added block checksums: stores written before it have none.
+PROTECTED_SINCE = "0.3.0"
+
+
+def protection_text(upgraded=False) -> str:
+    """The value of a store's ``block_checksums`` attribute: written with every block since the store
+    was created, or added (``upgraded``) when a store without them was written anew."""
+    if not upgraded:
+        return "written with every block since the store was created"
+    import time
+
+    from campaign.version import __version__
+
+    return (f"added {time.strftime('%Y-%m-%dT%H:%M:%S%z')} by jamming-campaign {__version__}, which wrote the store "
+            "anew from a store without them: damage done before that and not found by the checks of "
+            "`campaign verify` then cannot be found")
+
+
 def has_sums(f) -> bool:
-    """Whether the store ``f`` keeps block checksums (written by this version with checksums on)."""
+    """Whether the store ``f`` keeps block checksums: its ``checksums`` group, or the root attribute
+    that says it has one (so that a damaged link to the group is not taken for a store without)."""
     try:
-        return SUMS_GROUP in f
+        return SUMS_GROUP in f or PROTECTION_ATTR in f.attrs
     except Exception:  # noqa: BLE001 - a damaged root group: the readers' other checks say so
         return False
+
+
+def unprotected_note(path) -> str:
+    """The one line a reader prints about a store without block checksums (0.2.7 and older)."""
+    return (f"note: {path} has no block checksums (written before {PROTECTED_SINCE}): damage to HDF5's chunk "
+            f"index would change what is read without an error. `campaign verify {path} --repair` checks what "
+            "can be checked and adds them")
+
+
+#: Stores a checked open found without block checksums, in this process (``unprotected_seen``).
+_UNPROTECTED: list = []
+
+
+def unprotected_seen() -> list:
+    """``(path, schema, format_version)`` of the files without block checksums that readers opened
+    since the last call (each once), for the command line's note on those of the current format
+    (``campaign.cli``; a file of another format is refused by its reader)."""
+    out = list(dict.fromkeys(_UNPROTECTED))
+    _UNPROTECTED.clear()
+    return out
 
 
 def write_sums(sums_ds, lo, data, B):
@@ -615,4 +689,10 @@ def open_checked(path, **kwargs):
     """Open the store ``path`` read-only (``locking=False``) for a reader, as a checked ``File``
     (``_make_classes``): its per-task datasets check the blocks they read against their checksums."""
     kwargs.setdefault("locking", False)
-    return _classes()[1](path, "r", **kwargs)
+    f = _classes()[1](path, "r", **kwargs)
+    if not has_sums(f):
+        try:  # the command line names it (``unprotected_seen``) if it is a store of the current format
+            _UNPROTECTED.append((str(path), _text(f.attrs.get("schema")), int(f.attrs.get("format_version", 1))))
+        except Exception:  # noqa: BLE001 - unreadable attributes: its reader says what is wrong
+            pass
+    return f

@@ -59,6 +59,8 @@ class Report:
     unchecked: dict = field(default_factory=lambda: {"datasets": [], "configurations": 0, "failures": 0})
     status: np.ndarray | None = None
     renames: dict = field(default_factory=dict)  # scalar datasets under a damaged name -> their name
+    unprotected: bool = False         # the store has no block checksums (written before 0.3.0)
+    protection: str = ""              # its block_checksums attribute: how it came to have them
 
     @property
     def ok(self) -> bool:
@@ -93,7 +95,7 @@ class Report:
     def to_json(self) -> dict:
         return {"file": self.path, "ok": self.ok, "name": self.name, "tasks": self.T, **self.counts,
                 "fatal": self.fatal, "checked": self.checked,
-                "without_checksums": dict(self.unchecked),
+                "without_checksums": dict(self.unchecked), "block_checksums": not self.unprotected,
                 "damage": [d.to_json() for d in self.damage],
                 "tasks_lost": int(len(self.lost_rows())),
                 "repairable": self.fatal is None and not self.unrepairable()}

@@ -44,6 +44,7 @@ from campaign.storage.checksums import (BLOCK_FILTERS, CHECKSUM_ATTR, CONFIG_KEY
 from campaign.storage.checksums import (BLOCK_MISMATCH, SUMS_GROUP, SUMS_ROWS, has_sums, mismatched_blocks,
                                         sums_name)
 from campaign.storage.damage import Damage, Report
+from campaign.storage.unprotected import expected_identities, identities, identity_blocks, journal_rows
 
 
 # --------------------------------------------------------------------------- the scan
@@ -74,6 +75,7 @@ class Scan:
         self.config_rows = set()  # rows with a configuration group (sound or not)
         self.summed = has_sums(f)  # the store keeps block checksums
         self.status_bad = []      # blocks of the status column that do not match their checksums
+        self.expected = None      # without block checksums: the spec's task identities, column by column
 
     # ---- recording
     def add(self, d: Damage):
@@ -107,6 +109,7 @@ class Scan:
         self._status()
         if full:
             self._layout()
+            self.expected = expected_identities(self)
         names = self._block_names(patterns)
         if not full:
             names = [n for n in names if _matches(n, patterns)]
@@ -119,12 +122,9 @@ class Scan:
             self.total_units += n_conf * CONFIG_WEIGHT
         for name in names:
             self._dataset(name)
-        if r.spec is not None and any(d.name == "tasks/id" for d in r.damage):
-            from campaign.plan.tasks import expand  # the identities of the damaged rows, from the spec
-
-            ids = np.array([t.id.encode() for t in expand(r.spec)], "S32")
-            if len(ids) == r.T:
-                self.ids = ids
+        if r.spec is not None and any(d.name == "tasks/id" for d in r.damage):  # the damaged rows' ids: the spec's
+            ids = (self.expected or identities(r.spec))["id"]
+            self.ids = ids if len(ids) == r.T else self.ids
         if full:
             self._edges()
             self._configurations()
@@ -132,6 +132,7 @@ class Scan:
             for name, how in checkpoint_damage(f, self._rows_of if self.ids is not None else None):
                 self.add(Damage(name, how, repair="remove", note="left out: its task starts over"))  # stop and go
             self._rows()
+            journal_rows(self)
             self._reduced()
             self._walk()
         else:
@@ -592,6 +593,7 @@ class Scan:
 
     def _values(self, col, lo, hi, data):
         """What the task table's columns say about their rows (checked in ``_rows``)."""
+        identity_blocks(self, col, lo, data)
         if col == "attempts" and self.attempts is not None:
             self.attempts[lo:hi] = data
         elif col == "error" and self.error_set is not None:

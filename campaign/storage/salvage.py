@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from campaign.storage.checksums import (SUMS_ROWS, check_rows, checkpoint_problem, configuration_problem,
-                                        create_fill_sums, failure_problem, good_scalar_name, has_sums, sums_name,
-                                        write_checkpoint, write_configuration, write_failure, write_scalar_names,
-                                        write_sums)
+from campaign.storage.checksums import (PROTECTION_ATTR, SUMS_GROUP, SUMS_ROWS, check_rows, checkpoint_problem,
+                                        checksums_on, configuration_problem, create_fill_sums, failure_problem,
+                                        good_scalar_name, has_sums, protection_text, sums_name, write_checkpoint,
+                                        write_configuration, write_failure, write_scalar_names, write_sums)
 from campaign.storage.storefile import (DONE, FAILED, PENDING, ROW_FIELDS, create_file, dataset_kwargs,
                                         fill_value)
 
@@ -62,6 +62,8 @@ def _salvage_into(f, old_path, tasks, edges, B, state, drop=(), renames=None, ch
     except (OSError, ValueError, RuntimeError):
         return
     with old:
+        if checksums_on() and _unprotected(old):  # a store without block checksums, now with them
+            f.attrs[PROTECTION_ATTR] = protection_text(upgraded=True)
         try:
             for key in old.attrs.keys():
                 if key in f.attrs:
@@ -174,6 +176,16 @@ def _carry_checkpoints(f, old, tasks, status):
         if problem is None:
             write_checkpoint(f.require_group("checkpoints"), tid, arrays, counters)
 
+
+
+def _unprotected(old) -> bool:
+    """Whether the store ``old`` was written without block checksums (0.2.7 and older): its root
+    attributes read, and neither they nor its groups say it has them (a store too damaged to tell is
+    not taken for one)."""
+    try:
+        return old.attrs.get("schema") is not None and PROTECTION_ATTR not in old.attrs and SUMS_GROUP not in old
+    except Exception:  # noqa: BLE001 - unreadable attributes
+        return False
 
 
 def _check_old(old, name, lo, data, B):

@@ -69,9 +69,9 @@ from campaign.errors import OutOfSpace, StoreDamaged, UserError
 from campaign.storage.faults import GuardedFile, write_fault
 from campaign.storage.storefile import BLOCK_ROWS  # rows per chunk of every per-task dataset
 from campaign.storage.checksums import (CHECKPOINT_ATTRS, CHECKPOINT_KEYS, CONFIG_KEYS, BlockMismatch,
-                                        check_configuration, check_rows, checkpoint_problem, create_fill_sums,
-                                        has_sums, sums_name, write_checkpoint, write_configuration, write_failure,
-                                        write_scalar_names, write_sums)
+                                        check_configuration, check_rows, checkpoint_problem, checksums_on,
+                                        create_fill_sums, has_sums, sums_name, unprotected_note, write_checkpoint,
+                                        write_configuration, write_failure, write_scalar_names, write_sums)
 from campaign.storage.journal import (  # noqa: F401 - part of this module's interface
     MAX_RECORD, Journal, decode_payload, encode_record, read_journal, scan_journal)
 from campaign.storage.storefile import (  # noqa: F401 - part of this module's interface
@@ -205,6 +205,8 @@ class Store:
         self.f = h5py.File(self.io, "r+", rdcc_nbytes=CHUNK_CACHE)
         self._datasets = {}
         self._sums = {} if has_sums(self.f) else None  # dataset name -> its block checksums
+        if self._sums is None and checksums_on():  # a store of 0.2.7 or older: it stays as it is
+            self.log(f"campaign: {unprotected_note(self.path)} (this run adds none to it)")
         self.have_configs = set(self.f["configurations"].keys()) if "configurations" in self.f else set()
         try:  # suspended packings (stop and go); a group that cannot be listed holds none we trust
             self.have_checkpoints = set(self.f["checkpoints"].keys()) if "checkpoints" in self.f else set()

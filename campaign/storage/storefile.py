@@ -337,7 +337,8 @@ def block_sums_of(e):
 
 
 def _write_layout(f, spec, tasks, edges, B):
-    from campaign.storage.checksums import create_fill_sums, create_sums, write_sums
+    from campaign.storage.checksums import (PROTECTION_ATTR, checksums_on, create_fill_sums, create_sums,
+                                            protection_text, write_sums)
 
     T = len(tasks)
     g = f.create_group("tasks")
@@ -378,3 +379,5 @@ def _write_layout(f, spec, tasks, edges, B):
     f.attrs["spec_hash"] = spec.hash
     f.attrs["name"] = spec.name
     f.attrs["spec_yaml"] = spec.text
+    if checksums_on():
+        f.attrs[PROTECTION_ATTR] = protection_text()
