@@ -471,7 +471,7 @@ store: {configurations: true}
 """
 
 
-@pytest.mark.parametrize("every", [1, 10, 1000])
+@pytest.mark.parametrize("every", [pytest.param(1, marks=pytest.mark.slow), 10, 1000])
 def test_reservations_cover_every_write_step(tmp_path, monkeypatch, every):
     """Every HDF5 write step reserves at least what the file then grows by (the estimate of
     docs/STORE.md, "Out of space"), and not wildly more: a full disk is met before HDF5 writes,
@@ -494,3 +494,36 @@ def test_reservations_cover_every_write_step(tmp_path, monkeypatch, every):
     if every == 1000:  # one step writes every row: the estimate is close to what it takes
         need, grew = max(steps)
         assert grew <= need <= 2 * grew, steps
+
+
+def test_salvage_drops_a_failed_row_whose_failure_record_is_gone(tmp_path, monkeypatch):
+    """A SIGKILL while a failure record is added can tear the ``failures`` group's index and take
+    the link of an earlier, committed record with it. Salvaging such a store keeps no row that says
+    failed without its record (the traceback would be lost for good): the task is pending again, and
+    running it again gives the uninterrupted run's record."""
+    import campaign.storage.store as S
+
+    monkeypatch.setattr(S, "BLOCK_ROWS", 4)
+    spec, tasks, fn, ctx, edges = _setup()
+    out = tmp_path / "s.h5"
+    _fill(out, spec, tasks, fn, ctx, edges, [0, 1, 3])  # 3 fails; checkpointed
+    with h5py.File(out, "r+") as f:
+        del f[f"failures/{tasks[3].id}"]
+    _fill_killed(out, spec, tasks, fn, ctx, edges, [8, 9, 10])  # in the journal; 10 fails
+    with h5py.File(out, "r") as f:
+        info = f["histograms/alpha_v/counts"].id.get_chunk_info_by_coord((8, 0))
+    with open(out, "r+b") as fh:  # a torn chunk of block 2: the store is salvaged when it is opened
+        fh.seek(info.byte_offset)
+        fh.write(b"\xff" * info.size)
+    logged = []
+    st = Store(out, spec, tasks, edges, log=logged.append)
+    assert any("salvaging" in m for m in logged)
+    assert [int(i) for i in np.flatnonzero(st.status != PENDING)] == [0, 1, 8, 9, 10]
+    for i in (3,):
+        st.record(i, _summary(fn, tasks[i], ctx, fail=(i % 7 == 3)), attempts=1)
+    st.close()
+    ref = tmp_path / "ref.h5"
+    _fill(ref, spec, tasks, fn, ctx, edges, [0, 1, 3, 8, 9, 10])
+    _assert_same(_contents(out), _contents(ref))
+    with h5py.File(out, "r") as f:
+        assert f[f"failures/{tasks[3].id}"].attrs["traceback"] == "Tb..."

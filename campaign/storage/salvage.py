@@ -29,7 +29,7 @@ def salvage(path, spec, tasks, edges, B, state, *, drop=(), renames=None, checke
     """Rebuild the damaged store at ``path`` as a fresh one holding every committed row that can
     still be read from it, copied block by block. Lost (their tasks pending again): a block that
     cannot be read, a row in ``drop``, a row whose commit marker contradicts it, and one whose
-    configuration or failure record cannot be read or fails its checksum; a block that differs
+    configuration or failure record cannot be read or fails its checksum (or, failed, has none); a block that differs
     from its block checksums too, unless ``checked`` (``campaign verify --repair``: its scan found
     those, and ``drop`` holds their rows). ``state`` (status, attempts, wall arrays) gets the kept
     rows' values; ``renames`` maps scalar datasets found under a damaged name to their name.
@@ -51,7 +51,8 @@ def _salvage_into(f, old_path, tasks, edges, B, state, drop=(), renames=None, ch
     Dropped (pending again, every column at its fill value): the rows of a block that cannot be
     read, the rows in ``drop``, a row whose status is not 0, 1 or 2 or says finished where its
     row holds no finished task (``attempts`` 0), and a finished row whose configuration or failure
-    record cannot be read or fails its checksum. Root attributes that read are carried over."""
+    record cannot be read or fails its checksum, and a failed row without its failure record. Root
+    attributes that read are carried over."""
     import h5py
 
     T = len(tasks)
@@ -119,7 +120,7 @@ def _salvage_into(f, old_path, tasks, edges, B, state, drop=(), renames=None, ch
                         if problem is not None:
                             raise ValueError(problem)
                         extra[("c", tid)] = conf
-                    if st[r] == FAILED and "failures" in old and tid in old["failures"]:
+                    if st[r] == FAILED:  # its record gone (a torn index of the group): pending again
                         rec = dict(old[f"failures/{tid}"].attrs)
                         problem = failure_problem(rec, has_sums(old))
                         if problem is not None:
