@@ -182,6 +182,7 @@ def test_draw_a_store_by_task_and_row(stores, tmp_path):
         assert np.array_equal(src.positions, f[f"configurations/{ids[1]}/positions"][:])
 
 
+@pytest.mark.slow
 def test_plot_adds_the_gallery(stores, tmp_path, capsys):
     assert cli.main(["plot", str(stores / "with.h5"), "--out", str(tmp_path), "--boot", "0",
                      "--min-packings", "2"]) == 0

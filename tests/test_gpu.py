@@ -35,7 +35,7 @@ def emulate(n, energies, seeds, threads=32, **kw):
 
 @pytest.mark.parametrize("n, energies, kw", [
     (64, [1e-3, 1e-7, 1e-11], {}),
-    (128, [1e-5], {"exponent": 2.5}),
+    pytest.param(128, [1e-5], {"exponent": 2.5}, marks=pytest.mark.slow),
     (64, [1e-6], {"search": "halving", "sizes": ("lognormal", 0.2)}),
     pytest.param(1024, [1e-4], {}, marks=pytest.mark.slow),
 ])
@@ -201,6 +201,7 @@ def _phases(pos, rad, box, skin, nt=8, maxnb=40, alpha=2.0):
     return out, xy, fl, nbr, iv
 
 
+@pytest.mark.slow  # about a minute of the CUDA simulator: --full (the block tests below check the rows on whole packings)
 @settings(max_examples=25, deadline=None)
 @given(st.integers(8, 60), st.integers(0, 2**32 - 1), st.floats(0.0, 0.4), st.sampled_from([1, 4, 16]))
 def test_rebuild_rows_are_the_brute_force_neighbours(n, seed, xy, nt):

@@ -105,6 +105,7 @@ def test_plot_writes_every_figure(tmp_path, capsys, monkeypatch):
     _check_scaling(red, "default", fig)
 
 
+@pytest.mark.slow
 def test_plot_survives_missing_cells_histograms_and_variants(tmp_path, monkeypatch):
     camp = SyntheticCampaign(N=(64,), E=(1e-3, 1e-9), seeds=3, variants=("default", "hertz"),
                              histograms=("z_g",))

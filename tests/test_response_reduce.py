@@ -101,6 +101,7 @@ def test_reduce_writes_the_response_tables(reduced):
         assert "reduced/distributions/gap" in f and "reduced/distributions/omega" in f
 
 
+@pytest.mark.slow
 def test_plot_draws_the_response_figures(reduced):
     d = reduced
     assert cli.main(["plot", str(d / "r.h5"), "--out", str(d / "fig"), "--boot", "20"]) == 0

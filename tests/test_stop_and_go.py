@@ -236,7 +236,7 @@ def _run(cmd, env, timeout=240):
     return r, time.monotonic() - t0
 
 
-@pytest.mark.parametrize("launch", ["local", "mpi"])
+@pytest.mark.parametrize("launch", ["local", pytest.param("mpi", marks=pytest.mark.slow)])
 def test_gpu_packings_stop_at_the_time_limit_and_the_next_run_ends_them(tmp_path, launch):
     """`campaign run --time-limit` with a GPU worker whose searches (the synthetic stand-in's:
     4000 x (1 + seed % 3) steps of 0.2 ms for each GPU worker, slept) cannot all finish: the run stops before its
@@ -366,7 +366,7 @@ def _kernel_run(tmp_path, name, seconds=None, gpu=True):
     return out
 
 
-@pytest.mark.parametrize("then", ["gpu worker", "cpu worker"])
+@pytest.mark.parametrize("then", ["gpu worker", pytest.param("cpu worker", marks=pytest.mark.slow)])
 def test_kernel_packings_stopped_at_a_deadline_end_with_an_uninterrupted_runs_bits(tmp_path, monkeypatch, then):
     """The block's own stop and go through the GPU worker's loop, the master and the store: a run
     with a deadline 3 s away (8 searches at E_G 1e-12 take about 7 s here) stops the searches that

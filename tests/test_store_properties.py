@@ -28,6 +28,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
@@ -310,6 +311,7 @@ TWO_SYSTEMS = {"sizes": [16, 24, 32], "energies": [1e-5, 1e-7, 1e-8, 1e-9], "see
                "flags": "some_bad", "histograms": "zero", "seed": 5}
 
 
+@pytest.mark.slow  # every figure of two stores: tests/test_plots.py draws them in the quick suite
 @settings(max_examples=2, deadline=None, derandomize=True, database=None,
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 @given(campaigns(variant=st.just(False)))  # every figure is drawn, about half a second each: one system
