@@ -185,4 +185,4 @@ def test_ci_runs_the_readmes_full_suite_command():
     ci = [line.strip() for line in (ROOT / ".ci" / "run").read_text().splitlines()]
     assert command in ci, f".ci/run does not run the README's full-suite command {command!r}"
     block = re.search(r"```bash\n(.*?)```", (ROOT / "README.md").read_text(), re.S).group(1).splitlines()
-    assert block[1].endswith("pip install '.[test]' && .venv/bin/python -m pytest -q"), block[1]
+    assert block[1].endswith("pip install '.[test]' && .venv/bin/python -m pytest -q -n auto --dist loadfile"), block[1]
