@@ -151,7 +151,8 @@ def _strained_energies(pos, rad, box, alpha, eps, tol):
     return out
 
 
-@pytest.mark.parametrize("n,energy,alpha,box", [(256, 1e-6, 2.0, (1.0, 1.0)), (128, 1e-5, 2.5, (1.3, 0.8))])
+@pytest.mark.parametrize("n,energy,alpha,box", [pytest.param(256, 1e-6, 2.0, (1.0, 1.0), marks=pytest.mark.slow),
+                                           (128, 1e-5, 2.5, (1.3, 0.8))])
 def test_finite_strain_with_reminimisation(n, energy, alpha, box):
     """Central second differences of the re-minimised energy per box area against c11, c22
     and 4 B; the first difference against the stress."""

@@ -236,7 +236,8 @@ def _run(cmd, env, timeout=240):
     return r, time.monotonic() - t0
 
 
-@pytest.mark.parametrize("launch", ["local", pytest.param("mpi", marks=pytest.mark.slow)])
+@pytest.mark.slow  # campaigns of the emulated block under a time limit; the deadline test below is quick
+@pytest.mark.parametrize("launch", ["local", "mpi"])
 def test_gpu_packings_stop_at_the_time_limit_and_the_next_run_ends_them(tmp_path, launch):
     """`campaign run --time-limit` with a GPU worker whose searches (the synthetic stand-in's:
     4000 x (1 + seed % 3) steps of 0.2 ms for each GPU worker, slept) cannot all finish: the run stops before its

@@ -427,6 +427,7 @@ def real(tmp_path_factory):
     return _run(REAL_SPEC, tmp_path_factory.mktemp("real"), "real")
 
 
+@pytest.mark.slow  # a real campaign in a tilted cell (about half a minute cold): --full
 def test_every_packing_stores_its_tilt_and_shear_stress(real):
     t, s, boxes = _h5(real)
     assert np.all(t["status"] == 1) and np.all(s["jam_status"] == 0) and np.all(s["identities_ok"] == 1)
@@ -443,6 +444,7 @@ def test_every_packing_stores_its_tilt_and_shear_stress(real):
             assert s["N_C"][r] / 2 >= 2 * N_G + 1  # at least isostatic in the shear-stabilised count
 
 
+@pytest.mark.slow  # a real campaign in a tilted cell (about half a minute cold): --full
 @pytest.mark.parametrize("fmt", ["gsd", "xyz"])
 def test_an_exported_tilted_frame_analyses_to_the_stores_scalars(real, tmp_path, capsys, fmt):
     out = tmp_path / f"p.{fmt}"
@@ -474,6 +476,7 @@ def test_an_exported_tilted_frame_analyses_to_the_stores_scalars(real, tmp_path,
     assert "tilt xy = " in capsys.readouterr().out
 
 
+@pytest.mark.slow  # a real campaign in a tilted cell (about half a minute cold): --full
 def test_a_stored_configuration_read_in_place_knows_its_cell(real, capsys):
     t, s, boxes = _h5(real)
     for r in (int(np.flatnonzero(t["variant"] == v)[0]) for v in ("default", "shear")):
@@ -486,6 +489,7 @@ def test_a_stored_configuration_read_in_place_knows_its_cell(real, capsys):
             assert got[name] == s[name][r], name
 
 
+@pytest.mark.slow  # a real campaign in a tilted cell (about half a minute cold): --full
 def test_read_packings_reduce_verify_and_draw(real, tmp_path, capsys):
     import campaign
     from campaign.results import tradeoff
