@@ -527,3 +527,22 @@ def test_salvage_drops_a_failed_row_whose_failure_record_is_gone(tmp_path, monke
     _assert_same(_contents(out), _contents(ref))
     with h5py.File(out, "r") as f:
         assert f[f"failures/{tasks[3].id}"].attrs["traceback"] == "Tb..."
+
+
+def test_a_failed_row_without_its_record_runs_again(tmp_path):
+    """The same loss in a store that opens without salvage: the row is pending again (said so), and
+    running it again gives the uninterrupted run's record, not one without its traceback."""
+    spec, tasks, fn, ctx, edges = _setup()
+    out = tmp_path / "s.h5"
+    _fill(out, spec, tasks, fn, ctx, edges, [0, 1, 3, 10])  # 3 and 10 fail
+    with h5py.File(out, "r+") as f:
+        del f[f"failures/{tasks[3].id}"]
+    logged = []
+    st = Store(out, spec, tasks, edges, log=logged.append)
+    assert any("1 failed task(s) have lost their failure record" in m for m in logged), logged
+    assert [int(i) for i in np.flatnonzero(st.status != PENDING)] == [0, 1, 10]
+    st.record(3, _summary(fn, tasks[3], ctx, fail=True), attempts=1)
+    st.close()
+    ref = tmp_path / "ref.h5"
+    _fill(ref, spec, tasks, fn, ctx, edges, [0, 1, 3, 10])
+    _assert_same(_contents(out), _contents(ref))

@@ -215,6 +215,7 @@ class Store:
                      "tasks start over")
             self.have_checkpoints = set()
         self.have_failures = set(self.f["failures"].keys()) if "failures" in self.f else set()
+        self._rerun_unrecorded_failures()
         self.scalar_names = set(self.f["scalars"].keys())
         try:
             self.runs = json.loads(self.f.attrs.get("runs", "[]"))
@@ -250,6 +251,17 @@ class Store:
         self._merge_run(self.run)
         self._write_root_attrs()
         self.checkpoint()
+
+    def _rerun_unrecorded_failures(self):
+        """A row that says failed without its failure record (a SIGKILL tore the ``failures``
+        group's index and took the link with it) is pending again: its task runs again and gets its
+        record back, instead of a record rebuilt without its traceback."""
+        lost = [int(i) for i in np.flatnonzero(self.status == FAILED) if self.tasks[i].id not in self.have_failures]
+        if lost:
+            self.status[lost] = PENDING
+            self.n_status = [int(np.count_nonzero(self.status == k)) for k in (PENDING, DONE, FAILED)]
+            self.log(f"campaign: {self.path}: {len(lost)} failed task(s) have lost their failure record; they "
+                     "are pending again and will be run again")
 
     def _init_state(self):
         T = self.T
