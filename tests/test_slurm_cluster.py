@@ -327,16 +327,21 @@ PMI2_FRAMING = "mpi/pmi2: value not properly terminated"
 PMI2_TRIES = 3
 
 
-def _pmi2_misread(job, log, launcher) -> bool:
+def _died_of_pmi2(job, log, launcher) -> bool:
     """Whether a job died of Slurm 22.05's pmi2 server misreading a rank's PMI request in MPI_Init,
     before any of the project's code used MPI. MPICH 5.0.2 speaks PMI-1 to it and puts its business
     card in segments whose request lines (run-length-coded hex) reach 950 bytes and more on two nodes;
     a line past 1024 bytes is cut and its rest read as a request of its own ("value not properly
     terminated", then "request not begin with 'cmd='"). Whether a line crosses depends on the card's
     bytes (addresses, the installation's path): some jobs pass, some fail, never with mpiexec's own
-    PMI (docs/CLUSTERS.md). Such a job is submitted again, from an empty store, after a pause, up to
-    ``PMI2_TRIES`` times in all."""
-    if job["JobState"] == "COMPLETED" or PMI2_FRAMING not in log or launcher != "srun":
+    PMI (docs/CLUSTERS.md)."""
+    return job["JobState"] != "COMPLETED" and PMI2_FRAMING in log and launcher == "srun"
+
+
+def _pmi2_misread(job, log, launcher) -> bool:
+    """``_died_of_pmi2``, after a pause when it did: such a job is submitted again, from an empty
+    store, up to ``PMI2_TRIES`` times in all."""
+    if not _died_of_pmi2(job, log, launcher):
         return False
     time.sleep(2.0)
     return True
@@ -345,7 +350,7 @@ def _pmi2_misread(job, log, launcher) -> bool:
 def _pmi2_xfail(job, log, launcher):
     """After ``PMI2_TRIES`` jobs that all died of Slurm's pmi2 misread (not of the project's code,
     which had not started): expected to fail on this cluster, the reason said."""
-    if job["JobState"] != "COMPLETED" and PMI2_FRAMING in log and launcher == "srun":
+    if _died_of_pmi2(job, log, launcher):
         pytest.xfail(f"all {PMI2_TRIES} jobs died in MPI_Init of Slurm 22.05's pmi2 misread of MPICH's PMI-1 "
                      "business-card lines over 1024 bytes (docs/CLUSTERS.md); --launcher mpiexec runs the "
                      "same world")

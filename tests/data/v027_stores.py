@@ -6,6 +6,8 @@
 
 Synthetic tasks (no kernels), blocks of 4 rows (so that a small store has many chunks), the specs of
 tests/test_reader_damage.py; the second keeps configurations and has failed tasks (every task of seed 1).
+The specs are written out here on purpose, not imported from the tests: this script runs on 0.2.7's
+tree, and the stores it wrote are frozen whatever the tests' specs become.
 """
 
 import os
