@@ -103,6 +103,10 @@ def main(args) -> int:
     _set_numba_cache(args)
     if args.task_function is None:
         args.task_function = os.environ.get("CAMPAIGN_TASK_FUNCTION") or "kernels"
+    # a campaign with precision targets decides its rounds with the reducer (the run wing does not reduce)
+    from campaign.results.allocation import Planner
+
+    args.planner = Planner
     if use_mpi:
         MPI = _start_mpi()
         comm = MPI.COMM_WORLD

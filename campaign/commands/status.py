@@ -58,10 +58,19 @@ def main(args) -> int:
                                      for k, d, f, p in groups],
                           "gpu_workers": live.get("gpu_workers") if active else None,
                           "gpu_packings": s["devices"], "gpu_busy": s["busy"], "suspended": s["suspended"],
-                          "failures": failures}, indent=1))
+                          "failures": failures, "core_hours": totals["core_hours"],
+                          "precision": ({"round": int(s["rounds"][max(s["rounds"])]["round"]),
+                                         "last_decision": s["rounds"][max(s["rounds"])]}
+                                        if s["rounds"] else None)}, indent=1))
         return 0
-    print(f"{args.file}: campaign {attrs.get('name', '?')!s}, {totals['tasks']} tasks")
+    if s["rounds"]:
+        print(f"{args.file}: campaign {attrs.get('name', '?')!s}, {totals['tasks']} tasks given out by its rounds "
+              f"(of {totals['rows']} seeds up to max_seeds)")
+    else:
+        print(f"{args.file}: campaign {attrs.get('name', '?')!s}, {totals['tasks']} tasks")
     print("  " + progress_text(state))
+    for line in precision_lines(s["rounds"], totals):
+        print("  " + line)
     if writer["state"] in ("running", "dead"):
         print("  " + writer["text"])
     else:
@@ -118,9 +127,14 @@ def _scan(path):
 
 
 def _scan_open(f, np, DONE, FAILED, PENDING):
+    from campaign.results.reading import given_rows
+
     t = f["tasks"]
     status_all = t["status"][:]
     T = len(status_all)
+    given = given_rows(f, T)  # a precision campaign: the seeds its rounds gave out (else every row)
+    rounds = _rounds(f)
+    wall_seconds = 0.0
     n_done = int(np.count_nonzero(status_all == DONE))
     stride = max(1, -(-n_done // FIT_ROWS))
     failure_recs = {tid: dict(f["failures"][tid].attrs) for tid in f["failures"]} if "failures" in f else {}
@@ -147,7 +161,7 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
     spec = stored_spec(f.attrs)
     for lo in range(0, T, BLOCK):
         hi = min(lo + BLOCK, T)
-        st = status_all[lo:hi]
+        st = np.where(given[lo:hi] | (status_all[lo:hi] != PENDING), status_all[lo:hi], -1)  # -1: not given out
         v, N, E = t["variant"][lo:hi], t["N"][lo:hi], t["E"][lo:hi]
         check_identities(f.filename, spec, v, N, E, lo)
         change = np.flatnonzero((v[1:] != v[:-1]) | (N[1:] != N[:-1]) | (E[1:] != E[:-1])) + 1
@@ -159,6 +173,9 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
             c[1] += int(np.count_nonzero(part == FAILED))
             c[2] += int(np.count_nonzero(part == PENDING))
         done = np.flatnonzero(st == DONE)
+        if len(done):
+            w = t["wall"][lo:hi][done]
+            wall_seconds += float(np.sum(w[np.isfinite(w)]))
         if devices is not None and len(done):
             hosts = t["host"][lo:hi][done]
             for h in hosts:
@@ -188,11 +205,58 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
                                  "message": str(rec.get("message", cols["error"][k].decode(errors="replace"))),
                                  "traceback": str(rec.get("traceback", ""))})
     totals = {"done": n_done, "failed": int(np.count_nonzero(status_all == FAILED)),
-              "pending": int(np.count_nonzero(status_all == PENDING)), "tasks": T}
+              "pending": int(np.count_nonzero((status_all == PENDING) & given)),
+              "tasks": int(np.count_nonzero(given | (status_all != PENDING))), "rows": T,
+              "core_hours": wall_seconds / 3600.0}
     sample = {k: (np.concatenate(x) if x else np.zeros(0)) for k, x in sample.items()}
     return {"attrs": {k: f.attrs[k] for k in f.attrs}, "cells": cells, "totals": totals,
             "failures": failures, "sample": sample, "status": status_all, "devices": devices or {},
-            "busy": busy.result(), "suspended": _suspended(f, status_all, np, PENDING)}
+            "busy": busy.result(), "suspended": _suspended(f, status_all, np, PENDING), "rounds": rounds}
+
+
+def _rounds(f):
+    """A precision campaign's decisions (``{round: record}``; empty for a fixed grid)."""
+    from campaign.storage.checksums import ROUNDS_GROUP, read_rounds
+
+    if ROUNDS_GROUP not in f:
+        return {}
+    return read_rounds(f[ROUNDS_GROUP])[0]
+
+
+def precision_lines(rounds, totals) -> list:
+    """What ``campaign status`` says of a precision campaign: its round, the last decision, each
+    target's error against its goal, the core-hours spent (priced from force evaluations, and
+    measured) and those the plan projects."""
+    if not rounds:
+        return []
+    last = rounds[max(rounds)]
+    k = int(last["round"])
+    action = last["action"]
+    state = {"pilot": "the pilot round", "continue": f"round {k}",
+             "met": f"ended after round {k - 1}: every target met",
+             "budget": f"ended after round {k - 1}: budget spent",
+             "max_seeds": f"ended after round {k - 1}: max_seeds reached",
+             "unreachable": f"ended after round {k - 1}: a target out of reach"}.get(action, action)
+    out = [f"precision targets: {state} ({len(rounds)} decision(s) kept)"]
+    for t in last.get("targets", []):
+        who = "" if t["variant"] == "default" else f" ({t['variant']})"
+        err = "no value" if t.get("error") is None else f"{t['error']:.3g}"
+        proj = "" if t.get("projected") is None else f", projected {t['projected']:.3g} after the round"
+        mark = " met" if t.get("met") else ""
+        out.append(f"  {t['key']}{who}: error {err} against goal {t['goal']:g}{mark} (at decision {k}{proj})")
+    spent, committed = last.get("spent_core_hours"), last.get("committed_core_hours")
+    rnd, to = last.get("round_core_hours"), last.get("to_targets_core_hours")
+    line = f"  core-hours: {totals['core_hours']:.3g} measured"
+    if spent is not None:
+        line += f"; priced from force evaluations {spent:.3g} spent before decision {k}"
+        if rnd:
+            line += f", {rnd:.3g} in its round"
+    if to is not None and action == "continue":
+        line += f"; projected to reach every target: {to:.3g} more"
+    out.append(line)
+    if action in ("met", "budget", "max_seeds", "unreachable") and last.get("message"):
+        out.append("  " + last["message"])
+    return out
 
 
 def _suspended(f, status, np, PENDING):
@@ -348,7 +412,7 @@ def _remaining_core_hours(attrs, s):
         spec = parse_spec(str(attrs["spec_yaml"]), "the file's spec")
     except (KeyError, UserError, TypeError, ValueError):  # no estimate from a spec that does not read
         return None, 0
-    if spec.n_tasks != s["totals"]["tasks"]:
+    if spec.n_tasks != s["totals"]["rows"]:
         return None, 0
     variants = {v.name: v for v in spec.variants}
     protocols = {v.name: dict(v.protocol) for v in spec.variants}

@@ -83,6 +83,10 @@ BLOCKS = {
 #: cost against the force tolerance, relative to 1e-6: force evaluations of docs/SPEED_ACCURACY.md
 #: (N_G 64..256, 810 packings per tolerance), interpolated in log10(tolerance), constant beyond
 TOLERANCE_FACTOR = ((1e-9, 1.081), (1e-7, 1.025), (1e-6, 1.0), (1e-4, 0.935), (1e-3, 0.760), (1e-2, 0.405))
+#: core-seconds per disk per force evaluation of a packing, when a calibration does not give its own
+#: (``disk_force_evaluation_seconds``): FIRE packings of this project's 2-core machine, the O'Hern search
+#: and the analysis spread over the force evaluations (docs/PRECISION.md, "Costs")
+DISK_FE_SECONDS = 1.0e-7
 #: cost of a search rule relative to the secant search (docs/SPEED_ACCURACY.md: halving 1.36)
 SEARCH_FACTOR = {"halving": 1.36}
 
@@ -162,7 +166,15 @@ class Calibration:
     # GPU workers (campaign calibrate --gpu): {"device", "threads", "batch", "N": [...], "ratio": [...]},
     # a GPU packing's seconds in a full batch over a CPU core's for the same FIRE steps, per N_G
     gpu: dict | None = None
+    # core-seconds per disk per force evaluation of a packing (search and analysis spread over its
+    # steps): what a precision campaign's rounds price a packing at from its force evaluations
+    # (campaign.results.allocation); None: DISK_FE_SECONDS
+    disk_fe_seconds: float | None = None
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def disk_force_evaluation_seconds(self) -> float:
+        return DISK_FE_SECONDS if self.disk_fe_seconds is None else self.disk_fe_seconds
 
     # ------------------------------------------------------------------ the model
     def _terms(self, N, E, protocol=None, exponent=2.0, parent_E=None):
@@ -203,7 +215,7 @@ class Calibration:
         """This calibration with the GPU ratios ``gpu`` (``campaign calibrate --gpu``)."""
         return Calibration(L0=self.L0, blocks=self.blocks, sigma_task=self.sigma_task,
                            sigma_systematic=self.sigma_systematic, source=self.source,
-                           info=self.info, gpu=gpu)
+                           info=self.info, gpu=gpu, disk_fe_seconds=self.disk_fe_seconds)
 
     def estimate(self, cells) -> Estimate:
         """The total of ``cells``: (count, N, E, protocol, exponent, parent_E) tuples."""
@@ -234,7 +246,8 @@ class Calibration:
                 "sigma_task": self.sigma_task, "sigma_systematic": self.sigma_systematic,
                 **{b: {"names": list(BLOCKS[b]), "values": [float(v) for v in self.blocks[b][0]],
                        "covariance": [[float(v) for v in row] for row in self.blocks[b][1]]} for b in BLOCKS},
-                "info": self.info, **({"gpu": self.gpu} if self.gpu else {})}
+                "info": self.info, **({"gpu": self.gpu} if self.gpu else {}),
+                **({"disk_force_evaluation_seconds": self.disk_fe_seconds} if self.disk_fe_seconds else {})}
 
     def save(self, path) -> None:
         text = json.dumps(self.to_dict(), indent=1, allow_nan=False)
@@ -347,8 +360,10 @@ def from_dict(d, source="<calibration>") -> Calibration:
     info = d.get("info", {})
     if not isinstance(info, dict):
         _refuse(source, "'info' must be a mapping")
+    disk = (_number(source, d, "disk_force_evaluation_seconds", positive=True)
+            if "disk_force_evaluation_seconds" in d else None)
     return Calibration(L0=L0, blocks=blocks, sigma_task=sigma_task, sigma_systematic=sigma_sys,
-                       source=source, info=info, gpu=_gpu_block(source, d.get("gpu")))
+                       source=source, info=info, gpu=_gpu_block(source, d.get("gpu")), disk_fe_seconds=disk)
 
 
 def _gpu_block(source, g):

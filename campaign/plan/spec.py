@@ -33,6 +33,7 @@ import numpy as np
 import yaml
 
 from campaign.errors import UserError
+from campaign.plan import precision as precision_mod
 from kernels.names import (CELL_NAMES, DEFAULT_OBSERVABLES, HISTOGRAMS, MAX_POLYDISPERSITY,  # noqa: F401 - re-exported
                            MINIMIZER_NAMES, OBSERVABLES, ROUTES, SIZE_DISTRIBUTIONS, STOP_RULES, protocol_problem)
 
@@ -67,7 +68,7 @@ GPU_THREADS_DEFAULT = 256
 GPU_BLOCK = 2
 
 TOP_KEYS = ("name", "seed", "system", "grid", "protocol", "variants", "observables", "bins",
-            "store", "run", "output")
+            "store", "run", "output", "precision")
 REQUIRED_TOP = ("name", "seed", "grid")
 MAX_TASKS = 10_000_000
 #: A spec is a few kilobytes; anything much larger is a mistake (or an attack on the parser).
@@ -165,6 +166,9 @@ class Spec:
     configurations: bool = False
     retries: int = 2
     output: str = ""
+    #: precision targets (``campaign.plan.precision``): seeds 0..max_seeds-1 in every cell, given out in
+    #: rounds; None for a fixed grid
+    precision: "precision_mod.Precision | None" = None
     text: str = field(default="", compare=False)
     source: str = field(default="<spec>", compare=False)
     #: the spec's identity (what decides its tasks and what is stored: ``canonical``), once
@@ -192,7 +196,9 @@ class Spec:
                              + ([{"E_G": list(v.E)}] if v.E != self.E else []) for v in self.variants],
                 "observables": list(self.observables),
                 "bins": {k: list(v) for k, v in self.bins},
-                "store": {"configurations": self.configurations}}
+                "store": {"configurations": self.configurations},
+                # only with precision targets (fixed grids keep their hash): the pilot and the seed range
+                **({"precision": self.precision.canonical()} if self.precision is not None else {})}
 
     def worker_context(self) -> dict:
         """What a worker needs of the spec to run and analyse its tasks (``campaign run``'s
@@ -482,12 +488,20 @@ def parse_spec(text: str, source: str = "<spec>") -> Spec:
                     "(at most 64 characters, starting with a letter or digit)") if "name" in top else None
     seed = c.number(top["seed"], ("seed",), lo=0, hi=2**63 - 1, integer=True) if "seed" in top else None
     system = _system(c, top.get("system", {}), ("system",))
-    N, E, seeds = _grid(c, top.get("grid"), ("grid",)) if "grid" in top else ((), (), ())
+    wants_precision = "precision" in top
+    N, E, seeds = _grid(c, top.get("grid"), ("grid",), wants_precision) if "grid" in top else ((), (), ())
     base = _protocol(c, top.get("protocol", {}), ("protocol",), allow=PROTOCOL_KEYS)
     variants = _variants(c, top.get("variants", []), ("variants",), base, system, E)
     observables = _observables(c, top.get("observables", list(DEFAULT_OBSERVABLES)), ("observables",))
     if not c.errors:
         _auto_repeats(c, variants, N)
+    precision = None
+    if wants_precision:
+        given = isinstance(top.get("grid"), dict) and "seeds" in top["grid"]
+        precision = precision_mod.parse(c, top["precision"], ("precision",), seeds_given=given, N=N,
+                                        variants=variants, check_grid=not c.errors)
+        if precision is not None:
+            seeds = tuple(range(precision.max_seeds))
     bins = _bins(c, top.get("bins", {}), ("bins",), observables)
     configurations = False
     if "store" in top:
@@ -513,7 +527,7 @@ def parse_spec(text: str, source: str = "<spec>") -> Spec:
         raise UserError(f"{len(c.errors)} problem(s) in the spec:\n  " + "\n  ".join(c.errors))
     return Spec(name=name, seed=seed, system=system, N=N, E=E, seeds=seeds, variants=variants,
                 observables=observables, bins=bins, configurations=configurations, retries=retries,
-                output=output, text=text, source=source)
+                output=output, precision=precision, text=text, source=source)
 
 
 def _system(c, value, path, base: System | None = None) -> System:
@@ -594,8 +608,10 @@ def _system(c, value, path, base: System | None = None) -> System:
     return System(box=box, species=species, exponent=exponent, sizes=sizes)
 
 
-def _grid(c, value, path):
-    g = c.mapping(value, path, ("N_G", "E_G", "seeds"), ("N_G", "E_G", "seeds"))
+def _grid(c, value, path, precision=False):
+    """``N_G``, ``E_G`` and ``seeds``; with precision targets the seeds are the campaign's to choose
+    (``campaign.plan.precision.parse`` refuses them)."""
+    g = c.mapping(value, path, ("N_G", "E_G", "seeds"), ("N_G", "E_G") + (() if precision else ("seeds",)))
     if g is None:
         return (), (), ()
     N, E, seeds = (), (), ()

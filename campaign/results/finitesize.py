@@ -11,12 +11,14 @@ import numpy as np
 from campaign.results import fits
 from campaign.results.scaling import FITS
 
-def extrapolate(rows, shared_in, notes) -> dict:
+def extrapolate(rows, shared_in, notes, fitted=None) -> dict:
     """The N_G -> inf row per variant (docs/REDUCED.md, "The N_G -> inf row"): for each of the
     four laws one fit over every size with the exponent shared (``fits.fit_shared_exponent``: an
     intercept and an amplitude per size); its exponent is the row's exponent and its intercepts,
     extrapolated linearly in 1/N_G, the row's intercept. A size with fewer than three cells in
-    the fit range does not enter; an undetermined shared exponent gives no value."""
+    the fit range does not enter; an undetermined shared exponent gives no value. ``fitted``, a
+    dict, receives per (variant, quantity, abscissa) the sizes, the shared fit and the 1/N_G line
+    (``campaign.results.allocation`` plans from them)."""
     extrapolated = {}
     for v in sorted({r["variant"] for r in rows}):
         out = {}
@@ -44,6 +46,8 @@ def extrapolate(rows, shared_in, notes) -> dict:
                     out[f"{k}_n_sizes"] = 0
                 continue
             r = fits.fit_inverse_n(sizes, f.intercepts, f.intercept_errs)
+            if fitted is not None:
+                fitted[(v, quantity, absc)] = (sizes, f, r)
             out[key], out[f"{key}_err"] = r.value, r.err
             out[f"{key}_slope"], out[f"{key}_chi2_dof"], out[f"{key}_n_sizes"] = r.slope, r.chi2_dof, r.n_points
             out[bkey], out[f"{bkey}_err"] = f.exponent, f.exponent_err

@@ -287,10 +287,11 @@ MIN_CELLS = 4
 
 
 def chi2_p_value(chi2, dof):
-    """P(chi^2_dof >= chi2): the probability of a worse fit if the model and the errors hold."""
-    from scipy.stats import chi2 as _chi2
+    """P(chi^2_dof >= chi2): the probability of a worse fit if the model and the errors hold
+    (``scipy.special.chdtrc``, what ``scipy.stats.chi2.sf`` computes, without importing scipy.stats)."""
+    from scipy.special import chdtrc
 
-    return float(_chi2.sf(chi2, dof)) if dof > 0 and np.isfinite(chi2) else np.nan
+    return float(chdtrc(dof, chi2)) if dof > 0 and np.isfinite(chi2) else np.nan
 
 
 # --------------------------------------------------------------------------- bootstrap

@@ -151,6 +151,25 @@ def _failed_errors(f, status, block=65536):
     return err
 
 
+def given_rows(f, T):
+    """Which rows of a store are tasks of its campaign: all of them, except in a campaign with precision
+    targets, whose rounds give out seeds 0 .. n - 1 of each cell (the last decision's ``early``
+    counts; its task table holds every seed up to ``max_seeds``, in cells of equal length)."""
+    from campaign.storage.checksums import ROUNDS_GROUP, read_rounds
+
+    if ROUNDS_GROUP not in f:
+        return np.ones(T, bool)
+    got, _ = read_rounds(f[ROUNDS_GROUP])
+    if not got:
+        return np.ones(T, bool)
+    counts = np.asarray(got[max(got)]["early"], np.int64)
+    C = len(counts)
+    if C == 0 or T % C:
+        return np.ones(T, bool)
+    S = T // C
+    return (np.arange(T) % S) < np.repeat(counts, S)
+
+
 def _column_names(f):
     t = f["tasks"]
     return set(t.keys()) if hasattr(t, "keys") else set(t.dtype.names or ())
@@ -181,7 +200,7 @@ def load_finished(paths) -> Finished:
         paths = [paths]
     paths = [str(p) for p in paths]
     seen = set()
-    all_rows = {k: [] for k in ("variant", "N", "E", "status", "error", "id")}
+    all_rows = {k: [] for k in ("variant", "N", "E", "status", "error", "id", "given")}
     fin = {k: [] for k in ("variant", "N", "E", "id", "seed")}
     scal_parts, per_file, edges, attrs = [], [], None, None
     offset = 0
@@ -207,6 +226,7 @@ def load_finished(paths) -> Finished:
                 err = _failed_errors(f, status)
                 file_attrs = {k: (v.decode() if isinstance(v, bytes) else v)
                               for k, v in f.attrs.items()}
+                given = given_rows(f, T)  # a precision campaign: the rows its rounds gave out
                 names = sorted(f["scalars"].keys()) if "scalars" in f else []
                 scal = {n: np.asarray(f[f"scalars/{n}"][...], dtype=float) for n in names}
                 hedges = {}
@@ -237,7 +257,7 @@ def load_finished(paths) -> Finished:
         per_file.append((rows, np.arange(offset, offset + len(rows))))
         offset += len(rows)
         for k, v in (("variant", variant), ("N", cols["N"]), ("E", cols["E"]), ("status", status),
-                     ("error", err), ("id", ids)):
+                     ("error", err), ("id", ids), ("given", given)):
             all_rows[k].append(np.asarray(v))
         seeds = cols.get("seed", np.full(T, -1))
         for k, v in (("variant", variant), ("N", cols["N"]), ("E", cols["E"]), ("id", ids), ("seed", seeds)):
@@ -247,7 +267,8 @@ def load_finished(paths) -> Finished:
     # a task done in one file but pending/failed in another counts as done; a task
     # pending or failed in several files counts once
     counted = tasks["status"] == STATUS_DONE
-    for i in np.flatnonzero(~counted):
+    # a seed a precision campaign's rounds did not give out is no task of the campaign (yet)
+    for i in np.flatnonzero(~counted & tasks.pop("given")):
         if tasks["id"][i] not in seen:
             seen.add(tasks["id"][i])
             counted[i] = True
@@ -259,6 +280,25 @@ def load_finished(paths) -> Finished:
                     E=np.concatenate(fin["E"]).astype(float), ids=np.concatenate(fin["id"]),
                     seed=np.concatenate(fin["seed"]).astype(np.int64),
                     scalars=scalars, edges=edges or {}, tasks=tasks, _rows=per_file)
+
+
+def finished_from_arrays(*, attrs, variant, N, E, ids, seed, status, scalars, error=None) -> Finished:
+    """``Finished`` packings from a task table held in memory (the campaign master's, whose rounds
+    of a precision campaign are reduced while it runs): one row per task, ``status`` 1 for done;
+    ``scalars`` (name -> one value per row) are read at the done rows. No histograms. Every row
+    counts (a task table has each id once)."""
+    status = np.asarray(status).astype(np.int64)
+    T = len(status)
+    done = np.flatnonzero(status == STATUS_DONE)
+    variant = np.asarray(variant, dtype=object)
+    N, E, ids, seed = (np.asarray(a) for a in (N, E, ids, seed))
+    err = np.full(T, "", dtype=object) if error is None else np.asarray(error, dtype=object)
+    tasks = {"variant": variant, "N": N, "E": E, "status": status, "error": err, "id": ids,
+             "counted": np.ones(T, bool)}
+    return Finished(paths=[], attrs=dict(attrs), variant=variant[done], N=N[done].astype(np.int64),
+                    E=E[done].astype(float), ids=ids[done], seed=seed[done].astype(np.int64),
+                    scalars={k: np.asarray(v, float)[done] for k, v in sorted(scalars.items())}, edges={},
+                    tasks=tasks, _rows=[])
 
 
 def variant_systems(attrs, variants=()) -> dict:

@@ -116,6 +116,56 @@ class Reduction:
                       "notes": self.notes})
 
 
+@dataclass
+class Table:
+    """The reducer's steps 1-5 (the module docstring) on finished packings: what the finite-size
+    table and its ``N_G -> inf`` row come from. ``shared_in``: (variant, quantity, abscissa) -> per
+    N_G the inputs of the shared-exponent fit (cell means, errors, bootstrap replicas, the cells of
+    ``grid`` they come from), or why the size did not enter."""
+
+    everything: object           # campaign.results.reading.Finished: every finished packing
+    good: np.ndarray             # which of them are usable
+    reasons: dict
+    fin: object                  # the usable ones
+    grid: object                 # campaign.results.cells.Grid
+    cells: dict
+    notes: list
+    systems: dict                # variant -> its system (reading.variant_systems)
+    fit_records: list
+    residuals: np.ndarray
+    rows: list
+    shared_in: dict
+    extrapolated: dict
+    shared_fits: dict = field(default_factory=dict)  # (variant, quantity, abscissa) -> (sizes, SharedFit, 1/N line)
+
+
+def reduce_table(everything, s: Settings, per_size=True) -> Table:
+    """Steps 1-5 of ``reduce_campaign`` on the finished packings ``everything``
+    (``campaign.results.reading.Finished``, from the store or built from arrays): the cells, their
+    statistics, the scaling fits per size and the ``N_G -> inf`` row, with their bootstrap errors.
+    The same function serves ``campaign reduce`` and the rounds of a campaign with precision
+    targets (``campaign.results.allocation``), so both see the same table and errors (those rounds
+    need the ``N_G -> inf`` row only: ``per_size=False`` leaves the per-size fits out, which that
+    row does not use)."""
+    # statistics use the converged packings whose identities hold; the others are
+    # counted per cell (n_excluded) and named in the notes
+    good, reasons = everything.usable()
+    fin = everything.subset(good)
+    if len(fin.tasks["status"]) == 0:
+        raise UserError(f"{fin.paths[0] if fin.paths else 'the store'}: the task table is empty")
+    g = grid(everything, good, fin.tasks)  # cells are defined by every task, finished or not
+    cells = cell_table(fin, g)
+    notes = count_notes(fin, g, reasons)
+    vsys = variant_systems(fin.attrs, variants=g.cv)
+    fit_records, residuals, rows, shared_in = scaling_fits(fin, g, s, cells, notes,
+                                                           {v: d["exponent"] for v, d in vsys.items()}, per_size)
+    shared_fits = {}
+    extrapolated = extrapolate(rows, shared_in, notes, shared_fits)
+    return Table(everything=everything, good=good, reasons=reasons, fin=fin, grid=g, cells=cells, notes=notes,
+                 systems=vsys, fit_records=fit_records, residuals=residuals, rows=rows, shared_in=shared_in,
+                 extrapolated=extrapolated, shared_fits=shared_fits)
+
+
 def reduce_campaign(paths, settings: Settings | None = None, *, distributions=True) -> Reduction:
     """Reduce campaign file(s) (see the module docstring). ``distributions=False`` skips the
     histogram pass (scalars, fits and the table only)."""
@@ -123,20 +173,10 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
     t0 = time.perf_counter()
     everything = load_finished(paths)
     t_load = time.perf_counter() - t0
-    # statistics use the converged packings whose identities hold; the others are
-    # counted per cell (n_excluded) and named in the notes
-    good, reasons = everything.usable()
-    fin = everything.subset(good)
-    if len(fin.tasks["status"]) == 0:
-        raise UserError(f"{fin.paths[0]}: the task table is empty")
-    g = grid(everything, good, fin.tasks)  # cells are defined by every task, finished or not
-    cells = cell_table(fin, g)
-    notes = count_notes(fin, g, reasons)
+    tab = reduce_table(everything, s)
+    good, fin, g, cells, notes, vsys = tab.good, tab.fin, tab.grid, tab.cells, tab.notes, tab.systems
+    fit_records, residuals, rows, extrapolated = tab.fit_records, tab.residuals, tab.rows, tab.extrapolated
     area_hist, width = area_distributions(fin, g, s, cells)
-    vsys = variant_systems(fin.attrs, variants=g.cv)
-    fit_records, residuals, rows, shared_in = scaling_fits(fin, g, s, cells, notes,
-                                                           {v: d["exponent"] for v, d in vsys.items()})
-    extrapolated = extrapolate(rows, shared_in, notes)
     t1 = time.perf_counter()
     dists, selfavg = histograms(fin, g, s) if distributions else ({}, {})
     t_hist = time.perf_counter() - t1

@@ -13,30 +13,11 @@ import math
 import numpy as np
 
 from campaign.errors import UserError
+# The four laws fitted per (variant, N) with their table keys, the row's keys and the default fit range
+# (docs/REDUCED.md, "The fit range"): defined with the spec, whose precision targets name them.
+from campaign.plan.precision import DEFAULT_FIT_OVERLAP, FITS, TABLE_KEYS, typical_overlap  # noqa: F401
 from campaign.results import fits
 from campaign.results.cells import Grid
-
-#: (quantity, abscissa) pairs fitted per (variant, N), with their table keys.
-FITS = (
-    ("A_G", "E_G", "A_G_star_E", "beta_E"),
-    ("A_G", "delta_Z", "A_G_star_Z", "beta_Z"),
-    ("psi_O", "E_G", "psi_O_star", "psi_beta_E"),
-    ("psi_O", "delta_Z", "psi_O_star_Z", "psi_beta_Z"),
-)
-#: Keys of a table row (each also with ``<key>_err``); the first five are the paper's.
-TABLE_KEYS = ("A_G_star_E", "beta_E", "A_G_star_Z", "beta_Z", "psi_O_star",
-              "psi_O_star_Z", "psi_beta_E", "psi_beta_Z")
-#: The default fit range: typical relative overlaps up to 0.1% (docs/REDUCED.md, "The fit range"),
-#: one distance from jamming for every potential, chosen by experiments/fit_rules.py
-#: (``Settings.fit_overlap`` of ``campaign.results.reduce``).
-DEFAULT_FIT_OVERLAP = 0.001
-
-
-def typical_overlap(E, alpha):
-    """The typical relative overlap ``(alpha E_G / 2)^(1/alpha)`` of a packing at energy per
-    grain ``E_G`` (two contacts per disk carrying it): the distance from jamming that is
-    comparable across exponents, where ``E_G`` is not."""
-    return (alpha * np.asarray(E, float) / 2.0) ** (1.0 / alpha)
 
 
 def _window(s) -> list:
@@ -74,12 +55,13 @@ def _min_positive(x):
     return float(x.min()) if len(x) else np.nan
 
 
-def scaling_fits(fin, g: Grid, s, cells, notes, exponents=None):
+def scaling_fits(fin, g: Grid, s, cells, notes, exponents=None, per_size=True):
     """The power-law fits of A_G and Psi_O against E_G and Delta Z per (variant, N), with
     bootstrap errors; returns (fit records, normalised residuals per cell, table rows, the
     inputs of the shared-exponent fits of ``campaign.results.finitesize``: (variant, quantity,
     abscissa) -> per N the cell means, their errors and bootstrap replicas). ``exponents``:
-    variant -> alpha, for ``s.fit_overlap``."""
+    variant -> alpha, for ``s.fit_overlap``. ``per_size=False``: only those inputs (the
+    ``N_G -> inf`` row needs nothing else), the per-size fits left empty."""
     C, cv, cN, cE, n_done = g.C, g.cv, g.cN, g.cE, g.n_done
     fit_records, residuals, rows, shared_in = [], [], [], {}
     cols = ["E_G", "delta_Z", "A_G", "psi_O"]
@@ -150,7 +132,7 @@ def scaling_fits(fin, g: Grid, s, cells, notes, exponents=None):
                 elif bx is None and s.n_boot > 1:
                     entry = "a cell with fewer than 2 usable packings (no bootstrap)"
                 else:
-                    entry = (x[ok], y[ok], ye[ok], bx, by)
+                    entry = (x[ok], y[ok], ye[ok], bx, by, usable[ok])  # the last: its cells (of g)
                 shared_in.setdefault((v, quantity, absc), {})[n] = entry
             if not have:
                 f = fits.PowerLawFit(message="scalars missing")
@@ -163,8 +145,10 @@ def scaling_fits(fin, g: Grid, s, cells, notes, exponents=None):
                 if n_pos < 3:  # the exponent needs three positive abscissae
                     f = fits.PowerLawFit(n_points=int(ok.sum()), message=(
                         f"needs at least 3 cells with a positive mean {absc}, has {n_pos}"))
-                else:
+                elif per_size:
                     f = fits.fit_power_law(x[ok], y[ok], ye[ok], boot_x=bx, boot_y=by)
+                else:
+                    f = fits.PowerLawFit(n_points=int(ok.sum()), ok=True, message="not fitted (the N_G -> inf row only)")
                 if (~ok).any():
                     f.message = (f.message + "; " if f.message else "") + (
                         f"{int((~ok).sum())} cell(s) with a negative mean {absc} or without "

@@ -211,11 +211,21 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     except WriteFault as fault:  # a full disk before anything started: the store is as it was
         fault.message = stop_paragraph(fault, out, resume=resume)
         raise
-    comm = master = progress = None
+    comm = master = progress = rounds = None
     outcome = None
     workers_stopped = False  # told to stop after the master loop (MPI: they exit cleanly)
     try:
-        todo = int(np.count_nonzero((store.status == 0) | ((store.status == 2) if args.retry_failed else False)))
+        if spec.precision is not None:  # the rounds: the decisions kept, and one due now
+            from campaign.run.rounds import Rounds
+
+            planner = getattr(args, "planner", None)
+            if planner is None:
+                raise RuntimeError("a campaign with precision targets needs the planner `campaign run` hands in")
+            rounds = Rounds(store, tasks, planner(spec, tasks), log=_log)
+            rounds.advance()
+            todo = rounds.pending_given()
+        else:
+            todo = int(np.count_nonzero((store.status == 0) | ((store.status == 2) if args.retry_failed else False)))
         context["warm_up"] = bool(todo)
         c = store.counts_by_status()
         progress = Progress(len(tasks), sidecar=Path(str(out) + ".progress.json"),
@@ -260,12 +270,15 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
 
             wall = Deadline(store, tasks, args.deadline, args.margin)
         master = Master(comm, store, tasks, retries=retries, depth=max(1, args.depth), progress=progress,
-                        grace=args.grace, redo_failed=args.retry_failed, log=_log, can_dispatch=wall)
+                        grace=args.grace, redo_failed=args.retry_failed, log=_log, can_dispatch=wall, rounds=rounds)
         if getattr(args, "warned", None):
             master.on_signal(signal.SIGUSR1)
         t0, cpu0 = time.monotonic(), time.process_time()
         outcome = master.run()
         cpu = time.process_time() - cpu0
+        ended = None  # a precision campaign that has ended: its last decision, the errors of every packing
+        if rounds is not None and rounds.stopped and not rounds.pending_given():
+            ended = (rounds.records[-1], rounds.planner.report(store, rounds.records[-1]["early"]))
         progress.finish()
         comm.close(abandon=outcome["abandoned"] > 0)
         comm, workers_stopped = None, True
@@ -290,20 +303,32 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     except BaseException:
         _abandon(comm, store, progress)
         raise
-    msg = (f"campaign: {out}: {counts['done']} done, {counts['failed']} failed, {counts['pending']} pending "
-           f"of {len(tasks)} tasks (this run: {outcome['done']} done, {outcome['failed']} failed)")
+    if rounds is None:
+        msg = (f"campaign: {out}: {counts['done']} done, {counts['failed']} failed, {counts['pending']} pending "
+               f"of {len(tasks)} tasks (this run: {outcome['done']} done, {outcome['failed']} failed)")
+    else:
+        left = rounds.pending_given()
+        msg = (f"campaign: {out}: {counts['done']} done, {counts['failed']} failed, {left} pending of the "
+               f"{int(rounds.given.sum())} tasks rounds 0-{rounds.round} gave out ({len(tasks)} possible; this run: "
+               f"{outcome['done']} done, {outcome['failed']} failed)")
     _log(msg)
+    if ended is not None:
+        last, report = ended
+        _log(f"campaign: the campaign has ended ({last['action']}) after round {last['round']}: {last['message']}")
+        _log("campaign: with every packing of the store: " + report.replace("\n", "\ncampaign:   "))
     if outcome.get("suspended"):
         _log(f"campaign: {outcome['suspended']} GPU packing(s) stopped at their step budget before the deadline; "
              "their state is in the store and the next run goes on from it")
     if counts["failed"]:
         _log(f"campaign: see the failures with: campaign status {out}")
-    if outcome["stopped"] is not None and counts["pending"]:
+    left = counts["pending"] if rounds is None else rounds.pending_given()
+    if outcome["stopped"] is not None and left:
         from campaign.run.walltime import fit_from_store
 
-        pending = [tasks[i] for i in np.flatnonzero(store.status == 0)]
+        waiting = (store.status == 0) if rounds is None else (store.status == 0) & rounds.given
+        pending = [tasks[i] for i in np.flatnonzero(waiting)]
         hours = fit_from_store(store, tasks).total_seconds(pending) / 3600.0
-        _log(f"campaign: stopped ({outcome['stopped']}); {counts['pending']} task(s) left, about {hours:.3g} "
+        _log(f"campaign: stopped ({outcome['stopped']}); {left} task(s) left, about {hours:.3g} "
              f"core-hours. Resume with: {resume}")
         # Running out of allocated time is the normal end of one job of a chain: success.
         code = {"SIGINT": 130, "SIGTERM": 143, "SIGUSR1": 0, "wall time": 0}.get(outcome["stopped"], 3)

@@ -29,6 +29,10 @@ worker would wait for that worker while it waits to send its result.
   its configuration (``payload["return_configuration"]``), which the store keeps, so a
   resumed run continues the chains. When a parent fails for good, its descendants are
   recorded as failed with the reason.
+* Rounds (a campaign with precision targets, ``campaign.run.rounds``): only the tasks its
+  decisions gave out run; when every task of the rounds decided is finished, the next decision
+  gives out more (or ends the campaign), and a worker that would wait meanwhile gets the next
+  round's early seeds.
 """
 
 from __future__ import annotations
@@ -46,14 +50,19 @@ from campaign.plan.tasks import task_cost
 
 class Master:
     def __init__(self, comm, store, tasks, *, retries=2, depth=2, progress=None, can_dispatch=None,
-                 grace=20.0, redo_failed=False, log=None):
+                 grace=20.0, redo_failed=False, log=None, rounds=None):
         self.comm, self.store, self.tasks = comm, store, tasks
         self.retries, self.depth, self.progress = retries, depth, progress
         self.can_dispatch, self.grace = can_dispatch, grace
         self.log = log or (lambda msg: None)
         T = len(tasks)
+        self.rounds = rounds
         status = np.asarray(store.status)
         todo = (status == PENDING) | ((status == FAILED) if redo_failed else False)
+        if rounds is not None:  # the tasks the decisions gave out (a decision due now is made first)
+            allowed = rounds.allowed()
+            allowed[rounds.advance()] = True
+            todo &= allowed
         self.costs = np.fromiter((task_cost(t) for t in tasks), np.float64, T)
         self.children = {}
         parent = np.full(T, -1, np.int64)
@@ -136,6 +145,19 @@ class Master:
     def _push(self, i):
         self.queues[bool(self.on_gpu[i])].push(i)
 
+    def _give(self, indices):
+        """Tasks a round's decision gave out: into the queues."""
+        for i in indices:
+            self._push(int(i))
+            self.cost_remaining += float(self.costs[i])
+        if indices:
+            self._woken = True
+
+    def _next_round(self):
+        """With rounds: when every task of the rounds decided is finished, the next decision."""
+        if self.rounds is not None and self.rounds.open <= 0 and self.stop_reason is None:
+            self._give(self.rounds.advance())
+
     # ---- scheduling
     def _depth(self):
         """Tasks kept at a worker: ``depth``, more when tasks are so short that a worker
@@ -160,6 +182,8 @@ class Master:
 
     def _dispatch(self, w):
         q = self.in_flight[w]
+        if self.rounds is not None and not self._queued() and self.stop_reason is None:
+            self._give(self.rounds.dry())  # nothing else to give: the next round's early seeds
         queue = self._queue_for(w)
         gpu = w in self.capacity and queue is self.queues[True]
         # a GPU worker keeps batches in flight (it runs the tasks of one variant and N_G together)
@@ -233,12 +257,15 @@ class Master:
         cost = float(self.costs[i])
         if summary["ok"] or attempt > self.retries:
             self.store.record(i, summary, attempt)
+            if self.rounds is not None:
+                self.rounds.finished(i)
             self.cost_remaining -= cost
             if summary["ok"]:
                 self.n_done += 1
             else:
                 self.n_failed += 1
             self._release(i, summary)
+            self._next_round()
             return 1, cost
         self._push(i)  # retry later
         return 0, 0.0
@@ -256,8 +283,9 @@ class Master:
         if force or now - self._last_progress >= 0.2:
             c = self.store.counts_by_status()
             running = self._running()
+            pending = c["pending"] if self.rounds is None else self.rounds.pending_given()
             self.progress.update(done=c["done"], failed=c["failed"], running=running,
-                                 remaining=max(0, c["pending"] - running), cost_remaining=self.cost_remaining,
+                                 remaining=max(0, pending - running), cost_remaining=self.cost_remaining,
                                  finished_now=self._finished, cost_now=self._cost, force=True)
             self._finished, self._cost, self._last_progress = 0, 0.0, now
 

@@ -25,6 +25,8 @@ Workers never raise: ``run_task`` returns the contract's summary dict with
 from __future__ import annotations
 
 import importlib
+import json
+import math
 import os
 import signal
 import socket
@@ -428,6 +430,45 @@ class SyntheticTask:
         return scalars, hists, config
 
 
+#: the known laws of ``SyntheticLawsTask`` (docs/PRECISION.md's checks): A_G and psi_O against E_G and
+#: Delta Z, with finite-size corrections and a spread between packings falling like 1/sqrt(N)
+SYNTHETIC_LAWS = {"A_inf": 0.446, "a_N": -0.6, "c_A": 0.5, "beta_A": 0.28, "sigma_A": 0.08,
+                  "P_inf": 0.369, "p_N": -0.4, "c_P": 0.6, "beta_P": 0.27, "sigma_P": 0.12,
+                  "c_Z": 3.0, "sigma_Z": 0.3, "fe0": 400.0}
+
+
+def synthetic_laws(N, E, entropy, laws=None) -> dict:
+    """The scalars of a synthetic packing that follows known laws (``SYNTHETIC_LAWS``), a pure function
+    of (N, E, the task's seed entropy): ``E_G`` in [E, 1.1 E]; ``delta_Z = c_Z E_G^(1/4) (1 + noise)``;
+    ``A_G = A_inf + a_N / N + c_A E_G^beta_A + noise / sqrt(N)``, ``psi_O`` alike (so ``beta_E`` and
+    ``psi_beta_E`` are known, and ``beta_Z = 4 beta_A``); ``force_evaluations`` growing with N and with
+    every decade closer to jamming, as the kernels' do."""
+    t = dict(SYNTHETIC_LAWS, **(laws or {}))
+    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(list(entropy) + [7])))
+    u = rng.random()
+    z = rng.standard_normal(3)
+    e = E * (1.0 + 0.1 * u)
+    dz = t["c_Z"] * e ** 0.25 * max(0.0, 1.0 + t["sigma_Z"] * z[0])
+    decades = max(0.0, math.log10(1e-3 / E))
+    return {"E_G": e, "delta_Z": dz,
+            "A_G": t["A_inf"] + t["a_N"] / N + t["c_A"] * e ** t["beta_A"] + t["sigma_A"] * z[1] / math.sqrt(N),
+            "psi_O": t["P_inf"] + t["p_N"] / N + t["c_P"] * e ** t["beta_P"] + t["sigma_P"] * z[2] / math.sqrt(N),
+            "force_evaluations": float(int(t["fe0"] * (1.0 + decades) ** 1.5 * (N / 64.0) ** 0.5
+                                           * (1.0 + 0.3 * rng.random())))}
+
+
+class SyntheticLawsTask(SyntheticTask):
+    """``SyntheticTask`` whose physical scalars follow known laws (``synthetic_laws``): campaigns that
+    fit, extrapolate and decide rounds on them run in seconds, with a truth to compare with. Its
+    laws can be changed for a test with ``CAMPAIGN_SYNTHETIC_LAWS`` (JSON, keys of ``SYNTHETIC_LAWS``)."""
+
+    def run(self, payload, context):
+        scalars, hists, config = super().run(payload, context)
+        laws = json.loads(os.environ.get("CAMPAIGN_SYNTHETIC_LAWS", "") or "{}")
+        scalars.update(synthetic_laws(int(payload["N"]), float(payload["E"]), payload["entropy"], laws))
+        return scalars, hists, config
+
+
 def _synthetic_steps():
     """``CAMPAIGN_SYNTHETIC_STEPS`` as (seconds per step, steps), or None."""
     text = os.environ.get("CAMPAIGN_SYNTHETIC_STEPS", "")
@@ -484,6 +525,8 @@ def resolve(name: str):
         return KernelTask()
     if name == "synthetic":
         return SyntheticTask()
+    if name == "synthetic-laws":
+        return SyntheticLawsTask()
     module, _, attr = name.partition(":")
     obj = getattr(importlib.import_module(module), attr)
     return obj() if isinstance(obj, type) else obj

@@ -208,6 +208,52 @@ def write_failure(parent, tid, attrs):
     return g
 
 
+#: the group of a precision campaign's round decisions (docs/STORE.md, "Rounds"), one dataset each
+ROUNDS_GROUP = "precision"
+
+
+def round_name(k: int) -> str:
+    return f"round{int(k):04d}"
+
+
+def write_round(group, k: int, text: str):
+    """One round's decision (its JSON text, UTF-8 bytes) as ``group/roundKKKK`` with its checksum."""
+    name = round_name(k)
+    if name in group:
+        del group[name]
+    data = np.frombuffer(text.encode(), np.uint8)
+    ds = group.create_dataset(name, data=data)
+    ds.attrs[CHECKSUM_ATTR] = np.uint32(zlib.crc32(data.tobytes()) & 0xFFFFFFFF)
+    return ds
+
+
+def read_rounds(group) -> tuple[dict, list]:
+    """The decisions a ``precision`` group holds, ``({round: record}, [problems])``: a record that
+    cannot be read, is not JSON or fails its checksum is left out and named (its round is decided
+    again from the packings, which decide it the same way)."""
+    out, problems = {}, []
+    try:
+        names = sorted(group.keys())
+    except Exception as exc:  # noqa: BLE001 - a damaged index: every decision is made again
+        return {}, [f"its index cannot be read ({reason(exc)})"]
+    for name in names:
+        try:
+            k = int(str(name)[5:]) if str(name).startswith("round") else None
+            if k is None or round_name(k) != name:
+                raise ValueError("not a round's name")
+            ds = group[name]
+            data = np.asarray(ds[()], np.uint8)
+            if _crc_value(ds.attrs[CHECKSUM_ATTR]) != zlib.crc32(data.tobytes()) & 0xFFFFFFFF:
+                raise ValueError("it does not match its checksum (crc32)")
+            record = json.loads(data.tobytes().decode())
+            if not isinstance(record, dict) or record.get("round") != k:
+                raise ValueError("it is not a round's decision")
+            out[k] = record
+        except Exception as exc:  # noqa: BLE001 - this decision is made again
+            problems.append(f"{name}: {reason(exc)}")
+    return out, problems
+
+
 def write_scalar_names(group, names):
     """The ``scalars`` group's list of its datasets (attribute ``names``, JSON, and its ``crc32``): a
     damaged link name then shows as a name the list does not hold, and a repair renames it back."""

@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from campaign.storage.checksums import (PROTECTION_ATTR, SUMS_GROUP, SUMS_ROWS, check_rows, checkpoint_problem,
+from campaign.storage.checksums import (PROTECTION_ATTR, ROUNDS_GROUP, SUMS_GROUP, SUMS_ROWS, check_rows,
+                                        checkpoint_problem, read_rounds, write_round,
                                         checksums_on, configuration_problem, create_fill_sums, failure_problem,
                                         good_scalar_name, has_sums, protection_text, sums_name, write_checkpoint,
                                         write_configuration, write_failure, write_scalar_names, write_sums)
@@ -153,6 +154,22 @@ def _salvage_into(f, old_path, tasks, edges, B, state, drop=(), renames=None, ch
             attempts[lo:hi] = data["tasks/attempts"]
             wall[lo:hi] = data["tasks/wall"]
         _carry_checkpoints(f, old, tasks, status)
+        _carry_rounds(f, old)
+
+
+def _carry_rounds(f, old):
+    """A precision campaign's round decisions that read and match their checksum (the others are
+    made again from the packings by the next run)."""
+    try:
+        if ROUNDS_GROUP not in old:
+            return
+        got, _ = read_rounds(old[ROUNDS_GROUP])
+    except (OSError, KeyError, ValueError, RuntimeError):
+        return
+    if got:
+        g = f.require_group(ROUNDS_GROUP)
+        for k, record in sorted(got.items()):
+            write_round(g, k, json.dumps(record, sort_keys=True, separators=(",", ":"), allow_nan=False))
 
 
 def _carry_checkpoints(f, old, tasks, status):

@@ -68,10 +68,11 @@ import numpy as np
 from campaign.errors import OutOfSpace, StoreDamaged, UserError
 from campaign.storage.faults import GuardedFile, write_fault
 from campaign.storage.storefile import BLOCK_ROWS  # rows per chunk of every per-task dataset
-from campaign.storage.checksums import (CHECKPOINT_ATTRS, CHECKPOINT_KEYS, CONFIG_KEYS, BlockMismatch,
+from campaign.storage.checksums import (CHECKPOINT_ATTRS, CHECKPOINT_KEYS, CONFIG_KEYS, ROUNDS_GROUP, BlockMismatch,
                                         check_configuration, check_rows, checkpoint_problem, checksums_on,
-                                        create_fill_sums, has_sums, sums_name, unprotected_note, write_checkpoint,
-                                        write_configuration, write_failure, write_scalar_names, write_sums)
+                                        create_fill_sums, has_sums, read_rounds, sums_name, unprotected_note,
+                                        write_checkpoint, write_configuration, write_failure, write_round,
+                                        write_scalar_names, write_sums)
 from campaign.storage.journal import (  # noqa: F401 - part of this module's interface
     MAX_RECORD, Journal, decode_payload, encode_record, read_journal, scan_journal)
 from campaign.storage.storefile import (  # noqa: F401 - part of this module's interface
@@ -216,6 +217,11 @@ class Store:
             self.have_checkpoints = set()
         self.have_failures = set(self.f["failures"].keys()) if "failures" in self.f else set()
         self._rerun_unrecorded_failures()
+        if ROUNDS_GROUP in self.f:  # a precision campaign's decisions so far
+            self.rounds_stored, problems = read_rounds(self.f[ROUNDS_GROUP])
+            if problems:
+                self.log(f"campaign: {self.path}: {len(problems)} round decision(s) cannot be used ("
+                         + "; ".join(problems[:3]) + "); they are made again from the packings")
         self.scalar_names = set(self.f["scalars"].keys())
         try:
             self.runs = json.loads(self.f.attrs.get("runs", "[]"))
@@ -229,6 +235,8 @@ class Store:
                 replayed += 1
             elif meta.get("type") == "suspended":
                 self._stage_suspended(meta, arrays)
+            elif meta.get("type") == "round":
+                self.rounds_staged[int(meta["round"])] = meta["record"]
             elif meta.get("type") == "run":
                 self._merge_run(meta["run"])
             if self.staged_bytes > BUFFER_BYTES:
@@ -277,6 +285,8 @@ class Store:
         self.in_journal: set[int] = set()               # rows with a record in the journal
         self.suspended_staged: dict[int, tuple] = {}     # row -> suspended packing's (meta, arrays)
         self.bad_checkpoints: set[str] = set()          # ids whose checkpoint was found damaged
+        self.rounds_stored: dict[int, dict] = {}        # a precision campaign's decisions in the file
+        self.rounds_staged: dict[int, str] = {}         # ... and those in the journal only (JSON text)
         self.last_flush = time.monotonic()
 
     def n_final(self) -> int:
@@ -338,6 +348,50 @@ class Store:
             self.log(f"campaign: {self.path.parent} was full: wrote the store and cut its journal back early, "
                      "which made room; going on")
         self.space.note_record(self.journal.size - size)
+
+    # ---- a precision campaign's rounds (campaign.run.rounds)
+    def record_round(self, record: dict):
+        """Keep one round's decision (``campaign.results.allocation.Decision.to_record``): into the
+        journal first, then ``/precision/roundKKKK`` at the next flush. A round decided again (after a
+        lost record) replaces its record."""
+        text = json.dumps(record, sort_keys=True, separators=(",", ":"), allow_nan=False)
+        meta = {"type": "round", "round": int(record["round"]), "record": text, "run_id": self.run["run_id"]}
+        self._append(meta, {})
+        self.rounds_staged[int(record["round"])] = text
+        self.maybe_flush()
+
+    def rounds(self) -> dict:
+        """Every round's decision kept so far, ``{round: record}``."""
+        out = dict(self.rounds_stored)
+        out.update({k: json.loads(text) for k, text in self.rounds_staged.items()})
+        return out
+
+    def _write_rounds(self):
+        rows = sorted(self.rounds_staged.items())
+        need = sum(len(text) + 4096 for _, text in rows)
+        with self.space.write_step(self.io, need, "writing the rounds' decisions into the store", len(self.scalar_names)):
+            g = self.f.require_group(ROUNDS_GROUP)
+            for k, text in rows:
+                write_round(g, k, text)
+                self.rounds_stored[k] = json.loads(text)
+            self.f.flush()
+        self.rounds_staged.clear()
+
+    def columns(self, names) -> dict:
+        """Whole per-task columns (``tasks/status``, ``scalars/A_G``, ...) as the store holds them once
+        everything staged is written (a flush first); a scalar the store has no dataset for is NaN.
+        For a precision campaign's decisions, read while the run goes on."""
+        self.flush(force=True)
+        out = {}
+        for name in names:
+            if name == "tasks/status":
+                out[name] = self.status.copy()
+            elif name not in self.f:
+                out[name] = np.full(self.T, np.nan)
+            else:
+                out[name] = np.concatenate([self._read_block(name, lo, min(lo + self.B, self.T))
+                                            for lo in range(0, self.T, self.B)]) if self.T else np.zeros(0)
+        return out
 
     # ---- suspended packings (stop and go)
     def suspend(self, index: int, record: dict):
@@ -526,7 +580,8 @@ class Store:
     def maybe_flush(self):
         now = time.monotonic()
         if (self.staged_bytes > BUFFER_BYTES or self.journal.size > JOURNAL_BYTES
-                or ((self.staged or self.suspended_staged) and now - self.last_flush >= FLUSH_SECONDS)):
+                or ((self.staged or self.suspended_staged or self.rounds_staged)
+                    and now - self.last_flush >= FLUSH_SECONDS)):
             self.flush()
 
     def flush(self, force=False):
@@ -551,6 +606,9 @@ class Store:
         if self.suspended_staged:
             self.journal.sync()
             self._write_checkpoints()
+        if self.rounds_staged:
+            self.journal.sync()
+            self._write_rounds()
         self.last_flush = time.monotonic()
         if self.journal.size > JOURNAL_BYTES:
             self.checkpoint()
@@ -701,6 +759,9 @@ class Store:
         if self.suspended_staged:
             self.journal.sync()
             self._write_checkpoints()
+        if self.rounds_staged:
+            self.journal.sync()
+            self._write_rounds()
         with self.space.write_step(self.io, 0, "flushing the store at a checkpoint", len(self.scalar_names)):
             self.f.flush()
         try:
