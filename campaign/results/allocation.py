@@ -54,8 +54,17 @@ from campaign.results import fits
 ROUND_GROWTH = 1.0
 #: the next round's early seeds: this share of the round's cost (the plan's continuation)
 EARLY_SHARE = 0.1
-#: the 1/N_G line's scatter counts as a floor (not reduced by seeds) below this p-value
-SCATTER_P = 0.001
+#: a size whose intercept lies off the 1/N_G line by more than this many of its errors has a systematic
+#: offset (a finite-size correction beyond 1/N_G) that the model keeps: more seeds at that size make the
+#: reducer's sqrt(chi^2/dof) of the line larger, not its error smaller
+SYSTEMATIC_SIGMA = 3.0
+#: ... in a 1/N_G line whose chi^2 has a p-value below this (a few packings per cell make a size's
+#: bootstrap error short, and one size in several lies 3 errors off now and then)
+SYSTEMATIC_P = 0.001
+#: a cell's seeds grow at most this many times in one round: the first rounds' model comes from a
+#: few packings per cell, and a design it finds optimal (often a few cells) is taken a step at a
+#: time, re-estimated before it is trusted with more
+CELL_GROWTH = 4
 #: a law whose data show no dependence of y on x at this p-value or above has no exponent to measure
 NO_DEPENDENCE_P = 0.01
 #: an undetermined target (no value from the reducer) is planned to this share of its goal
@@ -146,12 +155,54 @@ class LawModel:
     yerr: np.ndarray = field(default_factory=lambda: np.zeros(0))          # the reducer's weights 1/yerr^2
     packings: list = field(default_factory=list)                           # per cell (x, y) of its packings
     beta: float = np.nan
-    floor_S: float = 0.0    # excess chi^2 of the 1/N line that seeds do not remove
-    dof: int = 0
+    sys2: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per size: its intercept's systematic
+    #                         squared offset from the 1/N_G line (seeds do not remove it: the reducer's
+    #                         sqrt(chi^2/dof) grows as the sizes' errors shrink)
+    dof: int = 0            # degrees of freedom of the 1/N_G line (sizes - 2)
     ok: bool = True
     why: str = ""
     J: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))         # at the point fit
     s2: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def free(self, J) -> np.ndarray:
+        """The design vectors with a free intercept per size (``theta = (beta, a_N1 .. a_NG, c_N1 ..
+        c_NG)``: the shared fit before the 1/N_G line), for the sizes' intercept errors."""
+        G = len(self.sizes)
+        F = np.zeros((len(J), 1 + 2 * G))
+        F[:, 0] = J[:, 2]
+        F[np.arange(len(J)), 1 + self.size_of] = 1.0
+        F[:, 1 + G:] = J[:, 3:]
+        return F
+
+    def state(self, n, J=None, s2=None):
+        """The inverses of the Fisher information at ``n`` (joint, and with free intercepts)."""
+        J = self.J if J is None else J
+        s2 = self.s2 if s2 is None else s2
+        w = np.asarray(n, float)[self.cells] / s2
+        F = self.free(J)
+        return [_inverse((J * w[:, None]).T @ J), _inverse((F * w[:, None]).T @ F), J, F, s2]
+
+    def add(self, st, i, dn):
+        """``st`` with ``dn`` more usable packings in the law's cell ``i`` (rank-one updates)."""
+        inv, invf, J, F, s2 = st
+        w = dn / s2[i]
+        out = [inv, invf]
+        for k, (A_, v) in enumerate(((inv, J[i]), (invf, F[i]))):
+            Av = A_ @ v
+            q = float(v @ Av)
+            if np.all(np.isfinite(Av)) and np.isfinite(q):
+                out[k] = A_ - np.outer(Av, Av) * (w / (1.0 + w * q))
+        return [out[0], out[1], J, F, s2]
+
+    def inflation(self, invf) -> float:
+        """The reducer's sqrt(chi^2/dof) of the 1/N_G line, squared, expected at the sizes' intercept
+        errors of ``invf``: ``max(1, (dof + sum sys2 / sigma_N^2) / dof)``."""
+        if self.dof <= 0 or not np.any(self.sys2 > 0):
+            return 1.0
+        G = len(self.sizes)
+        var = np.diag(invf)[1:1 + G]
+        chi2 = self.dof + float(np.sum(np.where(var > 0, self.sys2 / np.maximum(var, 1e-300), 0.0)))
+        return max(1.0, chi2 / self.dof)
 
     def refit(self, beta):
         """The amplitudes c_N and chi^2 of the reducer's weighted fit with the exponent held at ``beta``."""
@@ -288,12 +339,17 @@ def build_law(table, cells: Cells, variant, quantity, absc) -> LawModel:
                    np.array(ybar), np.array(yerr), packs, beta, dof=max(0, len(sizes) - 2))
     law.J, law.s2 = law.at(beta, np.asarray(f.coeffs, float))
     got = table.shared_fits.get((variant, quantity, absc))
+    law.sys2 = np.zeros(len(sizes))
     if got is not None and law.dof > 0:
-        line = got[2]
-        chi2 = float(line.chi2_dof) * law.dof if np.isfinite(line.chi2_dof) else np.nan
-        p = fits.chi2_p_value(chi2, law.dof)
-        if np.isfinite(p) and p < SCATTER_P:
-            law.floor_S = chi2 - law.dof
+        fsizes, sf, line = got
+        if list(fsizes) == list(sizes) and np.isfinite(line.value) and np.isfinite(line.slope):
+            resid = np.asarray(sf.intercepts) - (line.value + line.slope / np.asarray(sizes, float))
+            err = np.asarray(sf.intercept_errs, float)
+            # a size off the line by more than SYSTEMATIC_SIGMA of its error, in a line that fails its
+            # chi^2 test (p < SYSTEMATIC_P): its offset is taken as real
+            chi2 = float(line.chi2_dof) * law.dof if np.isfinite(line.chi2_dof) else 0.0
+            if fits.chi2_p_value(chi2, law.dof) < SYSTEMATIC_P:
+                law.sys2 = np.where(np.abs(resid) > SYSTEMATIC_SIGMA * err, resid ** 2 - err ** 2, 0.0)
     return law
 
 
@@ -340,21 +396,14 @@ class Target:
         room = max(min(self.law.beta - lo, hi - self.law.beta), 1e-3) / 3.0 if self.law.ok else self.goal
         return min(room, AIM * self.goal) if self.kind == "exponent" else room
 
-    def variance(self, inv) -> float:
-        """Predicted variance of the reducer's error (of the parameter ``plan_k``) from the model's
-        inverse information ``inv``."""
+    def variance(self, st) -> float:
+        """Predicted variance of the reducer's error (of the parameter ``plan_k``) at the model state
+        ``st`` (``LawModel.state``): the joint fit's, times the 1/N_G line's expected inflation for an
+        intercept, times ``ratio^2``."""
+        inv, invf = st[0], st[1]
         v = float(inv[self.plan_k, self.plan_k])
-        infl = 1.0
-        if self.plan_k == 0 and self.law.floor_S > 0 and self.law.dof > 0:
-            f = v / self.v_now if self.v_now > 0 else 1.0
-            infl = max(1.0, 1.0 + self.law.floor_S / (self.law.dof * max(f, 1e-300)))
+        infl = self.law.inflation(invf) if self.plan_k == 0 else 1.0
         return self.ratio ** 2 * v * infl
-
-    def floor(self) -> float:
-        """The variance no seed count removes (the 1/N_G line's excess scatter)."""
-        if self.plan_k != 0 or self.law.floor_S <= 0 or self.law.dof <= 0:
-            return 0.0
-        return self.ratio ** 2 * self.v_now * self.law.floor_S / self.law.dof
 
 
 def _targets(table, cells, settings) -> list:
@@ -465,15 +514,15 @@ def decide(k: int, table, cells: Cells, state: State, settings, previous=None) -
     if all(t.met for t in targets):
         return decision("met", "every target met: " + _errors_text(targets))
     # the model of each target, calibrated to the reducer's error at the present allocation
-    invs = {}
+    states = {}
     for t in targets:
         if not t.law.ok:
             continue
-        if id(t.law) not in invs:
-            invs[id(t.law)] = t.law.inverse(n_now)
-        t.v_now = float(invs[id(t.law)][t.plan_k, t.plan_k])
+        if id(t.law) not in states:
+            states[id(t.law)] = t.law.state(n_now)
+        t.v_now = float(states[id(t.law)][0][t.plan_k, t.plan_k])
         if t.determined and t.v_now > 0:
-            t.ratio = t.error / math.sqrt(t.variance(invs[id(t.law)]))   # variance() with ratio 1 here
+            t.ratio = t.error / math.sqrt(t.variance(states[id(t.law)]))   # variance() with ratio 1 here
     # out of reach: with max_seeds in every cell of the fit range a target stays above its goal, by
     # the model alone (not scaled to the bootstrap's error, which a few packings per cell inflate
     # where the fit is far from linear: the model is what the fit reaches once its cells are full)
@@ -483,7 +532,8 @@ def decide(k: int, table, cells: Cells, state: State, settings, previous=None) -
         if t.met or not t.law.ok:
             continue
         v_max = _best_case(t, n_max, n_now)
-        if not (np.isfinite(v_max) and v_max <= t.goal ** 2):
+        # the goal, or while the reducer gives no value, the exponent error that gives it one
+        if not (np.isfinite(v_max) and v_max <= (t.goal if t.determined else t.aim) ** 2):
             unreachable.append((t, v_max))
     seen = {(r["variant"], r["key"]) for r in (previous or {}).get("targets", []) if r.get("out_of_reach")}
     if unreachable and all((t.variant, t.key) in seen for t, _ in unreachable):
@@ -501,9 +551,12 @@ def decide(k: int, table, cells: Cells, state: State, settings, previous=None) -
                             f"for the next round ({round_cost / 3600:.3g}); {missing}")
         return decision("continue", f"round {k}: no model yet ({missing}): the fit range's seeds doubled",
                         grow, grow.copy(), round_cost=round_cost)
-    plan = _greedy(targets, cells, n_now, given, frac, cost, relevant, m, invs)
-    projected = dict(enumerate(plan.final_variance))
-    to_targets = plan.cost_to_met
+    full = _greedy(targets, cells, n_now, given, frac, cost, relevant, m, states)  # the whole way
+    projected = dict(enumerate(full.final_variance))
+    to_targets = full.cost_to_met
+    # this round's part of it: the plan again with each cell's growth capped (CELL_GROWTH)
+    plan = _greedy(targets, cells, n_now, given, frac, cost, relevant, m, states,
+                   cap=np.maximum(given * CELL_GROWTH, given + 1))
     if plan.n_met == 0:
         # the model has every target where it should be, the reducer not (a bootstrap at a bound, an
         # error the model underrates): half as many seeds again in the fit range of the targets short
@@ -554,13 +607,14 @@ def decide(k: int, table, cells: Cells, state: State, settings, previous=None) -
 
 def _best_case(t, n, n_now) -> float:
     """The smallest variance the model gives target ``t`` at usable packings ``n`` over the exponents
-    its data do not exclude (``LawModel.plausible``), its 1/N_G floor included, not scaled to the
-    bootstrap: a target out of reach for every plausible exponent is out of reach (a pilot's few
+    its data do not exclude (``LawModel.plausible``), the 1/N_G line's inflation included, not scaled
+    to the bootstrap: a target out of reach for every plausible exponent is out of reach (a pilot's few
     packings per cell can put the point fit far from the truth, which the best case does not trust).
     Each size's amplitude counts only as far as the packings ``n_now`` resolve it from zero (its fit
-    less two standard errors, the exponent held): an amplitude the data cannot tell from noise measures no exponent,
-    however many packings the model is given; and a target that waits on its law's exponent is out
-    of reach while the data show no dependence of y on x at all (p > ``NO_DEPENDENCE_P``)."""
+    less two standard errors, the exponent held): an amplitude the data cannot tell from noise
+    measures no exponent, however many packings the model is given; and a target that waits on its
+    law's exponent is out of reach while the data show no dependence of y on x at all
+    (p > ``NO_DEPENDENCE_P``)."""
     if t.plan_k == 2 and not (t.law.dependence_p() <= NO_DEPENDENCE_P):
         return math.inf
     best = math.inf
@@ -572,12 +626,11 @@ def _best_case(t, n, n_now) -> float:
         err = np.sqrt(np.maximum(np.diag(now)[2:], 0.0))
         sure = np.sign(coeffs) * np.maximum(np.abs(coeffs) - 2.0 * err, 0.0)
         J, s2 = t.law.at(beta, sure)
-        v = float(_inverse(t.law.info(n, J, s2))[_k(t.kind), _k(t.kind)])
+        st = t.law.state(n, J, s2)
+        v = float(st[0][t.plan_k, t.plan_k]) * (t.law.inflation(st[1]) if t.plan_k == 0 else 1.0)
         if np.isfinite(v):
             best = min(best, v)
-    if not np.isfinite(best):
-        return best
-    return best + t.floor() / max(t.ratio ** 2, 1e-300)
+    return best
 
 
 def _fill_costs(cost, cells):
@@ -638,28 +691,28 @@ class _Plan:
                 continue
             lid = id(t.law)
             if lid not in cache:
-                cache[lid] = t.law.inverse(n)
+                cache[lid] = t.law.state(n)
             out[i] = t.variance(cache[lid])
         return out
 
 
-def _greedy(targets, cells, n_now, given, frac, cost, relevant, m, invs) -> _Plan:
+def _greedy(targets, cells, n_now, given, frac, cost, relevant, m, states, cap=None) -> _Plan:
     """Add seeds where ``sum over the targets short of their aim of V_T / aim_T^2`` falls fastest per
     core-second, until every target is projected met; then on (all targets weighted) until
-    ``EARLY_SHARE`` more than that is planned, or every cell of the fit range holds ``m``."""
+    ``EARLY_SHARE`` more than that is planned, or every cell of the fit range holds ``m`` (or ``cap``,
+    per cell)."""
     laws = {}
     for t in targets:
         if t.law.ok:
             laws.setdefault(id(t.law), t.law)
-    inv = {lid: invs[lid].copy() for lid in laws}
-    # the design vector and weight of each campaign cell in each law
-    Jc = {lid: {int(c): (law.J[i], 1.0 / law.s2[i]) for i, c in enumerate(law.cells)} for lid, law in laws.items()}
+    st = {lid: list(states[lid]) for lid in laws}
+    where = {lid: {int(c): i for i, c in enumerate(law.cells)} for lid, law in laws.items()}
+    top = np.full(cells.C, m) if cap is None else np.minimum(m, cap)
     alloc = given.copy()
-    n = n_now.astype(float).copy()
     steps, costs, cum = [], [], 0.0
     n_met, cost_to_met = None, math.nan
     live = [t for t in targets if t.law.ok]
-    var = {id(t): t.variance(inv[id(t.law)]) for t in live}
+    var = {id(t): t.variance(st[id(t.law)]) for t in live}
     cand = np.flatnonzero(relevant)
     limit = None
     for _ in range(200000):
@@ -672,43 +725,32 @@ def _greedy(targets, cells, n_now, given, frac, cost, relevant, m, invs) -> _Pla
         weigh = short if short else live
         best, best_gain, best_d = -1, 0.0, 0
         for c in cand:
-            if alloc[c] >= m:
+            if alloc[c] >= top[c]:
                 continue
-            d = int(min(m - alloc[c], max(1, alloc[c] // 8)))
+            d = int(min(top[c] - alloc[c], max(1, alloc[c] // 8)))
             dn = d * frac[c]
-            gain = 0.0
+            gain, trial = 0.0, {}
             for t in weigh:
                 lid = id(t.law)
-                got = Jc[lid].get(int(c))
-                if got is None:
+                i = where[lid].get(int(c))
+                if i is None:
                     continue
-                J, w = got
-                Iv = inv[lid] @ J
-                q = float(J @ Iv)
-                kk = t.plan_k
-                dv = (dn * w) * Iv[kk] ** 2 / (1.0 + dn * w * q)
-                v_old = var[id(t)]
-                v_new = t.variance(inv[lid] - np.outer(Iv, Iv) * (dn * w / (1.0 + dn * w * q)))
-                gain += max(0.0, v_old - v_new) / t.aim ** 2 if dv > 0 else 0.0
+                if lid not in trial:
+                    trial[lid] = t.law.add(st[lid], i, dn)
+                gain += max(0.0, var[id(t)] - t.variance(trial[lid])) / t.aim ** 2
             score = gain / (d * cost[c])
             if score > best_gain:
                 best, best_gain, best_d = c, score, d
         if best < 0:
             break
         c, d = int(best), best_d
-        dn = d * frac[c]
         for lid, law in laws.items():
-            got = Jc[lid].get(c)
-            if got is None:
-                continue
-            J, w = got
-            Iv = inv[lid] @ J
-            q = float(J @ Iv)
-            inv[lid] = inv[lid] - np.outer(Iv, Iv) * (dn * w / (1.0 + dn * w * q))
+            i = where[lid].get(c)
+            if i is not None:
+                st[lid] = law.add(st[lid], i, d * frac[c])
         for t in live:
-            var[id(t)] = t.variance(inv[id(t.law)])
+            var[id(t)] = t.variance(st[id(t.law)])
         alloc[c] += d
-        n[c] += dn
         cum += d * cost[c]
         steps.append((c, d))
         costs.append(cum)
@@ -738,14 +780,19 @@ def _unreachable_text(t, v_max, m) -> str:
     who = f" of variant {t.variant!r}" if t.variant != "default" else ""
     now = f"{t.error:.2g}" if np.isfinite(t.error) else "no value yet"
     at_max = f"{math.sqrt(v_max):.2g}" if np.isfinite(v_max) else "undetermined"
-    floor = t.floor()
-    if t.kind == "exponent":
-        why = ("its amplitude c is too small against the scatter of the cells for the exponent to be "
-               "determined" if not np.isfinite(v_max) or v_max > 100 * t.goal ** 2 else
-               "the fit range's cells cannot pin it closer")
-    elif floor > t.aim ** 2:
-        why = (f"the sizes scatter about the 1/N_G line more than their errors allow (a floor of "
-               f"{math.sqrt(floor):.2g} that more seeds do not lower)")
+    if t.plan_k == 2:
+        if not t.determined:
+            at_max = (f"undetermined: its exponent's error would still be {math.sqrt(v_max):.2g}, too close to a bound "
+                      "of the exponent's search for its bootstrap to stay inside" if np.isfinite(v_max) else
+                      "undetermined")
+        why = ("the data show no dependence of the quantity on the abscissa that would fix the exponent "
+               "(its amplitude is not told apart from zero)" if not np.isfinite(v_max) or v_max > 100 * t.goal ** 2
+               else "the fit range's cells cannot pin the exponent closer")
+    elif t.law.dof > 0 and np.any(t.law.sys2 > 0):
+        off = [n for n, d in zip(t.law.sizes, t.law.sys2) if d > 0]
+        why = (f"N_G = {', '.join(map(str, off))} lie off the 1/N_G line by more than their errors allow (a "
+               "finite-size correction beyond 1/N_G): more seeds raise the reducer's sqrt(chi^2/dof) of the line "
+               "as they lower its error, a floor no seed count passes")
     else:
         why = "the fit range's cells cannot pin it closer"
     return (f"{t.key}{who} cannot reach its goal {t.goal:g}: its error is {now}, and with max_seeds ({m}) in every "
