@@ -23,8 +23,11 @@ import pytest
 from helpers import assert_same_contents, store_contents
 
 from campaign.plan.spec import parse_spec
+from campaign.plan.precision import FITS
 from campaign.plan.tasks import expand
 from campaign.results import allocation as A
+from campaign.results import errormodel as M
+from campaign.results import planner as P
 from campaign.run.worker import synthetic_laws
 from campaign.storage.checksums import sums_name, write_sums
 from campaign.storage.journal import read_journal
@@ -122,10 +125,10 @@ def test_the_model_of_the_errors_matches_the_bootstrap():
     with the reducer's sqrt(chi^2/dof) of its 1/N_G line, when above 1."""
     spec = parse_spec(SPEC.replace("max_seeds: 40", "max_seeds: 60"))
     tasks = expand(spec)
-    cells = A.campaign_cells(spec, tasks)
+    cells = M.campaign_cells(spec, tasks)
     counts = np.full(cells.C, 60)
     rows = np.flatnonzero(cells.tasks_of(counts))
-    table = A.reduce_rows(cells, {"schema": "jamming-campaign/1"}, rows, np.ones(len(rows), np.int8),
+    table = P.reduce_rows(cells, {"schema": "jamming-campaign/1"}, rows, np.ones(len(rows), np.int8),
                           _draw(tasks)(rows))
     n = np.zeros(cells.C)
     index = cells.index()
@@ -134,8 +137,8 @@ def test_the_model_of_the_errors_matches_the_bootstrap():
         n[index[(str(g.cv[gc]), int(g.cN[gc]), float(g.cE[gc]))]] = g.n_done[gc]
     row = table.extrapolated["default"]
     checked = 0
-    for quantity, absc, ikey, bkey in A.FITS:
-        law = A.build_law(table, cells, "default", quantity, absc)
+    for quantity, absc, ikey, bkey in FITS:
+        law = M.build_law(table, cells, "default", quantity, absc)
         assert law.ok, law.why
         inv = law.inverse(n)
         line = table.shared_fits[("default", quantity, absc)][2]
@@ -152,21 +155,21 @@ def test_an_absent_law_is_out_of_reach_for_every_exponent():
     whatever exponent the data allow, so the best case at any seed count misses a goal."""
     spec = parse_spec(SPEC.replace("A_G_star_E: 1.5e-3, psi_O_star: 3.0e-3", "beta_E: 0.02"))
     tasks = expand(spec)
-    cells = A.campaign_cells(spec, tasks)
+    cells = M.campaign_cells(spec, tasks)
     counts = np.full(cells.C, 30)
     rows = np.flatnonzero(cells.tasks_of(counts))
-    table = A.reduce_rows(cells, {"schema": "jamming-campaign/1"}, rows, np.ones(len(rows), np.int8),
+    table = P.reduce_rows(cells, {"schema": "jamming-campaign/1"}, rows, np.ones(len(rows), np.int8),
                           _draw(tasks, {"c_A": 0.0})(rows))
-    law = A.build_law(table, cells, "default", "A_G", "E_G")
+    law = M.build_law(table, cells, "default", "A_G", "E_G")
     t = A.Target("default", "beta_E", 0.02, np.nan, np.nan, law)
     now = np.full(cells.C, 30.0)
     huge = np.where(cells.relevant({"beta_E": 1}), 1e4, 30.0)
-    assert not A._best_case(t, huge, now) <= 0.02 ** 2  # undetermined (inf) or above the goal
+    assert not A.best_case(t, huge, now) <= 0.02 ** 2  # undetermined (inf) or above the goal
     # the laws as they are: the same seeds measure the exponent to better than the goal
-    table = A.reduce_rows(cells, {"schema": "jamming-campaign/1"}, rows, np.ones(len(rows), np.int8),
+    table = P.reduce_rows(cells, {"schema": "jamming-campaign/1"}, rows, np.ones(len(rows), np.int8),
                           _draw(tasks)(rows))
-    t = A.Target("default", "beta_E", 0.02, np.nan, np.nan, A.build_law(table, cells, "default", "A_G", "E_G"))
-    assert A._best_case(t, huge, now) < 0.02 ** 2
+    t = A.Target("default", "beta_E", 0.02, np.nan, np.nan, M.build_law(table, cells, "default", "A_G", "E_G"))
+    assert A.best_case(t, huge, now) < 0.02 ** 2
 
 
 # --------------------------------------------------------------------------- runs
@@ -178,8 +181,8 @@ def test_the_rounds_decide_what_the_in_memory_campaign_decides(reference):
     recs = _records(out)
     spec = parse_spec(SPEC)
     tasks = expand(spec)
-    cells = A.campaign_cells(spec, tasks)
-    mem, table = A.run_in_memory(cells, spec.precision.settings(), _draw(tasks),
+    cells = M.campaign_cells(spec, tasks)
+    mem, table = P.run_in_memory(cells, spec.precision.settings(), _draw(tasks),
                                  attrs={"schema": "jamming-campaign/1", "spec_yaml": SPEC})
     assert [r["round"] for r in recs] == list(range(len(recs))) and len(recs) >= 3
     assert [r["action"] for r in recs] == [r["action"] for r in mem]
@@ -200,7 +203,7 @@ def test_a_decision_is_the_reduction_of_its_rounds(reference, tmp_path):
     out, _ = reference
     recs = _records(out)
     spec = parse_spec(SPEC)
-    cells = A.campaign_cells(spec, expand(spec))
+    cells = M.campaign_cells(spec, expand(spec))
     k = 2
     copy = tmp_path / "upto.h5"
     shutil.copy(out, copy)
@@ -310,7 +313,7 @@ def test_targets_met_by_the_pilot(tmp_path):
     assert [r_["action"] for r_ in recs] == ["pilot", "met"]
     assert "every target met" in r.stderr
     s = parse_spec(spec)
-    cells = A.campaign_cells(s, expand(s))
+    cells = M.campaign_cells(s, expand(s))
     with h5py.File(out, "r") as f:
         done = int((f["tasks/status"][:] == 1).sum())
     # the pilot, and the one early seed it gave each cell of the fit range
@@ -365,3 +368,32 @@ def test_status_shows_the_rounds(reference):
                        capture_output=True, text=True, timeout=60)
     got = json.loads(r.stdout)
     assert got["precision"]["last_decision"]["action"] == "met" and got["remaining"] == 0
+
+
+def test_validate_prices_the_pilot_and_the_targets(tmp_path, capsys):
+    """Before the pilot, `campaign validate` plans from the prior (paper-small's packings); a system the
+    prior does not hold needs the pilot; after it, the store's last decision says what is left."""
+    from campaign import cli
+
+    path = tmp_path / "v.yaml"
+    path.write_text(SPEC + f"output: {tmp_path / 'none.h5'}\n")
+    assert cli.main(["validate", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "in the pilot (1 variant(s) x 3 N_G x 9 E_G x 3 seeds)" in out and "at most 1080" in out
+    assert "reaching the targets: about" in out and "by the prior" in out and "seeds in every cell:" in out
+    hertz = SPEC.replace("seed: 5\n", "seed: 5\nsystem: {potential: {exponent: 2.5}}\n")
+    path.write_text(hertz + f"output: {tmp_path / 'none.h5'}\n")
+    assert cli.main(["validate", str(path)]) == 0
+    assert "reaching the targets: needs the pilot" in capsys.readouterr().out
+
+
+def test_validate_and_slurm_read_the_last_decision(reference, tmp_path, capsys):
+    from campaign import cli
+
+    out, _ = reference
+    path = tmp_path / "v.yaml"
+    path.write_text(SPEC + f"output: {out}\n")
+    assert cli.main(["validate", str(path)]) == 0
+    assert f"{out}: ended (met) after round" in capsys.readouterr().out
+    assert cli.main(["slurm", str(path), "--out", str(tmp_path / "s.sbatch")]) == 0
+    assert "every task is done; nothing left to run" in capsys.readouterr().err

@@ -60,9 +60,12 @@ def _estimate(spec, results, cal, options):
     from campaign.errors import UserError
     from campaign.plan.tasks import expand
     from campaign.run.slurm import job_work
-    from campaign.storage.store import DONE, read_summary
+    from campaign.storage.readers import read_summary
+    from campaign.storage.store import DONE
 
     tasks = expand(spec)
+    if spec.precision is not None:
+        return _precision_estimate(spec, tasks, results, cal, options)
     left = tasks
     if results.exists():
         try:
@@ -74,6 +77,54 @@ def _estimate(spec, results, cal, options):
     if not left:
         return None, 0
     return job_work(left, cal, options), len(left)
+
+
+def _precision_estimate(spec, tasks, results, cal, options):
+    """A precision campaign's work for the chain: the tasks its rounds gave out and not done, plus what
+    its last decision projects for reaching the targets; before the pilot, the prior's plan
+    (``campaign.results.planner.plan_from_prior``), else the pilot alone. The chain's jobs go on
+    through the rounds: each resumes, decides when a round is complete and exits at once when the
+    campaign has ended."""
+    import math
+    from dataclasses import replace
+
+    from campaign.plan.calibration import Estimate
+    from campaign.results.errormodel import campaign_cells
+    from campaign.results.planner import plan_from_prior
+    from campaign.run.slurm import job_work
+    from campaign.storage.checksums import ROUNDS_GROUP, read_rounds
+
+    cells = campaign_cells(spec, tasks)
+    status, last = None, None
+    if results.exists():
+        try:
+            import h5py
+
+            with h5py.File(results, "r", locking=False) as f:
+                if f.attrs.get("spec_hash") == spec.hash:
+                    status = f["tasks/status"][:]
+                    if ROUNDS_GROUP in f:
+                        got, _ = read_rounds(f[ROUNDS_GROUP])
+                        last = got[max(got)] if got else None
+        except (OSError, KeyError, ValueError):
+            status, last = None, None
+    if last is not None:
+        given = cells.tasks_of(last["early"])
+        left = [t for t in tasks if given[t.index] and status[t.index] == 0]
+        extra = (last.get("to_targets_core_hours") or 0.0) * 3600.0 if last["action"] in ("pilot", "continue") else 0.0
+        if last["action"] == "pilot":
+            got = plan_from_prior(spec, tasks, seconds=lambda N, E, proto, alpha: cal.seconds(N, E, proto, alpha))
+            extra = got.get("plan_seconds", 0.0) if got.get("ok") and got.get("reachable") else 0.0
+    else:
+        left = [t for t in tasks if t.seed < spec.precision.pilot]
+        got = plan_from_prior(spec, tasks, seconds=lambda N, E, proto, alpha: cal.seconds(N, E, proto, alpha))
+        extra = got.get("plan_seconds", 0.0) if got.get("ok") and got.get("reachable") else 0.0
+    if not left and extra <= 0:
+        return None, 0
+    work = job_work(left or [t for t in tasks if t.seed == 0], cal, options)
+    seconds = (work.total.seconds if left else 0.0) + extra
+    sigma = work.total.sigma
+    return replace(work, total=Estimate(seconds, seconds * math.exp(-sigma), seconds * math.exp(sigma), sigma)), len(left)
 
 
 def _main(args, cal) -> int:
@@ -99,6 +150,9 @@ def _main(args, cal) -> int:
             print(f"{results}: every task is done; nothing left to run", file=sys.stderr)
         else:
             head = "" if n_left == spec.n_tasks else f"{n_left} of {spec.n_tasks} tasks left in {results}; "
+            if spec.precision is not None:
+                head = (f"precision targets: {n_left} task(s) given out and not done, and the rounds the last decision "
+                        "(before the pilot: the prior, docs/PRECISION.md) projects to reach the targets; ")
             sys.stderr.write(head + advice_text(advise(work.total, work.longest, options), work, options,
                                                 args.chain))
     if args.out:

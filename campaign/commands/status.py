@@ -121,7 +121,8 @@ def _scan(path):
     space the sample."""
     import numpy as np
 
-    from campaign.storage.store import DONE, FAILED, PENDING, read_retrying
+    from campaign.storage.readers import read_retrying
+    from campaign.storage.store import DONE, FAILED, PENDING
 
     return read_retrying(path, lambda f: _scan_open(f, np, DONE, FAILED, PENDING))
 
@@ -244,7 +245,7 @@ def precision_lines(rounds, totals) -> list:
         proj = "" if t.get("projected") is None else f", projected {t['projected']:.3g} after the round"
         mark = " met" if t.get("met") else ""
         out.append(f"  {t['key']}{who}: error {err} against goal {t['goal']:g}{mark} (at decision {k}{proj})")
-    spent, committed = last.get("spent_core_hours"), last.get("committed_core_hours")
+    spent = last.get("spent_core_hours")
     rnd, to = last.get("round_core_hours"), last.get("to_targets_core_hours")
     line = f"  core-hours: {totals['core_hours']:.3g} measured"
     if spent is not None:

@@ -28,6 +28,7 @@ def _main(args, cal) -> int:
     from campaign.errors import UserError
     from campaign.plan.tasks import energy_floor_problems, estimate, expand, task_cost
     from campaign.plan.calibration import calibrated_on, machine
+    from campaign.plan import precision as precision_mod
 
     spec = load_spec(args.spec)
     problems = energy_floor_problems(spec)
@@ -42,7 +43,13 @@ def _main(args, cal) -> int:
         grid = f"{len(spec.variants)} variant(s) x {len(spec.N)} N_G x {len(spec.E)} E_G"
     else:  # variants with their own energies
         grid = f"{sum(len(v.E) for v in spec.variants)} (variant, E_G) x {len(spec.N)} N_G"
-    print(f"  tasks       {len(tasks)} = {grid} x {len(spec.seeds)} seed(s)")
+    if spec.precision is None:
+        print(f"  tasks       {len(tasks)} = {grid} x {len(spec.seeds)} seed(s)")
+    else:
+        n_cells = len(tasks) // spec.precision.max_seeds
+        print(f"  tasks       {n_cells * spec.precision.pilot} in the pilot ({grid} x {spec.precision.pilot} seeds), at most "
+              f"{len(tasks)} ({spec.precision.max_seeds} seeds in every cell)")
+        print(f"  precision   {precision_mod.describe(spec.precision)}")
     print(f"  variants    {', '.join(v.name for v in spec.variants)}")
     if any(v.system != spec.system for v in spec.variants):
         # several physical systems: each a sub-campaign with its own ids, table and figures
@@ -59,8 +66,12 @@ def _main(args, cal) -> int:
     print(f"  output      {spec.output}")
     for line in _endgames(spec, tasks):
         print(line)
-    print(f"  estimated cost {est.hours()}: {fmt_duration(est.seconds)} on one core; longest task "
-          f"~{fmt_duration(longest)}; model calibrated by {cal.source} (campaign/plan/calibration.py)")
+    if spec.precision is None:
+        print(f"  estimated cost {est.hours()}: {fmt_duration(est.seconds)} on one core; longest task "
+              f"~{fmt_duration(longest)}; model calibrated by {cal.source} (campaign/plan/calibration.py)")
+    else:
+        for line in _precision_cost(spec, tasks, cal, est, longest):
+            print(line)
     here, made_on = machine(), calibrated_on(cal)
     if made_on is not None and made_on != here:
         print(f"  note: the cost model was calibrated on another machine ({made_on}); this is {here}: its "
@@ -82,12 +93,81 @@ def _main(args, cal) -> int:
                   "FIRE steps); `campaign calibrate --gpu` on a GPU prices them in GPU-hours (docs/GPU.md)")
     for line in _gpu_advice(spec, tasks, cal):
         print(line)
-    for line in _auto_advice(spec, tasks, cal) + _fast_advice(spec, tasks, cal):
+    # a precision campaign gives seeds to single cells: no ladder, and its store's rounds say what is left
+    for line in _auto_advice(spec, tasks, cal) + (_fast_advice(spec, tasks, cal) if spec.precision is None else []):
         print(line)
-    learnt = _learnt_remaining(spec, tasks)
+    learnt = _learnt_remaining(spec, tasks) if spec.precision is None else None
     if learnt:
         print(f"  {spec.output}: {learnt}")
     return 0
+
+
+def _precision_cost(spec, tasks, cal, est, longest):
+    """A precision campaign's price: its pilot and its ceiling by the cost model; what reaching its
+    targets would cost, from its store's last decision when its pilot has run, else from the prior
+    (campaign.results.planner.plan_from_prior), or why that needs the pilot."""
+    from campaign.plan.tasks import estimate
+    from campaign.results.planner import plan_from_prior
+
+    p = spec.precision
+    pilot = [t for t in tasks if t.seed < p.pilot]
+    pe = estimate(pilot, cal)
+    out = [f"  estimated cost of the pilot {pe.hours()}; at most {est.hours()} (max_seeds in every cell); longest "
+           f"task ~{longest / 60:.3g} min; model calibrated by {cal.source}"]
+    done = _last_decision(spec)
+    if done is not None:
+        out.append(f"  {spec.output}: {done}")
+        return out
+    got = plan_from_prior(spec, tasks, seconds=lambda N, E, proto, alpha: cal.seconds(N, E, proto, alpha))
+    if not got["ok"]:
+        out.append(f"  reaching the targets: needs the pilot ({got['why']}); run it with `campaign run {spec.source}`: "
+                   "its first decision says what the rest costs (campaign status)")
+        return out
+    errs = ", ".join(f"{k} {v:.2g}" for k, v in got["pilot_errors"].items())
+    if not got["reachable"]:
+        at_max = ", ".join(f"{k} {v:.2g}" for k, v in got["max_seeds_errors"].items())
+        out.append(f"  reaching the targets: not within max_seeds by the prior (errors at max_seeds in every cell: "
+                   f"{at_max}); the pilot decides (errors after it, by the prior: {errs})")
+        return out
+    line = (f"  reaching the targets: about {got['total_seconds'] / 3600:.3g} core-hours by the prior (the pilot "
+            f"{got['pilot_seconds'] / 3600:.3g}, then {got['plan_seconds'] / 3600:.3g}; {got['packings']} packings)")
+    if "uniform_seconds" in got:
+        line += (f"; the same errors from {got['uniform_seeds']} seeds in every cell: "
+                 f"{got['uniform_seconds'] / 3600:.3g} core-hours")
+    out.append(line)
+    out.append("    (the prior: paper-small's packings, docs/PRECISION.md; the rounds plan from the campaign's own "
+               "packings, and a design from a prior is cheaper than the rounds reach: they re-estimate as they go)")
+    return out
+
+
+def _last_decision(spec):
+    """What the spec's store says of its rounds (its last decision), or None without one."""
+    from pathlib import Path
+
+    if not spec.output or not Path(spec.output).exists():
+        return None
+    try:
+        import h5py
+
+        from campaign.storage.checksums import ROUNDS_GROUP, read_rounds
+
+        with h5py.File(spec.output, "r", locking=False) as f:
+            if f.attrs.get("spec_hash") != spec.hash or ROUNDS_GROUP not in f:
+                return None
+            got, _ = read_rounds(f[ROUNDS_GROUP])
+    except (OSError, KeyError, ValueError):
+        return None
+    if not got:
+        return None
+    last = got[max(got)]
+    to = last.get("to_targets_core_hours")
+    spent = (last.get("spent_core_hours") or 0) + (last.get("committed_core_hours") or 0)
+    if last["action"] in ("pilot",):
+        return "its pilot is running; its first decision says what the rest costs"
+    if last["action"] != "continue":
+        return f"ended ({last['action']}) after round {last['round'] - 1}: {last['message']}"
+    return (f"decision {last['round']}: {spent:.3g} core-hours given out so far"
+            + (f", reaching every target about {to:.3g} more" if to is not None else ""))
 
 
 def _endgames(spec, tasks):
@@ -203,7 +283,8 @@ def _learnt_remaining(spec, tasks):
     from pathlib import Path
 
     from campaign.errors import UserError
-    from campaign.storage.store import DONE, read_summary
+    from campaign.storage.readers import read_summary
+    from campaign.storage.store import DONE
     from campaign.run.walltime import remaining_seconds
 
     if not spec.output or not Path(spec.output).exists():

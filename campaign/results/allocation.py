@@ -39,7 +39,6 @@ evaluations), never of wall times, so a campaign's tasks and store are the same 
 is run. Costs: a packing's force evaluations times its disks, times the calibration's seconds per
 disk-force evaluation (``seconds_per_disk_force_evaluation``).
 """
-
 from __future__ import annotations
 
 import math
@@ -47,31 +46,28 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from campaign.plan.precision import (DEFAULT_FIT_OVERLAP, FITS, in_fit_range, law_of)
+from campaign.plan.precision import law_of
 from campaign.results import fits
+from campaign.results.errormodel import (NO_DEPENDENCE_P, Cells, LawModel, inverse, build_law,
+                                         param_index as _k)
 
 #: a round commits at most this multiple of what the campaign has spent before it
 ROUND_GROWTH = 1.0
 #: the next round's early seeds: this share of the round's cost (the plan's continuation)
 EARLY_SHARE = 0.1
-#: a size whose intercept lies off the 1/N_G line by more than this many of its errors has a systematic
-#: offset (a finite-size correction beyond 1/N_G) that the model keeps: more seeds at that size make the
-#: reducer's sqrt(chi^2/dof) of the line larger, not its error smaller
-SYSTEMATIC_SIGMA = 3.0
-#: ... in a 1/N_G line whose chi^2 has a p-value below this (a few packings per cell make a size's
-#: bootstrap error short, and one size in several lies 3 errors off now and then)
-SYSTEMATIC_P = 0.001
+#: every cell of the fit range holds at least this many packings (or the pilot's) before the rounds give
+#: some cells many more: the reducer weights a cell by the standard error of its own packings, and from
+#: fewer than about eight that weight scatters so much (1/s^2 of three degrees of freedom has no finite
+#: variance) that a few cells of a pilot's size would steer the fit, its bootstrap not seeing it
+MIN_FIT_PACKINGS = 8
 #: a cell's seeds grow at most this many times in one round: the first rounds' model comes from a
 #: few packings per cell, and a design it finds optimal (often a few cells) is taken a step at a
 #: time, re-estimated before it is trusted with more
 CELL_GROWTH = 4
-#: a law whose data show no dependence of y on x at this p-value or above has no exponent to measure
-NO_DEPENDENCE_P = 0.01
 #: an undetermined target (no value from the reducer) is planned to this share of its goal
 UNDETERMINED_GOAL = 0.5
-#: a target with a value is planned to this share of its goal: the bootstrap error the next decision
-#: sees scatters about the model's projection, and a plan that aims at the goal itself falls short
-#: about half the time, each time by a little (a round for a few packings)
+#: a target with a value is planned to this share of its goal. Aiming below it costs that much more every
+#: time; aiming at it falls short about half the time, by a little, which a small last round makes up
 AIM = 1.0
 #: a round gives out at least this share of what the campaign has spent (rounds of a few packings
 #: cost a decision each and gain little)
@@ -86,271 +82,6 @@ def seconds_per_disk_force_evaluation() -> float:
     from campaign.plan import calibration
 
     return calibration.active().disk_force_evaluation_seconds
-
-
-# --------------------------------------------------------------------------- the campaign's cells
-
-@dataclass
-class Cells:
-    """The cells of a campaign (variant, N, E) in the task table's order, each holding the tasks
-    ``first + seed`` for seeds 0 .. ``seeds - 1``."""
-
-    variant: list
-    N: np.ndarray
-    E: np.ndarray
-    exponent: np.ndarray   # the variant's potential exponent
-    first: np.ndarray      # index of the cell's seed 0
-    seeds: int             # tasks per cell (max_seeds)
-
-    @property
-    def C(self) -> int:
-        return len(self.variant)
-
-    def key(self, c) -> tuple:
-        return (self.variant[c], int(self.N[c]), float(self.E[c]))
-
-    def index(self) -> dict:
-        return {self.key(c): c for c in range(self.C)}
-
-    def tasks_of(self, counts) -> np.ndarray:
-        """Task indices of the first ``counts[c]`` seeds of every cell (bool mask, one per task)."""
-        mask = np.zeros(self.C * self.seeds, bool)
-        for c in range(self.C):
-            mask[self.first[c]:self.first[c] + int(counts[c])] = True
-        return mask
-
-    def relevant(self, targets) -> np.ndarray:
-        """The cells in the default fit range of a variant that has targets: where seeds can move
-        the ``N_G -> inf`` row (every variant has every target)."""
-        return np.asarray(in_fit_range(self.E, self.exponent), bool) if targets else np.zeros(self.C, bool)
-
-
-def campaign_cells(spec, tasks) -> Cells:
-    """The cells of a precision campaign's task table (canonical order: variant, N, E, seed)."""
-    S = spec.precision.max_seeds if spec.precision is not None else len(spec.seeds)
-    first = np.arange(0, len(tasks), S)
-    t = [tasks[i] for i in first]
-    return Cells(variant=[x.variant for x in t], N=np.array([x.N for x in t], np.int64),
-                 E=np.array([x.E for x in t], float), exponent=np.array([x.exponent for x in t], float),
-                 first=first, seeds=S)
-
-
-# --------------------------------------------------------------------------- the model of one law
-
-@dataclass
-class LawModel:
-    """One variant's law ``y = a_N + c_N x^beta``, linearised about a fit (the module docstring):
-    the cells it fits (indices into ``Cells``, and the size of each), their means, the reducer's
-    weights and their packings, the point fit, and at any exponent the design vectors and the
-    per-packing variances (``at``) from which the Fisher information follows."""
-
-    variant: str
-    quantity: str
-    abscissa: str
-    sizes: list
-    cells: np.ndarray = field(default_factory=lambda: np.zeros(0, int))   # campaign cells in the fit
-    size_of: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # index into sizes
-    xbar: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    ybar: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    yerr: np.ndarray = field(default_factory=lambda: np.zeros(0))          # the reducer's weights 1/yerr^2
-    packings: list = field(default_factory=list)                           # per cell (x, y) of its packings
-    beta: float = np.nan
-    sys2: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per size: its intercept's systematic
-    #                         squared offset from the 1/N_G line (seeds do not remove it: the reducer's
-    #                         sqrt(chi^2/dof) grows as the sizes' errors shrink)
-    dof: int = 0            # degrees of freedom of the 1/N_G line (sizes - 2)
-    ok: bool = True
-    why: str = ""
-    J: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))         # at the point fit
-    s2: np.ndarray = field(default_factory=lambda: np.zeros(0))
-
-    def free(self, J) -> np.ndarray:
-        """The design vectors with a free intercept per size (``theta = (beta, a_N1 .. a_NG, c_N1 ..
-        c_NG)``: the shared fit before the 1/N_G line), for the sizes' intercept errors."""
-        G = len(self.sizes)
-        F = np.zeros((len(J), 1 + 2 * G))
-        F[:, 0] = J[:, 2]
-        F[np.arange(len(J)), 1 + self.size_of] = 1.0
-        F[:, 1 + G:] = J[:, 3:]
-        return F
-
-    def state(self, n, J=None, s2=None):
-        """The inverses of the Fisher information at ``n`` (joint, and with free intercepts)."""
-        J = self.J if J is None else J
-        s2 = self.s2 if s2 is None else s2
-        w = np.asarray(n, float)[self.cells] / s2
-        F = self.free(J)
-        return [_inverse((J * w[:, None]).T @ J), _inverse((F * w[:, None]).T @ F), J, F, s2]
-
-    def add(self, st, i, dn):
-        """``st`` with ``dn`` more usable packings in the law's cell ``i`` (rank-one updates)."""
-        inv, invf, J, F, s2 = st
-        w = dn / s2[i]
-        out = [inv, invf]
-        for k, (A_, v) in enumerate(((inv, J[i]), (invf, F[i]))):
-            Av = A_ @ v
-            q = float(v @ Av)
-            if np.all(np.isfinite(Av)) and np.isfinite(q):
-                out[k] = A_ - np.outer(Av, Av) * (w / (1.0 + w * q))
-        return [out[0], out[1], J, F, s2]
-
-    def inflation(self, invf) -> float:
-        """The reducer's sqrt(chi^2/dof) of the 1/N_G line, squared, expected at the sizes' intercept
-        errors of ``invf``: ``max(1, (dof + sum sys2 / sigma_N^2) / dof)``."""
-        if self.dof <= 0 or not np.any(self.sys2 > 0):
-            return 1.0
-        G = len(self.sizes)
-        var = np.diag(invf)[1:1 + G]
-        chi2 = self.dof + float(np.sum(np.where(var > 0, self.sys2 / np.maximum(var, 1e-300), 0.0)))
-        return max(1.0, chi2 / self.dof)
-
-    def refit(self, beta):
-        """The amplitudes c_N and chi^2 of the reducer's weighted fit with the exponent held at ``beta``."""
-        G = len(self.sizes)
-        coeffs, chi2 = np.zeros(G), 0.0
-        for gi in range(G):
-            m = self.size_of == gi
-            x, y, w = self.xbar[m], self.ybar[m], 1.0 / self.yerr[m] ** 2
-            f = np.where(x > 0, x, 0.0) ** beta
-            a, c, ch = fits._solve_linear(f[None], y[None], w)
-            coeffs[gi], chi2 = float(c[0]), chi2 + float(ch[0])
-        return coeffs, chi2
-
-    def at(self, beta, coeffs):
-        """Design vectors (K, 3 + G) and per-packing residual variances (K,) at an exponent and its
-        amplitudes; cells whose packings show no spread are left out (weight 0)."""
-        G = len(self.sizes)
-        K = len(self.cells)
-        J, s2 = np.zeros((K, 3 + G)), np.full(K, np.inf)
-        for i in range(K):
-            gi, xc = int(self.size_of[i]), float(self.xbar[i])
-            xv, yv = self.packings[i]
-            cN = coeffs[gi]
-            if xc > 0:
-                xb = xc ** beta
-                resid, dbeta = yv - cN * beta * xc ** (beta - 1.0) * xv, cN * xb * math.log(xc)
-            else:  # an isostatic cell (every Delta Z = 0): a point at the intercept
-                resid, xb, dbeta = yv, 0.0, 0.0
-            var = float(np.var(resid, ddof=1)) if len(resid) >= 2 else np.nan
-            if not (np.isfinite(var) and var > 0):
-                var = float(np.var(yv, ddof=1)) if len(yv) >= 2 else np.nan
-            if np.isfinite(var) and var > 0:
-                s2[i] = var
-            J[i, 0], J[i, 1], J[i, 2], J[i, 3 + gi] = 1.0, 1.0 / self.sizes[gi], dbeta, xb
-        return J, s2
-
-    def info(self, n, J=None, s2=None) -> np.ndarray:
-        """Fisher information at usable packings ``n`` per campaign cell."""
-        J = self.J if J is None else J
-        s2 = self.s2 if s2 is None else s2
-        w = np.asarray(n, float)[self.cells] / s2
-        return (J * w[:, None]).T @ J
-
-    def inverse(self, n, J=None, s2=None) -> np.ndarray:
-        return _inverse(self.info(n, J, s2))
-
-    def dependence_p(self) -> float:
-        """The p-value of "y does not depend on x" against the best power law (the reducer's weighted
-        chi^2 of a constant per size less the fit's, as a chi^2 of G + 1 degrees of freedom: the
-        amplitudes and the exponent)."""
-        const = 0.0
-        for gi in range(len(self.sizes)):
-            m = self.size_of == gi
-            y, w = self.ybar[m], 1.0 / self.yerr[m] ** 2
-            const += float(np.sum(w * (y - np.sum(w * y) / np.sum(w)) ** 2))
-        best = min(ch for _, _, ch in self._profile())
-        return fits.chi2_p_value(max(const - best, 0.0), len(self.sizes) + 1)
-
-    def _profile(self, points=60):
-        grid = np.linspace(fits.BETA_BOUNDS[0], fits.BETA_BOUNDS[1], points)
-        return [(b, *self.refit(b)) for b in np.append(grid, self.beta)]
-
-    def plausible(self, spread=9.0, points=60):
-        """Exponents of the search range the data do not exclude (the reducer's weighted chi^2 within
-        ``spread`` of its minimum: three standard deviations of a profile), with their amplitudes."""
-        fitted = self._profile(points)
-        best = min(ch for _, _, ch in fitted)
-        return [(b, c) for b, c, ch in fitted if ch <= best + spread]
-
-
-def _inverse(I) -> np.ndarray:
-    """The inverse of a Fisher information; a parameter the data do not inform at all (an amplitude of
-    zero leaves the exponent's column zero) gets an infinite variance and the others the inverse of
-    the rest."""
-    diag = np.diag(I).copy()
-    live = diag > 1e-300 * max(1.0, float(np.max(np.abs(diag), initial=0.0)))
-    out = np.zeros_like(I)
-    out[~live, ~live] = np.inf
-    if not live.any():
-        return out
-    sub = I[np.ix_(live, live)]
-    d = np.sqrt(np.diag(sub))
-    scaled = sub / np.outer(d, d)
-    try:
-        inv = np.linalg.inv(scaled)
-        if not np.all(np.isfinite(inv)):
-            raise np.linalg.LinAlgError
-    except np.linalg.LinAlgError:
-        inv = np.linalg.pinv(scaled, rcond=1e-13)
-    inv = inv / np.outer(d, d)
-    bad = ~(np.diag(inv) > 0)  # a direction the data leave free (numerically singular)
-    inv[bad, bad] = np.inf
-    out[np.ix_(live, live)] = inv
-    return out
-
-
-def _k(kind):
-    return 0 if kind == "intercept" else 2
-
-
-def build_law(table, cells: Cells, variant, quantity, absc) -> LawModel:
-    """The model of one variant's law from its reduction ``table`` (``reduce.Table``): the sizes
-    that entered the shared fit, their cells, the point fit and each cell's packings."""
-    per_n = table.shared_in.get((variant, quantity, absc), {})
-    sizes = sorted(n for n, d in per_n.items() if not isinstance(d, str))
-    index = cells.index()
-    g = table.grid
-    if len(sizes) < 2:
-        return LawModel(variant, quantity, absc, sizes, ok=False,
-                        why=f"{len(sizes)} size(s) in the shared fit of {quantity} against {absc}; the N_G -> inf "
-                            "row needs two")
-    xs, ys, yerrs = [per_n[n][0] for n in sizes], [per_n[n][1] for n in sizes], [per_n[n][2] for n in sizes]
-    f = fits.fit_shared_exponent(xs, ys, yerrs)
-    beta = float(f.exponent)
-    if not (f.ok and np.isfinite(beta)):
-        return LawModel(variant, quantity, absc, sizes, ok=False, why=f"no fit of {quantity} against {absc}")
-    cell_ids, size_of, xbar, ybar, yerr, packs = [], [], [], [], [], []
-    for gi, n in enumerate(sizes):
-        x, y, ye, _, _, gcells = per_n[n]
-        for xc, yc, ec, gc in zip(x, y, ye, gcells):
-            c = index.get((str(g.cv[gc]), int(g.cN[gc]), float(g.cE[gc])))
-            if c is None:
-                continue
-            p = g.packings(gc)
-            yv, xv = table.fin.scalars[quantity][p], table.fin.scalars[absc][p]
-            good = np.isfinite(yv) & np.isfinite(xv)
-            cell_ids.append(c)
-            size_of.append(gi)
-            xbar.append(xc)
-            ybar.append(yc)
-            yerr.append(ec)
-            packs.append((xv[good], yv[good]))
-    law = LawModel(variant, quantity, absc, sizes, np.array(cell_ids, int), np.array(size_of, int), np.array(xbar),
-                   np.array(ybar), np.array(yerr), packs, beta, dof=max(0, len(sizes) - 2))
-    law.J, law.s2 = law.at(beta, np.asarray(f.coeffs, float))
-    got = table.shared_fits.get((variant, quantity, absc))
-    law.sys2 = np.zeros(len(sizes))
-    if got is not None and law.dof > 0:
-        fsizes, sf, line = got
-        if list(fsizes) == list(sizes) and np.isfinite(line.value) and np.isfinite(line.slope):
-            resid = np.asarray(sf.intercepts) - (line.value + line.slope / np.asarray(sizes, float))
-            err = np.asarray(sf.intercept_errs, float)
-            # a size off the line by more than SYSTEMATIC_SIGMA of its error, in a line that fails its
-            # chi^2 test (p < SYSTEMATIC_P): its offset is taken as real
-            chi2 = float(line.chi2_dof) * law.dof if np.isfinite(line.chi2_dof) else 0.0
-            if fits.chi2_p_value(chi2, law.dof) < SYSTEMATIC_P:
-                law.sys2 = np.where(np.abs(resid) > SYSTEMATIC_SIGMA * err, resid ** 2 - err ** 2, 0.0)
-    return law
 
 
 # --------------------------------------------------------------------------- targets
@@ -490,7 +221,7 @@ def decide(k: int, table, cells: Cells, state: State, settings, previous=None) -
     given = state.given.astype(np.int64)
     relevant = cells.relevant(settings["target"])
     frac = np.clip(np.where(state.final > 0, state.usable / np.maximum(state.final, 1), 1.0), 0.05, 1.0)
-    cost = _fill_costs(state.cost, cells)
+    cost = fill_costs(state.cost, cells)
     unfinished = np.maximum(given - state.final, 0)
     committed = float(np.sum(unfinished * cost))
     spent_all = state.spent + committed
@@ -531,7 +262,7 @@ def decide(k: int, table, cells: Cells, state: State, settings, previous=None) -
     for t in targets:
         if t.met or not t.law.ok:
             continue
-        v_max = _best_case(t, n_max, n_now)
+        v_max = best_case(t, n_max, n_now)
         # the goal, or while the reducer gives no value, the exponent error that gives it one
         if not (np.isfinite(v_max) and v_max <= (t.goal if t.determined else t.aim) ** 2):
             unreachable.append((t, v_max))
@@ -551,13 +282,22 @@ def decide(k: int, table, cells: Cells, state: State, settings, previous=None) -
                             f"for the next round ({round_cost / 3600:.3g}); {missing}")
         return decision("continue", f"round {k}: no model yet ({missing}): the fit range's seeds doubled",
                         grow, grow.copy(), round_cost=round_cost)
-    full = _greedy(targets, cells, n_now, given, frac, cost, relevant, m, states)  # the whole way
+    # every cell of the fit range holds MIN_FIT_PACKINGS before the rounds concentrate: the reducer weights
+    # a cell by its own standard error, which from fewer packings is too uncertain a weight
+    floor = min(m, max(int(settings["pilot"]), MIN_FIT_PACKINGS))
+    base = np.where(relevant, np.maximum(given, floor), given)
+    forced = float(np.sum((base - given) * cost))
+    if forced > 0:
+        n_now = n_now + (base - given) * frac
+        states = {lid: law_of_state.state(n_now) for lid, law_of_state in
+                  {id(t.law): t.law for t in targets if t.law.ok}.items()}
+    full = plan_greedy(targets, cells, n_now, base, frac, cost, relevant, m, states)  # the whole way
     projected = dict(enumerate(full.final_variance))
-    to_targets = full.cost_to_met
+    to_targets = forced + full.cost_to_met
     # this round's part of it: the plan again with each cell's growth capped (CELL_GROWTH)
-    plan = _greedy(targets, cells, n_now, given, frac, cost, relevant, m, states,
-                   cap=np.maximum(given * CELL_GROWTH, given + 1))
-    if plan.n_met == 0:
+    plan = plan_greedy(targets, cells, n_now, base, frac, cost, relevant, m, states,
+                   cap=np.maximum(given * CELL_GROWTH, base + 1))
+    if plan.n_met == 0 and forced == 0:
         # the model has every target where it should be, the reducer not (a bootstrap at a bound, an
         # error the model underrates): half as many seeds again in the fit range of the targets short
         short = np.zeros(cells.C, bool)
@@ -574,27 +314,30 @@ def decide(k: int, table, cells: Cells, state: State, settings, previous=None) -
         return decision("continue", f"round {k}: the model has every target met where the reducer has not; the fit "
                         f"range of the targets short grows by half: " + _errors_text(targets),
                         grow, grow.copy(), round_cost=round_cost)
-    if plan.steps_total == 0:
+    if plan.steps_total == 0 and forced == 0:
         return decision("max_seeds", f"max_seeds ({m}) in every cell of the fit range; " + _errors_text(targets),
                         projected=projected)
-    if room <= 0:
-        return decision("budget", f"budget spent ({spent_all / 3600:.3g} of {budget:g} core-hours); "
+    if room <= forced:
+        return decision("budget", f"budget spent ({spent_all / 3600:.3g} of {budget:g} core-hours, "
+                        f"{forced / 3600:.3g} more needed to bring the fit range to {floor} packings per cell); "
                         + _errors_text(targets) + _cost_text(to_targets), projected=projected, to_targets=to_targets)
     met_cost = plan.cost_to_met if np.isfinite(plan.cost_to_met) else math.inf
-    main = plan.prefix(min(ROUND_GROWTH * spent_all, room / (1.0 + EARLY_SHARE),
-                           max(met_cost, MIN_ROUND * spent_all)), given)
-    if np.array_equal(main, given):  # at least the plan's first step
-        if plan.costs[0] > room:
+    left = room - forced
+    main = plan.prefix(min(max(ROUND_GROWTH * spent_all - forced, 0.0), left / (1.0 + EARLY_SHARE),
+                           max(met_cost, MIN_ROUND * spent_all)), base)
+    if np.array_equal(main, given) and plan.steps_total:  # at least the plan's first step
+        if plan.costs[0] > left:
             return decision("budget", f"the budget left ({room / 3600:.3g} core-hours) does not pay for the next "
                             "step; " + _errors_text(targets) + _cost_text(to_targets), projected=projected,
                             to_targets=to_targets)
-        main = plan.prefix(plan.costs[0], given)
-    main_spend = float(np.sum((main - given) * cost))
-    early = np.maximum(plan.prefix(main_spend + min(EARLY_SHARE * main_spend, room - main_spend), given), main)
+        main = plan.prefix(plan.costs[0], base)
+    main_spend = float(np.sum((main - base) * cost))
+    early = np.maximum(plan.prefix(main_spend + min(EARLY_SHARE * (main_spend + forced), left - main_spend), base),
+                       main)
     if np.array_equal(early, main):  # at least the plan's next step, where the budget allows
         after = plan.costs[plan.costs > main_spend * (1 + 1e-12)]
-        if len(after) and after[0] <= room:
-            early = np.maximum(plan.prefix(after[0], given), main)
+        if len(after) and after[0] <= left:
+            early = np.maximum(plan.prefix(after[0], base), main)
     round_cost = float(np.sum((early - given) * cost))
     msg = (f"round {k}: {int(np.sum(main - given))} seeds in {int(np.count_nonzero(main > given))} cells "
            f"(and {int(np.sum(early - main))} early seeds of round {k + 1}); " + _errors_text(targets)
@@ -605,10 +348,11 @@ def decide(k: int, table, cells: Cells, state: State, settings, previous=None) -
     return decision("continue", msg, main, early, plan.variance_at(main), round_cost, to_targets)
 
 
-def _best_case(t, n, n_now) -> float:
+def best_case(t, n, n_now) -> float:
     """The smallest variance the model gives target ``t`` at usable packings ``n`` over the exponents
-    its data do not exclude (``LawModel.plausible``), the 1/N_G line's inflation included, not scaled
-    to the bootstrap: a target out of reach for every plausible exponent is out of reach (a pilot's few
+    its data do not exclude (``LawModel.plausible``), not scaled to the bootstrap and without the 1/N_G
+    line's inflation (a size's offset from the line is judged from a few packings per cell, too often
+    wrongly, to end a campaign on): a target out of reach for every plausible exponent is out of reach (a pilot's few
     packings per cell can put the point fit far from the truth, which the best case does not trust).
     Each size's amplitude counts only as far as the packings ``n_now`` resolve it from zero (its fit
     less two standard errors, the exponent held): an amplitude the data cannot tell from noise
@@ -622,18 +366,36 @@ def _best_case(t, n, n_now) -> float:
     for beta, coeffs in t.law.plausible():
         J, s2 = t.law.at(beta, coeffs)
         keep = np.r_[0, 1, 3:3 + G]  # each amplitude's error with the exponent held at beta
-        now = _inverse(t.law.info(n_now, J, s2)[np.ix_(keep, keep)])
+        now = inverse(t.law.info(n_now, J, s2)[np.ix_(keep, keep)])
         err = np.sqrt(np.maximum(np.diag(now)[2:], 0.0))
         sure = np.sign(coeffs) * np.maximum(np.abs(coeffs) - 2.0 * err, 0.0)
         J, s2 = t.law.at(beta, sure)
-        st = t.law.state(n, J, s2)
-        v = float(st[0][t.plan_k, t.plan_k]) * (t.law.inflation(st[1]) if t.plan_k == 0 else 1.0)
+        v = float(t.law.state(n, J, s2)[0][t.plan_k, t.plan_k])
         if np.isfinite(v):
             best = min(best, v)
     return best
 
 
-def _fill_costs(cost, cells):
+def smooth_costs(cost, n, cells, prior_n=4.0):
+    """Each cell's cost per packing pulled toward a smooth law of its variant's cells (ln cost linear in
+    ln N_G, the decades below 1e-3 and their square), weighted by its packings against ``prior_n``:
+    packings scatter by a factor of 1.3-1.5 in cost, and the cells that came out cheap by chance
+    would draw the seeds."""
+    out = cost.copy()
+    for v in set(cells.variant):
+        mine = np.array([c for c in range(cells.C) if cells.variant[c] == v])
+        L = np.maximum(0.0, np.log10(1e-3 / cells.E[mine]))
+        X = np.column_stack([np.ones(len(mine)), np.log(cells.N[mine]), L, L * L])
+        w = np.sqrt(np.maximum(n[mine], 0.0))
+        if np.count_nonzero(w) < X.shape[1] + 1:
+            continue
+        coef, *_ = np.linalg.lstsq(X * w[:, None], np.log(cost[mine]) * w, rcond=None)
+        pred = X @ coef
+        out[mine] = np.exp((n[mine] * np.log(cost[mine]) + prior_n * pred) / (n[mine] + prior_n))
+    return out
+
+
+def fill_costs(cost, cells):
     """A cell without a finished packing takes the cost of its variant's cells at the nearest size
     and energy that have one (scaled by N), else the calibrated model's price."""
     cost = np.asarray(cost, float).copy()
@@ -696,7 +458,7 @@ class _Plan:
         return out
 
 
-def _greedy(targets, cells, n_now, given, frac, cost, relevant, m, states, cap=None) -> _Plan:
+def plan_greedy(targets, cells, n_now, given, frac, cost, relevant, m, states, cap=None) -> _Plan:
     """Add seeds where ``sum over the targets short of their aim of V_T / aim_T^2`` falls fastest per
     core-second, until every target is projected met; then on (all targets weighted) until
     ``EARLY_SHARE`` more than that is planned, or every cell of the fit range holds ``m`` (or ``cap``,
@@ -788,158 +550,7 @@ def _unreachable_text(t, v_max, m) -> str:
         why = ("the data show no dependence of the quantity on the abscissa that would fix the exponent "
                "(its amplitude is not told apart from zero)" if not np.isfinite(v_max) or v_max > 100 * t.goal ** 2
                else "the fit range's cells cannot pin the exponent closer")
-    elif t.law.dof > 0 and np.any(t.law.sys2 > 0):
-        off = [n for n, d in zip(t.law.sizes, t.law.sys2) if d > 0]
-        why = (f"N_G = {', '.join(map(str, off))} lie off the 1/N_G line by more than their errors allow (a "
-               "finite-size correction beyond 1/N_G): more seeds raise the reducer's sqrt(chi^2/dof) of the line "
-               "as they lower its error, a floor no seed count passes")
     else:
         why = "the fit range's cells cannot pin it closer"
     return (f"{t.key}{who} cannot reach its goal {t.goal:g}: its error is {now}, and with max_seeds ({m}) in every "
             f"cell of the fit range it would still be {at_max}: {why}.")
-
-
-__all__ = ["ACTIONS", "Cells", "Decision", "DEFAULT_FIT_OVERLAP", "FITS", "State", "campaign_cells", "decide",
-           "pilot", "seconds_per_disk_force_evaluation"]
-
-
-# --------------------------------------------------------------------------- the planner of a run
-
-#: the scalars a decision reads (the laws' quantities and abscissae, the cost, which packings are usable)
-DECISION_SCALARS = ("E_G", "delta_Z", "A_G", "psi_O", "force_evaluations", "jam_status", "identities_ok")
-
-
-def reduce_rows(cells: Cells, attrs, rows, status, scalars, ids=None, settings=None):
-    """The reducer's table (``reduce_table``, the default settings unless ``settings``) of the task
-    rows ``rows`` of a campaign with cells ``cells``: their status and scalars (per row)."""
-    from campaign.results.reading import finished_from_arrays
-    from campaign.results.reduce import Settings, reduce_table
-
-    c = (np.asarray(rows) // cells.seeds).astype(np.int64)
-    seed = np.asarray(rows) - cells.first[c]
-    fin = finished_from_arrays(attrs=attrs, variant=[cells.variant[i] for i in c], N=cells.N[c], E=cells.E[c],
-                               ids=[f"{i}" for i in rows] if ids is None else ids, seed=seed, status=status,
-                               scalars=scalars)
-    return reduce_table(fin, settings or Settings(), per_size=False)
-
-
-def cell_state(cells: Cells, table, rows, status, fe, given, disk_seconds) -> State:
-    """The per-cell counts and costs of a decision (``State``): the task rows reduced (``rows``,
-    their ``status`` and force evaluations ``fe``) and the seeds given out per cell."""
-    C = cells.C
-    cell_of = (np.asarray(rows) // cells.seeds).astype(np.int64)
-    final = np.bincount(cell_of[status != 0], minlength=C)
-    index = cells.index()
-    usable = np.zeros(C)
-    g = table.grid
-    for gc in range(g.C):
-        c = index.get((str(g.cv[gc]), int(g.cN[gc]), float(g.cE[gc])))
-        if c is not None:
-            usable[c] = g.n_done[gc]
-    unit = np.asarray(fe, float) * cells.N[cell_of] * disk_seconds
-    ok = (status == 1) & np.isfinite(unit) & (unit > 0)
-    n_ok = np.bincount(cell_of[ok], minlength=C)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cost = np.where(n_ok > 0, np.bincount(cell_of[ok], weights=unit[ok], minlength=C) / np.maximum(n_ok, 1),
-                        np.nan)
-    cost = _fill_costs(cost, cells)
-    # spent: every finished packing's force evaluations (one without them at its cell's mean)
-    spent = float(np.sum(unit[ok]) + np.sum(cost[cell_of[(status != 0) & ~ok]]))
-    return State(given=np.asarray(given, np.int64), final=final, usable=usable, cost=cost, spent=spent)
-
-
-def _report(table, goals) -> str:
-    out = []
-    for v, row in table.extrapolated.items():
-        parts = []
-        for key, goal in goals.items():
-            value, err = row.get(key, np.nan), row.get(f"{key}_err", np.nan)
-            txt = (f"{key} = {value:.6g} +- {err:.2g}" if np.isfinite(value) and np.isfinite(err)
-                   else f"{key}: no value")
-            parts.append(txt + f" (goal {goal:g}{', met' if np.isfinite(err) and err <= goal else ''})")
-        out.append(("" if v == "default" else f"{v}: ") + "; ".join(parts))
-    return "\n".join(out)
-
-
-class Planner:
-    """The decisions of one precision campaign (``campaign.run.rounds`` asks them): the pilot, and
-    each later round from the store's packings of the rounds before it, reduced as ``campaign
-    reduce`` reduces them (``reduce_table`` with the default settings)."""
-
-    def __init__(self, spec, tasks):
-        from campaign.storage.storefile import SCHEMA
-
-        self.spec, self.tasks = spec, tasks
-        self.cells = campaign_cells(spec, tasks)
-        self.settings = spec.precision.settings()
-        self.attrs = {"spec_yaml": spec.text, "name": spec.name, "spec_hash": spec.hash, "schema": SCHEMA}
-        self.disk_seconds = seconds_per_disk_force_evaluation()
-
-    def pilot(self) -> dict:
-        return pilot(self.cells, self.settings).to_record(self.cells)
-
-    def table(self, store, through, names=DECISION_SCALARS):
-        """The reduction of the finished packings among the tasks ``through`` (per-cell counts) of
-        ``store``, and those rows' columns: ``(Table, rows, status, scalars)``."""
-        store.flush(force=True)  # every finished row into the file (and its scalars' datasets made)
-        present = [n for n in names if n in store.scalar_names]
-        cols = store.columns(["tasks/status"] + [f"scalars/{n}" for n in present])
-        rows = np.flatnonzero(self.cells.tasks_of(through))
-        status = np.asarray(cols["tasks/status"])[rows]
-        scalars = {n: np.asarray(cols[f"scalars/{n}"])[rows] for n in present}
-        table = reduce_rows(self.cells, self.attrs, rows, status, scalars, ids=[self.tasks[i].id for i in rows])
-        return table, rows, status, scalars
-
-    def decide(self, k, store, given, through, settings=None, previous=None) -> dict:
-        settings = self.settings if settings is None else settings
-        table, rows, status, scalars = self.table(store, through)
-        fe = scalars.get("force_evaluations", np.full(len(rows), np.nan))
-        state = cell_state(self.cells, table, rows, status, fe, given, self.disk_seconds)
-        return decide(k, table, self.cells, state, settings, previous).to_record(self.cells)
-
-    def report(self, store, given) -> str:
-        """The errors of every finished packing of the campaign (the last round's early seeds
-        included), as ``campaign reduce`` gives them: one line per variant."""
-        return _report(self.table(store, given)[0], self.settings["target"])
-
-
-# --------------------------------------------------------------------------- a campaign in memory
-
-def run_in_memory(cells: Cells, settings, draw, *, attrs=None, reducer=None, disk_seconds=1e-7, log=None):
-    """A precision campaign's rounds without a store or workers: ``draw(rows) -> {scalar: values}``
-    makes the packings of task rows (``cells.first[c] + seed``; a pure function of the row, as a
-    packing is of its task). For the checks of docs/PRECISION.md (synthetic truths, many repeats).
-    Returns ``(records, table)``: every decision's record and the reduction of every packing run."""
-    T = cells.C * cells.seeds
-    status = np.zeros(T, np.int8)
-    data = {}
-    attrs = attrs or {"schema": "jamming-campaign/1"}
-
-    def run(mask):
-        todo = np.flatnonzero(mask & (status == 0))
-        if len(todo):
-            got = draw(todo)
-            for k, v in got.items():
-                data.setdefault(k, np.full(T, np.nan))[todo] = v
-            status[todo] = 1
-
-    def reduce(counts):
-        rows = np.flatnonzero(cells.tasks_of(counts))
-        table = reduce_rows(cells, attrs, rows, status[rows], {k: v[rows] for k, v in data.items()},
-                            settings=reducer)
-        return table, rows
-
-    rec = pilot(cells, settings).to_record(cells)
-    records = [rec]
-    while True:
-        run(cells.tasks_of(rec["early"]))
-        if rec["action"] not in ("pilot", "continue"):
-            break
-        table, rows = reduce(rec["allocated"])
-        fe = data.get("force_evaluations", np.full(T, np.nan))[rows]
-        state = cell_state(cells, table, rows, status[rows], fe, rec["early"], disk_seconds)
-        rec = decide(len(records), table, cells, state, settings, rec).to_record(cells)
-        records.append(rec)
-        if log is not None:
-            log(rec["message"])
-    return records, reduce(rec["early"])[0]

@@ -512,7 +512,7 @@ def _store_ids_with_configurations(path):
 
 def store_packings(path):
     """Rows of a campaign store that hold a configuration: (task table, rows, attrs)."""
-    from campaign.storage.store import read_summary
+    from campaign.storage.readers import read_summary
 
     table = read_summary(path)
     have = _store_ids_with_configurations(path)

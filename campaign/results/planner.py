@@ -1,0 +1,302 @@
+"""A precision campaign's decisions from its packings: the planner a run asks (``Planner``, through
+``campaign.run.rounds``), the same rounds without a store (``run_in_memory``, for the checks of
+docs/PRECISION.md), and the plan before a pilot from the prior (``plan_from_prior``, for ``campaign
+validate`` and ``campaign slurm``). The decisions themselves are ``campaign.results.allocation``'s.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from campaign.plan.precision import law_of
+from campaign.results import fits
+from campaign.results.allocation import (State, Target, fill_costs, plan_greedy, smooth_costs, decide, pilot,
+                                         seconds_per_disk_force_evaluation)
+from campaign.results.errormodel import Cells, LawModel, campaign_cells, param_index as _k
+
+#: the scalars a decision reads (the laws' quantities and abscissae, the cost, which packings are usable)
+DECISION_SCALARS = ("E_G", "delta_Z", "A_G", "psi_O", "force_evaluations", "jam_status", "identities_ok")
+
+
+def reduce_rows(cells: Cells, attrs, rows, status, scalars, ids=None, settings=None):
+    """The reducer's table (``reduce_table``, the default settings unless ``settings``) of the task
+    rows ``rows`` of a campaign with cells ``cells``: their status and scalars (per row)."""
+    from campaign.results.reading import finished_from_arrays
+    from campaign.results.reduce import Settings, reduce_table
+
+    c = (np.asarray(rows) // cells.seeds).astype(np.int64)
+    seed = np.asarray(rows) - cells.first[c]
+    fin = finished_from_arrays(attrs=attrs, variant=[cells.variant[i] for i in c], N=cells.N[c], E=cells.E[c],
+                               ids=[f"{i}" for i in rows] if ids is None else ids, seed=seed, status=status,
+                               scalars=scalars)
+    return reduce_table(fin, settings or Settings(), per_size=False)
+
+
+def cell_state(cells: Cells, table, rows, status, fe, given, disk_seconds) -> State:
+    """The per-cell counts and costs of a decision (``State``): the task rows reduced (``rows``,
+    their ``status`` and force evaluations ``fe``) and the seeds given out per cell."""
+    C = cells.C
+    cell_of = (np.asarray(rows) // cells.seeds).astype(np.int64)
+    final = np.bincount(cell_of[status != 0], minlength=C)
+    index = cells.index()
+    usable = np.zeros(C)
+    g = table.grid
+    for gc in range(g.C):
+        c = index.get((str(g.cv[gc]), int(g.cN[gc]), float(g.cE[gc])))
+        if c is not None:
+            usable[c] = g.n_done[gc]
+    unit = np.asarray(fe, float) * cells.N[cell_of] * disk_seconds
+    ok = (status == 1) & np.isfinite(unit) & (unit > 0)
+    n_ok = np.bincount(cell_of[ok], minlength=C)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cost = np.where(n_ok > 0, np.bincount(cell_of[ok], weights=unit[ok], minlength=C) / np.maximum(n_ok, 1),
+                        np.nan)
+    cost = smooth_costs(fill_costs(cost, cells), n_ok, cells)
+    # spent: every finished packing's force evaluations (one without them at its cell's mean)
+    spent = float(np.sum(unit[ok]) + np.sum(cost[cell_of[(status != 0) & ~ok]]))
+    return State(given=np.asarray(given, np.int64), final=final, usable=usable, cost=cost, spent=spent)
+
+
+def _report(table, goals) -> str:
+    out = []
+    for v, row in table.extrapolated.items():
+        parts = []
+        for key, goal in goals.items():
+            value, err = row.get(key, np.nan), row.get(f"{key}_err", np.nan)
+            txt = (f"{key} = {value:.6g} +- {err:.2g}" if np.isfinite(value) and np.isfinite(err)
+                   else f"{key}: no value")
+            parts.append(txt + f" (goal {goal:g}{', met' if np.isfinite(err) and err <= goal else ''})")
+        out.append(("" if v == "default" else f"{v}: ") + "; ".join(parts))
+    return "\n".join(out)
+
+
+class Planner:
+    """The decisions of one precision campaign (``campaign.run.rounds`` asks them): the pilot, and
+    each later round from the store's packings of the rounds before it, reduced as ``campaign
+    reduce`` reduces them (``reduce_table`` with the default settings)."""
+
+    def __init__(self, spec, tasks):
+        from campaign.storage.storefile import SCHEMA
+
+        self.spec, self.tasks = spec, tasks
+        self.cells = campaign_cells(spec, tasks)
+        self.settings = spec.precision.settings()
+        self.attrs = {"spec_yaml": spec.text, "name": spec.name, "spec_hash": spec.hash, "schema": SCHEMA}
+        self.disk_seconds = seconds_per_disk_force_evaluation()
+
+    def pilot(self) -> dict:
+        return pilot(self.cells, self.settings).to_record(self.cells)
+
+    def table(self, store, through, names=DECISION_SCALARS):
+        """The reduction of the finished packings among the tasks ``through`` (per-cell counts) of
+        ``store``, and those rows' columns: ``(Table, rows, status, scalars)``."""
+        store.flush(force=True)  # every finished row into the file (and its scalars' datasets made)
+        present = [n for n in names if n in store.scalar_names]
+        cols = store.columns(["tasks/status"] + [f"scalars/{n}" for n in present])
+        rows = np.flatnonzero(self.cells.tasks_of(through))
+        status = np.asarray(cols["tasks/status"])[rows]
+        scalars = {n: np.asarray(cols[f"scalars/{n}"])[rows] for n in present}
+        table = reduce_rows(self.cells, self.attrs, rows, status, scalars, ids=[self.tasks[i].id for i in rows])
+        return table, rows, status, scalars
+
+    def decide(self, k, store, given, through, settings=None, previous=None) -> dict:
+        settings = self.settings if settings is None else settings
+        table, rows, status, scalars = self.table(store, through)
+        fe = scalars.get("force_evaluations", np.full(len(rows), np.nan))
+        state = cell_state(self.cells, table, rows, status, fe, given, self.disk_seconds)
+        return decide(k, table, self.cells, state, settings, previous).to_record(self.cells)
+
+    def report(self, store, given) -> str:
+        """The errors of every finished packing of the campaign (the last round's early seeds
+        included), as ``campaign reduce`` gives them: one line per variant."""
+        return _report(self.table(store, given)[0], self.settings["target"])
+
+
+# --------------------------------------------------------------------------- a campaign in memory
+
+def run_in_memory(cells: Cells, settings, draw, *, attrs=None, reducer=None, disk_seconds=1e-7, log=None):
+    """A precision campaign's rounds without a store or workers: ``draw(rows) -> {scalar: values}``
+    makes the packings of task rows (``cells.first[c] + seed``; a pure function of the row, as a
+    packing is of its task). For the checks of docs/PRECISION.md (synthetic truths, many repeats).
+    Returns ``(records, table)``: every decision's record and the reduction of every packing run."""
+    T = cells.C * cells.seeds
+    status = np.zeros(T, np.int8)
+    data = {}
+    attrs = attrs or {"schema": "jamming-campaign/1"}
+
+    def run(mask):
+        todo = np.flatnonzero(mask & (status == 0))
+        if len(todo):
+            got = draw(todo)
+            for k, v in got.items():
+                data.setdefault(k, np.full(T, np.nan))[todo] = v
+            status[todo] = 1
+
+    def reduce(counts):
+        rows = np.flatnonzero(cells.tasks_of(counts))
+        table = reduce_rows(cells, attrs, rows, status[rows], {k: v[rows] for k, v in data.items()},
+                            settings=reducer)
+        return table, rows
+
+    rec = pilot(cells, settings).to_record(cells)
+    records = [rec]
+    while True:
+        run(cells.tasks_of(rec["early"]))
+        if rec["action"] not in ("pilot", "continue"):
+            break
+        table, rows = reduce(rec["allocated"])
+        fe = data.get("force_evaluations", np.full(T, np.nan))[rows]
+        state = cell_state(cells, table, rows, status[rows], fe, rec["early"], disk_seconds)
+        rec = decide(len(records), table, cells, state, settings, rec).to_record(cells)
+        records.append(rec)
+        if log is not None:
+            log(rec["message"])
+    return records, reduce(rec["early"])[0]
+
+
+# --------------------------------------------------------------------------- before the pilot: the prior
+
+def load_prior():
+    """The packaged prior (``campaign/plan/precision_prior.json``, written by experiments/precision_prior.py
+    from paper-small): per cell (N_G, E_G) the packings' means and covariances."""
+    import json
+    from importlib import resources
+
+    return json.loads(resources.files("campaign").joinpath("plan", "precision_prior.json").read_text())
+
+
+def _prior_cell(prior, N, E):
+    """Means and covariance (of ``prior['names']``) at (N, E): the prior's own cell, or at a size it
+    does not hold the means extrapolated linearly in 1/N_G over its sizes at that energy and the
+    covariance of its nearest size scaled by that size over N (the spread between packings falls
+    like 1/sqrt(N_G)). None when the prior has no cell at that energy."""
+    same = [c for c in prior["cells"] if abs(c["E"] / E - 1) < 1e-9]
+    if not same:
+        return None
+    exact = [c for c in same if c["N"] == N]
+    if exact:
+        return np.array(exact[0]["mean"]), np.array(exact[0]["cov"])
+    Ns = np.array([c["N"] for c in same], float)
+    means = np.array([c["mean"] for c in same])
+    X = np.column_stack([np.ones(len(Ns)), 1.0 / Ns])
+    coef, *_ = np.linalg.lstsq(X, means, rcond=None)
+    mean = coef[0] + coef[1] / N
+    mean[0] = means[:, 0].mean()  # E_G: where in the window a packing lands, whatever N
+    mean[1] = max(mean[1], 0.0)   # Delta Z >= 0
+    near = same[int(np.argmin(np.abs(np.log(Ns / N))))]
+    return mean, np.array(near["cov"]) * near["N"] / N
+
+
+def plan_from_prior(spec, tasks, prior=None, seconds=None) -> dict:
+    """What reaching a precision spec's targets would cost, planned before its pilot from the prior
+    (``load_prior``): the model of the errors built on the prior's cells as if the pilot had run with
+    their means and spreads, and the greedy plan from the pilot to the targets, priced per packing by
+    ``seconds(N, E, protocol, exponent)`` (the calibrated cost model). ``{"ok": False, "why": ...}``
+    where the prior does not hold the campaign's system or energies; else the pilot's cost, the
+    plan's, the errors projected, and what a uniform campaign would need for the same errors."""
+    from campaign.plan import tasks as plan_tasks
+
+    prior = load_prior() if prior is None else prior
+    seconds = seconds or (lambda N, E, proto, alpha: plan_tasks.cost(N, E, proto, alpha))
+    settings = spec.precision.settings()
+    cells = campaign_cells(spec, tasks)
+    names = list(prior["names"])
+    for v in spec.variants:
+        if v.system.canonical() != prior["system"]:
+            return {"ok": False, "why": f"variant {v.name!r} is another system ({v.system.label()}) than the prior's "
+                                        "(paper-small's): its spreads are not known before its pilot"}
+    stats = []
+    for c in range(cells.C):
+        got = _prior_cell(prior, int(cells.N[c]), float(cells.E[c]))
+        if got is None:
+            have = ", ".join(sorted({f"{x['E']:g}" for x in prior["cells"]}, key=float))
+            return {"ok": False, "why": f"the prior holds no cell at E_G = {cells.E[c]:g} (it has {have})"}
+        stats.append(got)
+    pilot_n = int(settings["pilot"])
+    m = int(settings["max_seeds"])
+    relevant = cells.relevant(settings["target"])
+    cost = np.array([seconds(int(cells.N[c]), float(cells.E[c]), dict(tasks[cells.first[c]].protocol),
+                             float(cells.exponent[c])) for c in range(cells.C)])
+    n0 = np.full(cells.C, float(pilot_n))
+    targets, laws = [], {}
+    for v in sorted(set(cells.variant), key=cells.variant.index):
+        for key, goal in settings["target"].items():
+            q, x, kind = law_of(key)
+            if (v, q, x) not in laws:
+                laws[(v, q, x)] = _prior_law(cells, stats, names, v, q, x, pilot_n)
+            targets.append(Target(v, key, float(goal), np.nan, np.nan, laws[(v, q, x)]))
+    for t in targets:
+        if not t.law.ok:
+            return {"ok": False, "why": t.law.why}
+    states = {id(law): law.state(n0) for law in laws.values()}
+    for t in targets:
+        t.v_now = float(states[id(t.law)][0][_k(t.kind), _k(t.kind)])
+        t.error = math.sqrt(t.v_now)  # the model's error at the pilot: a determined target, ratio 1
+    pilot_cost = float(np.sum(n0 * cost))
+    n_max = np.where(relevant, float(m), n0)
+    at_max = {t.key: math.sqrt(t.variance(t.law.state(n_max))) for t in targets}
+    out = {"ok": True, "pilot_seconds": pilot_cost, "pilot_errors": {t.key: t.error for t in targets},
+           "max_seeds_errors": at_max, "reachable": all(at_max[t.key] <= t.goal for t in targets)}
+    if out["reachable"]:
+        plan = plan_greedy(targets, cells, n0, n0.astype(np.int64), np.ones(cells.C), cost, relevant, m, states)
+        out["plan_seconds"] = float(plan.cost_to_met)
+        out["total_seconds"] = pilot_cost + float(plan.cost_to_met)
+        alloc = plan.prefix(plan.cost_to_met, n0.astype(np.int64))
+        out["packings"] = int(alloc.sum())
+    # a uniform campaign (every cell the same seeds) that meets the same targets
+    lo, hi = pilot_n, m
+    if all(math.sqrt(t.variance(t.law.state(np.full(cells.C, float(hi))))) <= t.goal for t in targets):
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            n = np.full(cells.C, float(mid))
+            if all(math.sqrt(t.variance(t.law.state(n))) <= t.goal for t in targets):
+                hi = mid
+            else:
+                lo = mid
+        out["uniform_seeds"] = hi
+        out["uniform_seconds"] = float(hi * np.sum(cost))
+    return out
+
+
+def _prior_law(cells, stats, names, variant, quantity, absc, pilot_n) -> LawModel:
+    """A ``LawModel`` of one variant's law on the prior's cells (``_prior_cell``), the sizes with
+    ``SHARED_FIT_CELLS`` cells of a positive mean abscissa in the fit range, fitted to their means."""
+    from campaign.plan.precision import SHARED_FIT_CELLS
+
+    iq, ix = names.index(quantity), names.index(absc)
+    in_range = cells.relevant({"x": 1})
+    by_size = {}
+    for c in range(cells.C):
+        if cells.variant[c] != variant or not in_range[c]:
+            continue
+        mean, cov = stats[c]
+        if mean[ix] < 0 or not cov[iq, iq] > 0:
+            continue
+        by_size.setdefault(int(cells.N[c]), []).append(c)
+    sizes = sorted(n for n, cs in by_size.items() if sum(stats[c][0][ix] > 0 for c in cs) >= SHARED_FIT_CELLS)
+    if len(sizes) < 2:
+        return LawModel(variant, quantity, absc, sizes, ok=False,
+                        why=f"the prior gives {len(sizes)} size(s) with {SHARED_FIT_CELLS} cells of a positive mean "
+                            f"{absc} in the fit range; the N_G -> inf row needs two")
+    ids, size_of, xbar, ybar, yerr, mom = [], [], [], [], [], []
+    for gi, n in enumerate(sizes):
+        for c in by_size[n]:
+            mean, cov = stats[c]
+            ids.append(c)
+            size_of.append(gi)
+            xbar.append(mean[ix])
+            ybar.append(mean[iq])
+            yerr.append(math.sqrt(cov[iq, iq] / pilot_n))
+            mom.append((cov[ix, ix], cov[iq, iq], cov[ix, iq]))
+    law = LawModel(variant, quantity, absc, sizes, np.array(ids), np.array(size_of), np.array(xbar), np.array(ybar),
+                   np.array(yerr), np.array(mom), dof=max(0, len(sizes) - 2))
+    xs = [law.xbar[law.size_of == g] for g in range(len(sizes))]
+    ys = [law.ybar[law.size_of == g] for g in range(len(sizes))]
+    es = [law.yerr[law.size_of == g] for g in range(len(sizes))]
+    f = fits.fit_shared_exponent(xs, ys, es)
+    law.beta = float(f.exponent)
+    law.sys2 = np.zeros(len(sizes))
+    law.J, law.s2 = law.at(law.beta, np.asarray(f.coeffs, float))
+    return law

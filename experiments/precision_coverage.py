@@ -1,0 +1,174 @@
+"""Are the rounds of a precision campaign honest? Synthetic campaigns with a known truth, run through
+the rounds many times (docs/PRECISION.md, "Honest statistics").
+
+    python experiments/precision_coverage.py --reps 200 --boot 200 --json coverage.json   # ~30 CPU-minutes
+    python experiments/precision_coverage.py --reps 200 --scenario "like paper-small" --json coverage-c.json
+
+Choosing where to sample from the data and stopping on the data's own error estimate can bias
+both the row and its errors. Each repetition is a campaign on the paper-small grid (N_G 64..1024,
+E_G 1e-15..1e-3) whose packings come from the generator of the fit-range test
+(``experiments/fit_rules.py``: excess contacts drawn as whole numbers, ``Delta A_G = B Delta Z^beta_Z
+(1 + k Delta Z^omega)``, the spread of A_G between packings paper-small's ``0.10 / sqrt(N_G)``), with
+psi_O drawn alike (``Delta Psi_O = B_P Delta Z^beta_Z``, spread ``0.17 / sqrt(N_G)``) and force
+evaluations from the calibrated cost model (``campaign.plan.tasks.cost``), run through
+``campaign.results.planner.run_in_memory`` (the decisions of a real run, on these packings) until
+it stops. The truth: ``A_G* = 0.446``, ``Psi_O* = 0.369`` (no 1/N_G term) and ``beta_E =
+beta_Z / (2 alpha) = 0.2625``. Per target: the median of (value - truth) / error, and the share of
+1- and 2-sigma intervals that hold the truth (nominal 0.68, 0.95); beside it the same for a uniform
+campaign of ``--uniform`` seeds per cell (the reducer alone, no rounds). ``--boot`` sets the
+reducer's bootstrap in the rounds and the final reduction (the campaign's own: 1000).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import fit_rules  # noqa: E402 - the generator of the fit-range test
+
+from campaign.plan.spec import parse_spec  # noqa: E402
+from campaign.plan.tasks import cost as task_cost, expand  # noqa: E402
+from campaign.results import errormodel, planner  # noqa: E402
+from campaign.results.reduce import Settings  # noqa: E402
+
+SPEC = """\
+name: coverage
+seed: 1
+grid:
+  N_G: [64, 128, 256, 512, 1024]
+  E_G: {log_range: [1.0e-15, 1.0e-3], per_decade: 1}
+precision:
+  target: {A_G_star_E: %(a)g, beta_E: %(b)g, psi_O_star: %(p)g}
+  pilot: %(pilot)d
+  max_seeds: %(max)d
+observables: [scalars]
+"""
+TRUTH = {"A_G_star_E": fit_rules.A_STAR, "psi_O_star": 0.369}
+SD_P0 = 0.17          # psi_O's spread between packings times sqrt(N_G) (paper-small: 0.15-0.19)
+B_P = 0.30            # Delta Psi_O = B_P Delta Z_true^beta_Z (paper-small at N_G 1024, 1e-5: 0.07 at Delta Z 0.28)
+DISK_SECONDS = 1e-7
+
+
+def draw_factory(spec, tasks, rep, scenario):
+    sc = fit_rules.SCENARIOS[scenario]
+    alpha = 2.0
+
+    def draw(rows):
+        out = {k: np.empty(len(rows)) for k in ("E_G", "delta_Z", "A_G", "psi_O", "force_evaluations")}
+        for j, r in enumerate(rows):
+            t = tasks[r]
+            rng = np.random.default_rng([rep, r, 20261128])
+            E_G = t.E * (1 + 0.1 * rng.random())
+            delta = (alpha * E_G / 2) ** (1 / alpha)
+            zt = fit_rules.Z0 * delta ** 0.5
+            m = t.N * zt / 2
+            trials = max(math.ceil(m / fit_rules.Z_P), 1)
+            dz = 2.0 / t.N * rng.binomial(trials, m / trials)
+            corr = 1 + sc["k"] * zt ** sc["omega"]
+            out["E_G"][j], out["delta_Z"][j] = E_G, dz
+            out["A_G"][j] = (fit_rules.A_STAR + fit_rules.B_COEFF * zt ** sc["beta_Z"] * corr
+                             + fit_rules.SD_A0 / math.sqrt(t.N) * rng.normal())
+            out["psi_O"][j] = TRUTH["psi_O_star"] + B_P * zt ** sc["beta_Z"] * corr + SD_P0 / math.sqrt(t.N) * rng.normal()
+            sec = task_cost(t.N, t.E) * math.exp(0.3 * rng.normal())
+            out["force_evaluations"][j] = max(1.0, sec / (DISK_SECONDS * t.N))
+        out["jam_status"], out["identities_ok"] = np.zeros(len(rows)), np.ones(len(rows))
+        return out
+    return draw
+
+
+def one(job):
+    rep, text, scenario, boot, uniform = job
+    spec = parse_spec(text)
+    tasks = expand(spec)
+    cells = errormodel.campaign_cells(spec, tasks)
+    draw = draw_factory(spec, tasks, rep, scenario)
+    settings = Settings(n_boot=boot)
+    t0 = time.perf_counter()
+    recs, table = planner.run_in_memory(cells, spec.precision.settings(), draw, reducer=settings,
+                                  attrs={"schema": "jamming-campaign/1", "spec_yaml": text}, disk_seconds=DISK_SECONDS)
+    row = table.extrapolated["default"]
+    counts = np.array(recs[-1]["early"])
+    rows = np.flatnonzero(cells.tasks_of(counts))
+    d = draw(rows)
+    out = {"rep": rep, "rounds": len(recs) - 1, "action": recs[-1]["action"], "packings": int(counts.sum()),
+           "cost": float(np.sum(d["force_evaluations"] * cells.N[rows // cells.seeds])),
+           "seconds": time.perf_counter() - t0,
+           "adaptive": {k: [row[k], row[f"{k}_err"]] for k in ("A_G_star_E", "beta_E", "psi_O_star")}}
+    if uniform:
+        u = np.full(cells.C, uniform)
+        rows = np.flatnonzero(cells.tasks_of(u))
+        d = draw(rows)
+        tab = planner.reduce_rows(cells, {"schema": "jamming-campaign/1", "spec_yaml": text}, rows,
+                            np.ones(len(rows), np.int8), d, settings=settings)
+        r2 = tab.extrapolated["default"]
+        out["uniform"] = {k: [r2[k], r2[f"{k}_err"]] for k in ("A_G_star_E", "beta_E", "psi_O_star")}
+        out["uniform_cost"] = float(np.sum(d["force_evaluations"] * cells.N[rows // cells.seeds]))
+    return out
+
+
+def summarise(results, truth, label):
+    lines = []
+    for k in ("A_G_star_E", "beta_E", "psi_O_star"):
+        vals = np.array([r[label][k] for r in results if label in r], float)
+        ok = np.all(np.isfinite(vals), axis=1)
+        v, e = vals[ok, 0], vals[ok, 1]
+        z = (v - truth[k]) / e
+        lines.append({"key": k, "n": int(ok.sum()), "missing": int((~ok).sum()), "median_bias_in_errors": float(np.median(z)),
+                      "mean_bias": float(np.mean(v - truth[k])), "median_error": float(np.median(e)),
+                      "spread": float(np.std(v, ddof=1)) if len(v) > 1 else float("nan"),
+                      "cover_1sigma": float(np.mean(np.abs(z) <= 1)), "cover_2sigma": float(np.mean(np.abs(z) <= 2))})
+    return lines
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--reps", type=int, default=200)
+    p.add_argument("--boot", type=int, default=200)
+    p.add_argument("--scenario", default="none", choices=sorted(fit_rules.SCENARIOS))
+    p.add_argument("--targets", type=float, nargs=3, default=(5e-4, 0.02, 1e-3), metavar=("A", "BETA", "PSI"))
+    p.add_argument("--pilot", type=int, default=4)
+    p.add_argument("--max-seeds", type=int, default=200)
+    p.add_argument("--uniform", type=int, default=20, help="seeds per cell of the uniform control (0: none)")
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--json")
+    a = p.parse_args(argv)
+    text = SPEC % {"a": a.targets[0], "b": a.targets[1], "p": a.targets[2], "pilot": a.pilot, "max": a.max_seeds}
+    sc = fit_rules.SCENARIOS[a.scenario]
+    truth = dict(TRUTH, beta_E=sc["beta_Z"] / 4.0)
+    jobs = [(rep, text, a.scenario, a.boot, a.uniform) for rep in range(a.reps)]
+    t0 = time.time()
+    with ProcessPoolExecutor(a.workers) as ex:
+        results = list(ex.map(one, jobs))
+    summary = {"scenario": a.scenario, "targets": dict(zip(("A_G_star_E", "beta_E", "psi_O_star"), a.targets)),
+               "truth": truth, "reps": a.reps, "boot": a.boot, "pilot": a.pilot, "max_seeds": a.max_seeds,
+               "adaptive": summarise(results, truth, "adaptive"),
+               "uniform": summarise(results, truth, "uniform") if a.uniform else [],
+               "rounds_median": float(np.median([r["rounds"] for r in results])),
+               "actions": {x: sum(r["action"] == x for r in results) for x in {r["action"] for r in results}},
+               "cost_ratio_median": (float(np.median([r["cost"] / r["uniform_cost"] for r in results]))
+                                     if a.uniform else None),
+               "seconds": time.time() - t0}
+    print(f"scenario {a.scenario!r}, {a.reps} campaigns (bootstrap {a.boot}); targets {summary['targets']}; "
+          f"truth {truth}")
+    print(f"ended: {summary['actions']}; rounds (median) {summary['rounds_median']:g}; cost against {a.uniform} "
+          f"uniform seeds (median ratio, fe x N): {summary['cost_ratio_median']}")
+    print("| run | key | median (value - truth) / error | 1 sigma | 2 sigma | median error | spread | no value |")
+    print("|---|---|---|---|---|---|---|---|")
+    for label in ("adaptive", "uniform"):
+        for s in summary[label]:
+            print(f"| {label} | {s['key']} | {s['median_bias_in_errors']:+.2f} | {s['cover_1sigma']:.2f} | "
+                  f"{s['cover_2sigma']:.2f} | {s['median_error']:.2g} | {s['spread']:.2g} | {s['missing']} |")
+    if a.json:
+        Path(a.json).write_text(json.dumps({"summary": summary, "results": results}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
