@@ -85,7 +85,11 @@ def draw_factory(spec, tasks, rep, scenario):
 
 
 def one(job):
-    rep, text, scenario, boot, uniform = job
+    rep, text, scenario, boot, uniform, floor = job
+    if floor:
+        from campaign.results import allocation
+
+        allocation.MIN_FIT_PACKINGS = floor
     spec = parse_spec(text)
     tasks = expand(spec)
     cells = errormodel.campaign_cells(spec, tasks)
@@ -138,16 +142,19 @@ def main(argv=None):
     p.add_argument("--max-seeds", type=int, default=200)
     p.add_argument("--uniform", type=int, default=20, help="seeds per cell of the uniform control (0: none)")
     p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--floor", type=int, default=0,
+                   help="packings every cell of the fit range holds before the rounds concentrate (default: "
+                        "campaign.results.allocation.MIN_FIT_PACKINGS)")
     p.add_argument("--json")
     a = p.parse_args(argv)
     text = SPEC % {"a": a.targets[0], "b": a.targets[1], "p": a.targets[2], "pilot": a.pilot, "max": a.max_seeds}
     sc = fit_rules.SCENARIOS[a.scenario]
     truth = dict(TRUTH, beta_E=sc["beta_Z"] / 4.0)
-    jobs = [(rep, text, a.scenario, a.boot, a.uniform) for rep in range(a.reps)]
+    jobs = [(rep, text, a.scenario, a.boot, a.uniform, a.floor) for rep in range(a.reps)]
     t0 = time.time()
     with ProcessPoolExecutor(a.workers) as ex:
         results = list(ex.map(one, jobs))
-    summary = {"scenario": a.scenario, "targets": dict(zip(("A_G_star_E", "beta_E", "psi_O_star"), a.targets)),
+    summary = {"scenario": a.scenario, "floor": a.floor or None, "targets": dict(zip(("A_G_star_E", "beta_E", "psi_O_star"), a.targets)),
                "truth": truth, "reps": a.reps, "boot": a.boot, "pilot": a.pilot, "max_seeds": a.max_seeds,
                "adaptive": summarise(results, truth, "adaptive"),
                "uniform": summarise(results, truth, "uniform") if a.uniform else [],

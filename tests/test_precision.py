@@ -397,3 +397,35 @@ def test_validate_and_slurm_read_the_last_decision(reference, tmp_path, capsys):
     assert f"{out}: ended (met) after round" in capsys.readouterr().out
     assert cli.main(["slurm", str(path), "--out", str(tmp_path / "s.sbatch")]) == 0
     assert "every task is done; nothing left to run" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_workers_do_not_wait_for_the_decisions(tmp_path):
+    """Two workers, packings of 0.1-0.4 s: the workers' idle share of the run (one minus their task
+    time over two workers' wall time) stays under 10%, decisions and round ends included."""
+    out = tmp_path / "idle.h5"
+    r = _run(tmp_path, out, "--workers", "2", env=_env(CAMPAIGN_SYNTHETIC_DELAY="0.1*N"), timeout=900)
+    assert r.returncode == 0, r.stderr
+    with h5py.File(out, "r") as f:
+        wall = f["tasks/wall"][:][f["tasks/status"][:] == 1]
+        runs = json.loads(f.attrs["runs"])
+    assert len(runs) == 1 and len(_records(out)) >= 3
+    idle = 1.0 - wall.sum() / (2 * runs[0]["seconds"])
+    assert idle < 0.10, idle
+
+
+def test_readers_count_only_the_seeds_given_out(reference, tmp_path):
+    """The rows of seeds no round gave out are no tasks of the campaign: `campaign reduce` counts none
+    of them pending, `campaign status` neither."""
+    out, _ = reference
+    recs = _records(out)
+    r = subprocess.run([sys.executable, "-m", "campaign", "reduce", str(out), "--json", "--out", str(tmp_path / "r")],
+                       env=_env(), capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    status = json.loads(r.stdout)["status"]
+    assert status["pending"] == 0 and status["total"] == status["done"] == sum(recs[-1]["early"])
+    r = subprocess.run([sys.executable, "-m", "campaign", "status", str(out), "--json"], env=_env(),
+                       capture_output=True, text=True, timeout=60)
+    got = json.loads(r.stdout)
+    assert got["tasks"] == sum(recs[-1]["early"]) and got["remaining"] == 0
+    assert sum(g["pending"] for g in got["groups"]) == 0

@@ -12,7 +12,7 @@ import numpy as np
 
 from campaign.plan.precision import law_of
 from campaign.results import fits
-from campaign.results.allocation import (State, Target, fill_costs, plan_greedy, smooth_costs, decide, pilot,
+from campaign.results.allocation import (MIN_FIT_PACKINGS, State, Target, fill_costs, plan_greedy, smooth_costs, decide, pilot,
                                          seconds_per_disk_force_evaluation)
 from campaign.results.errormodel import Cells, LawModel, campaign_cells, param_index as _k
 
@@ -89,29 +89,37 @@ class Planner:
     def pilot(self) -> dict:
         return pilot(self.cells, self.settings).to_record(self.cells)
 
-    def table(self, store, through, names=DECISION_SCALARS):
-        """The reduction of the finished packings among the tasks ``through`` (per-cell counts) of
-        ``store``, and those rows' columns: ``(Table, rows, status, scalars)``."""
+    def snapshot(self, store, through, names=DECISION_SCALARS) -> dict:
+        """The rows of the tasks ``through`` (per-cell counts) of ``store``: their status and the
+        scalars a decision reads. Read in the master's thread (the store is not thread-safe); the
+        decision itself (``decide_snapshot``) may run beside it."""
         store.flush(force=True)  # every finished row into the file (and its scalars' datasets made)
         present = [n for n in names if n in store.scalar_names]
         cols = store.columns(["tasks/status"] + [f"scalars/{n}" for n in present])
         rows = np.flatnonzero(self.cells.tasks_of(through))
-        status = np.asarray(cols["tasks/status"])[rows]
-        scalars = {n: np.asarray(cols[f"scalars/{n}"])[rows] for n in present}
-        table = reduce_rows(self.cells, self.attrs, rows, status, scalars, ids=[self.tasks[i].id for i in rows])
-        return table, rows, status, scalars
+        return {"rows": rows, "status": np.asarray(cols["tasks/status"])[rows],
+                "scalars": {n: np.asarray(cols[f"scalars/{n}"])[rows] for n in present}}
+
+    def table(self, snap):
+        """The reducer's table of a snapshot's finished packings."""
+        return reduce_rows(self.cells, self.attrs, snap["rows"], snap["status"], snap["scalars"],
+                           ids=[self.tasks[i].id for i in snap["rows"]])
+
+    def decide_snapshot(self, k, snap, given, settings=None, previous=None) -> dict:
+        """Decision ``k`` (its record) from the snapshot of the rounds before it."""
+        settings = self.settings if settings is None else settings
+        table = self.table(snap)
+        fe = snap["scalars"].get("force_evaluations", np.full(len(snap["rows"]), np.nan))
+        state = cell_state(self.cells, table, snap["rows"], snap["status"], fe, given, self.disk_seconds)
+        return decide(k, table, self.cells, state, settings, previous).to_record(self.cells)
 
     def decide(self, k, store, given, through, settings=None, previous=None) -> dict:
-        settings = self.settings if settings is None else settings
-        table, rows, status, scalars = self.table(store, through)
-        fe = scalars.get("force_evaluations", np.full(len(rows), np.nan))
-        state = cell_state(self.cells, table, rows, status, fe, given, self.disk_seconds)
-        return decide(k, table, self.cells, state, settings, previous).to_record(self.cells)
+        return self.decide_snapshot(k, self.snapshot(store, through), given, settings, previous)
 
     def report(self, store, given) -> str:
         """The errors of every finished packing of the campaign (the last round's early seeds
         included), as ``campaign reduce`` gives them: one line per variant."""
-        return _report(self.table(store, given)[0], self.settings["target"])
+        return _report(self.table(self.snapshot(store, given)), self.settings["target"])
 
 
 # --------------------------------------------------------------------------- a campaign in memory
@@ -240,10 +248,14 @@ def plan_from_prior(spec, tasks, prior=None, seconds=None) -> dict:
     out = {"ok": True, "pilot_seconds": pilot_cost, "pilot_errors": {t.key: t.error for t in targets},
            "max_seeds_errors": at_max, "reachable": all(at_max[t.key] <= t.goal for t in targets)}
     if out["reachable"]:
-        plan = plan_greedy(targets, cells, n0, n0.astype(np.int64), np.ones(cells.C), cost, relevant, m, states)
-        out["plan_seconds"] = float(plan.cost_to_met)
-        out["total_seconds"] = pilot_cost + float(plan.cost_to_met)
-        alloc = plan.prefix(plan.cost_to_met, n0.astype(np.int64))
+        # as the rounds do: the fit range at MIN_FIT_PACKINGS first, then the plan
+        base = np.where(relevant, np.maximum(n0, min(m, MIN_FIT_PACKINGS)), n0)
+        forced = float(np.sum((base - n0) * cost))
+        states = {id(law): law.state(base) for law in laws.values()}
+        plan = plan_greedy(targets, cells, base, base.astype(np.int64), np.ones(cells.C), cost, relevant, m, states)
+        out["plan_seconds"] = forced + float(plan.cost_to_met)
+        out["total_seconds"] = pilot_cost + out["plan_seconds"]
+        alloc = plan.prefix(plan.cost_to_met, base.astype(np.int64))
         out["packings"] = int(alloc.sum())
     # a uniform campaign (every cell the same seeds) that meets the same targets
     lo, hi = pilot_n, m

@@ -154,9 +154,21 @@ class Master:
             self._woken = True
 
     def _next_round(self):
-        """With rounds: when every task of the rounds decided is finished, the next decision."""
+        """With rounds: when every task of the rounds decided is finished, the next decision (made
+        beside this loop: ``_round_made`` collects it)."""
         if self.rounds is not None and self.rounds.open <= 0 and self.stop_reason is None:
-            self._give(self.rounds.advance())
+            self.rounds.start()
+
+    def _round_made(self):
+        """A decision made: its tasks into the queues and out to every worker."""
+        if self.rounds is None:
+            return
+        got = self.rounds.poll()
+        if got and self.stop_reason is None:
+            self._give(got)
+            self._woken = False
+            for v in sorted(self.alive):
+                self._dispatch(v)
 
     # ---- scheduling
     def _depth(self):
@@ -297,11 +309,15 @@ class Master:
                 self._fail(i, f"its ladder parent (task {self.tasks[self.tasks[i].parent].id}) failed")
             for w in sorted(self.alive):
                 self._dispatch(w)
-            while self._running():
+            while self._running() or (self.rounds is not None and self.rounds.busy and self.stop_reason is None):
                 if self.signals >= 2 or (self.stop_since is not None
                                          and time.monotonic() - self.stop_since > self.grace):
                     break
-                got = self.comm.recv(timeout=0.25)
+                self._round_made()
+                if not self._running():  # waiting for a decision only
+                    time.sleep(0.02)
+                    continue
+                got = self.comm.recv(timeout=0.05 if self.rounds is not None and self.rounds.busy else 0.25)
                 if got is None:
                     self._tick()
                     continue

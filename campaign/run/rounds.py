@@ -10,11 +10,16 @@ reads the decisions made and makes the next one when its round is complete, so a
 and store are the same whatever the launcher, the workers or an interruption.
 
 While round ``k``'s last tasks run, the master gives its idle workers the early seeds of round
-``k + 1`` (decided with round ``k``): no worker waits for a decision. The early seeds always run,
-whatever the next decision says, so the store does not depend on when a worker asked for work.
+``k + 1`` (decided with round ``k``), and while it makes decision ``k + 1`` (seconds: the reducer's
+bootstrap) it goes on serving them: the store's rows are read in the master's thread, the decision
+is made in another (``start``, then ``poll``). No worker waits for a decision as long as the early
+seeds last. They always run, whatever the next decision says, so the store does not depend on when
+a worker asked for work.
 """
 
 from __future__ import annotations
+
+import threading
 
 import numpy as np
 
@@ -39,6 +44,7 @@ class Rounds:
         if not self.records:
             self._keep(planner.pilot())
         self._masks()
+        self._thread = self._result = None
 
     # ---- the decisions kept
     def _valid_prefix(self, recs) -> list:
@@ -105,15 +111,59 @@ class Rounds:
         """The master has no task left to give: the next round's early seeds."""
         return self._hand(self.given)
 
+    def _due(self) -> bool:
+        return self.open <= 0 and not self.stopped
+
+    def _inputs(self):
+        last = self.records[-1]
+        return (int(last["round"]) + 1, np.asarray(last["early"], np.int64), np.asarray(last["allocated"], np.int64),
+                last)
+
     def advance(self) -> list:
-        """Make the next decisions while every task of the rounds decided is finished; the tasks they
-        give out (with the early seeds not handed out yet), as indices."""
+        """Make the next decisions (here, waiting for them) while every task of the rounds decided is
+        finished; the tasks they give out (with the early seeds not handed out yet), as indices."""
         if not hasattr(self, "queued"):
             self.queued = np.zeros(self.T, bool)
-        while self.open <= 0 and not self.stopped:
-            last = self.records[-1]
-            k = int(last["round"]) + 1
-            self._keep(self.planner.decide(k, self.store, np.asarray(last["early"], np.int64),
-                                           np.asarray(last["allocated"], np.int64), self.settings, last))
+        while self._due():
+            k, given, through, last = self._inputs()
+            self._keep(self.planner.decide(k, self.store, given, through, self.settings, last))
             self._masks()
+        return self._hand(self.through)
+
+    @property
+    def busy(self) -> bool:
+        """A decision is being made."""
+        return self._thread is not None
+
+    def start(self):
+        """When every task of the rounds decided is finished: read their rows (here) and make the next
+        decision in a thread of its own; ``poll`` collects it."""
+        if self._thread is not None or not self._due():
+            return
+        k, given, through, last = self._inputs()
+        snap = self.planner.snapshot(self.store, through)
+        box = {}
+
+        def work():
+            try:
+                box["record"] = self.planner.decide_snapshot(k, snap, given, self.settings, last)
+            except BaseException as exc:  # noqa: BLE001 - raised again in the master's thread
+                box["error"] = exc
+
+        self._result = box
+        self._thread = threading.Thread(target=work, name=f"campaign-decision-{k}", daemon=True)
+        self._thread.start()
+
+    def poll(self) -> list:
+        """A decision made in its thread: kept (``Store.record_round``, in the master's thread), its
+        tasks handed out, and the next one started if it is due at once; [] while none is ready."""
+        if self._thread is None or self._thread.is_alive():
+            return []
+        self._thread.join()
+        box, self._thread, self._result = self._result, None, None
+        if "error" in box:
+            raise box["error"]
+        self._keep(box["record"])
+        self._masks()
+        self.start()
         return self._hand(self.through)
