@@ -86,7 +86,7 @@ TOLERANCE_FACTOR = ((1e-9, 1.081), (1e-7, 1.025), (1e-6, 1.0), (1e-4, 0.935), (1
 #: core-seconds per disk per force evaluation of a packing, when a calibration does not give its own
 #: (``disk_force_evaluation_seconds``): FIRE packings of this project's 2-core machine, the O'Hern search
 #: and the analysis spread over the force evaluations (docs/PRECISION.md, "Costs")
-DISK_FE_SECONDS = 1.0e-7
+DISK_FE_SECONDS = 5.0e-8
 #: cost of a search rule relative to the secant search (docs/SPEED_ACCURACY.md: halving 1.36)
 SEARCH_FACTOR = {"halving": 1.36}
 
