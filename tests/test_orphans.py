@@ -123,6 +123,10 @@ def _until(what, seen, limit):
                     reason="reads /proc; waits on pid file descriptors")
 @pytest.mark.parametrize("how", ["as it runs", "watcher alone"])
 def test_a_killed_local_master_leaves_no_worker(tmp_path, how):
+    """A local run's master SIGKILLed once its progress file says its two workers hold tasks (each
+    computes for a minute): both workers end within 10 s, as the run is (the kernel's signal and the
+    watcher thread) and with the watcher thread alone (each worker is seen to leave the kernel's
+    request out)."""
     spec = tmp_path / "s.yaml"
     spec.write_text(SPEC)
     out, marks = tmp_path / "o.h5", tmp_path / "marks"
