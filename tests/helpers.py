@@ -5,6 +5,7 @@ none does). The oracles the kernels are compared with are in ``references.py``.
 """
 
 import importlib
+import importlib.metadata
 import importlib.util
 import math
 from collections import deque
@@ -13,6 +14,7 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+import pytest
 
 from campaign.plan.spec import parse_spec
 from campaign.plan.tasks import expand
@@ -370,6 +372,28 @@ def reseal(f, *names):
         if sums_name(name) in f:
             ds = f[sums_name(name)]
             write_sums(ds, 0, f[name][:], int(ds.attrs[SUMS_ROWS]))
+
+
+def cuda_extra_installed() -> bool:
+    """Whether the ``cuda`` extra is installed: its CUDA assembler's wheel (nvidia-cuda-nvcc), which
+    neither numba nor the ``gpu`` extra brings."""
+    try:
+        importlib.metadata.distribution("nvidia-cuda-nvcc")
+    except importlib.metadata.PackageNotFoundError:
+        return False
+    return True
+
+
+def require_cuda(config, missing, installed=None):
+    """Go on when ``missing`` (why a CUDA tool a test needs cannot be used) is None; else skip the test
+    with that reason, but fail it under ``--full`` with the ``cuda`` extra installed (``installed``,
+    default ``cuda_extra_installed()``; .ci/run installs it): there the tool must be found, and a
+    skip would let a suite pass that never ran the test."""
+    if missing is None:
+        return
+    if config.getoption("--full") and (cuda_extra_installed() if installed is None else installed):
+        pytest.fail(f"the cuda extra is installed, yet {missing}", pytrace=False)
+    pytest.skip(missing)
 
 
 def cuda_missing(compiler=False):

@@ -4,6 +4,7 @@ for the kernel itself, the kernel compiled for a real GPU (sm_90 PTX), and GPU c
 import os
 import subprocess
 import sys
+from functools import lru_cache
 from pathlib import Path
 
 import h5py
@@ -21,7 +22,7 @@ from kernels.gpu import batch as gpu_batch
 from kernels.gpu import block as gpu_block, state as gpu_state
 from kernels.gpu.state import (FX, FY, N_FL, N_IV, N_ST, NNB, R, ROWS, RX, RY, S_ALPHA, S_LX, S_LY,
                                S_NCX, S_NCY, S_NG, S_RESV, S_RMAX, S_SIN_TOL, S_SKIN, S_TE, S_XY)
-from helpers import cuda_missing
+from helpers import cuda_missing, require_cuda
 
 ROOT = Path(__file__).resolve().parents[1]
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
@@ -153,14 +154,33 @@ def test_resumption_refuses_what_is_not_its_own():
         Suspended.from_arrays(dict(arrays, state=done), 1e-4)
 
 
+@lru_cache(maxsize=None)
+def _pairs(pair):
+    """A compiled loop calling the compiled ``pair(r, q, alpha)`` on arrays: energies and forces."""
+    @njit
+    def run(r, q, alpha):
+        v, f = np.empty(r.size), np.empty(r.size)
+        for k in range(r.size):
+            v[k], f[k] = pair(r[k], q[k], alpha)
+        return v, f
+
+    return run
+
+
 @pytest.mark.parametrize("exponent", gpu_state.EXPONENTS)
 def test_the_blocks_pair_is_the_potential_bit_for_bit(exponent):
-    """The pair compiled for a fixed exponent (no pow for 2 and 2.5) gives the potential's bits."""
-    pair = gpu_block.pair_for(exponent)
+    """The pair the block compiles for a fixed exponent (no pow for 2 and 2.5; ``make_block``'s, here
+    as the emulation compiles it) gives the bits of the potential's compiled pair
+    (``kernels.potential.pair_energy_force_inv``), each called from compiled code, at distances
+    inside and beyond contact."""
+    pair = gpu_batch.emulated_block(exponent).pair
     rng = np.random.default_rng(7)
+    q = rng.uniform(10, 50, 2000)
+    r = rng.uniform(0, 1.3, 2000) / q  # overlaps 1 - r q from 1 down to -0.3
     for alpha in ([exponent] if exponent else [2.2, 2.7, 3.0]):  # (None: the exponents but 2, 2.5)
-        for q, r in zip(rng.uniform(10, 50, 200), rng.uniform(0, 0.12, 200)):
-            assert pair(r, q, alpha) == potential.pair_energy_force_py(r, q, alpha)
+        (v, f), (v_ref, f_ref) = _pairs(pair)(r, q, alpha), _pairs(potential.pair_energy_force_inv)(r, q, alpha)
+        assert np.count_nonzero(f_ref) > 1000 and np.count_nonzero(f_ref == 0) > 100
+        assert v.tobytes() == v_ref.tobytes() and f.tobytes() == f_ref.tobytes(), alpha
     with pytest.raises(ValueError, match="exponent"):
         gpu_block.pair_for(3.0)
 
@@ -260,15 +280,16 @@ def test_gpu_and_cpu_packings_agree_in_the_mean():
 # --------------------------------------------------------------------------- the CUDA kernel
 
 @pytest.mark.slow
-@pytest.mark.skipif(cuda_missing(compiler=True) is not None, reason=str(cuda_missing(compiler=True)))
-def test_kernel_compiles_for_a_real_gpu():
+def test_kernel_compiles_for_a_real_gpu(request):
     """The batch kernel goes through numba-cuda's CUDA compiler to sm_90 PTX (libNVVM from the
     cuda extra's numba-cuda[cu13]; no GPU needed: the device's compute capability is given), as
     the launch compiles it: without contraction (every float64 multiply, add and subtract rounded
     on its own, ``.rn``, which the assembler never fuses; fused multiply-adds left only inside
     libdevice's functions; ``a x + y`` contracted by default, not so) and without link-time
     optimisation (whose code generation in nvJitLink would contract again); its block sums by warp
-    shuffles, its clock the device's."""
+    shuffles, its clock the device's. Without the cuda extra it skips; with it, under --full, a
+    compiler that cannot be loaded fails it (``require_cuda``)."""
+    require_cuda(request.config, cuda_missing(compiler=True))
     code = """
 import re
 import numba.cuda.dispatcher as d
@@ -317,21 +338,52 @@ print(len(loop), wide["registers"], wide["spill_store_bytes"], wide["spill_load_
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(cuda_missing(compiler=True) is not None, reason=str(cuda_missing(compiler=True)))
-def test_the_kernel_fits_its_register_budgets():
+def test_the_kernel_fits_its_register_budgets(request):
     """The block's budget, assembled by ptxas for sm_90 (benchmarks/gpu_ptx.py): a 512-thread
     block fits an SM at 128 registers a thread without a byte of spills, 64 registers (2048
     threads an SM, the default) spill at most a few hundred bytes of stack, and the forces' pair
-    loop stays under 80 PTX instructions."""
+    loop stays under 80 PTX instructions. Without the cuda extra it skips; with it, under --full,
+    a compiler or a ptxas that cannot be found fails it (``require_cuda``)."""
+    require_cuda(request.config, cuda_missing(compiler=True))
     r = subprocess.run([sys.executable, "-c", REGISTERS], capture_output=True, text=True, timeout=900,
                        cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert r.returncode == 0, r.stderr[-3000:]
     if r.stdout.strip() == "no ptxas":
-        pytest.skip("no ptxas (the cuda extra's nvidia-cuda-nvcc, or PTXAS)")
+        require_cuda(request.config, "no ptxas (the cuda extra's nvidia-cuda-nvcc, or PTXAS)")
     loop, wide, st, ld, narrow, stack = map(int, r.stdout.split())
     assert 0 < loop <= 80
     assert wide <= 128 and st == 0 and ld == 0
     assert narrow <= 64 and stack <= 256
+
+
+class _Config:
+    """What ``require_cuda`` asks of pytest's config: whether the run has ``--full``."""
+
+    def __init__(self, full):
+        self.full = full
+
+    def getoption(self, name):
+        assert name == "--full", name
+        return self.full
+
+
+def test_a_missing_cuda_tool_fails_under_full_where_the_cuda_extra_is_installed():
+    """``require_cuda``, which the PTX tests above call: a CUDA tool that cannot be found skips the
+    test, saying why, unless the suite runs with --full and the cuda extra installed (as .ci/run
+    does): there it fails it."""
+    def outcome(full, missing, installed):  # a skip must not escape: it would skip this test
+        try:
+            require_cuda(_Config(full), missing, installed=installed)
+        except pytest.fail.Exception as exc:
+            return "fails", str(exc)
+        except pytest.skip.Exception as exc:
+            return "skips", str(exc)
+        return "goes on", ""
+
+    assert outcome(True, None, True) == ("goes on", "")
+    assert outcome(True, "no ptxas", True) == ("fails", "the cuda extra is installed, yet no ptxas")
+    for full, installed in ((True, False), (False, True), (False, False)):
+        assert outcome(full, "no ptxas", installed) == ("skips", "no ptxas"), (full, installed)
 
 
 REDUCE = """

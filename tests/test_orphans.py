@@ -1,5 +1,10 @@
 """Workers end within seconds when their master dies (docs/STORE.md, "Workers die with their master").
 
+The quick suite: a local `campaign run` whose two workers compute, its master SIGKILLed; the workers'
+exit is awaited on their pid file descriptors, and it comes within 10 s both as the run is (the kernel's
+PR_SET_PDEATHSIG and the watcher thread) and with the kernel's request left out (the watcher thread
+alone, as on systems without it). The rest is slow:
+
 A real `campaign run` (synthetic tasks of several seconds each) is killed with SIGKILL while its workers
 compute; 10 s later no worker process is alive; a rerun completes the campaign with the bits of an
 uninterrupted run. Locally (two worker processes) and under `mpiexec -n 3`, there with Hydra's own
@@ -9,7 +14,9 @@ the other tasks of a task killed by a signal by itself, -disable-auto-cleanup or
 a wrapper that exits with a status, so that there the workers' own watch is what ends them.
 """
 
+import json
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -62,6 +69,108 @@ def _processes_of(out):
                 b"--multiprocessing-fork" in args and env.get(b"CAMPAIGN_ORPHAN_TAG") == str(out).encode()):
             got[pid] = env[b"PMI_RANK"].decode() if b"PMI_RANK" in env else None
     return got
+
+
+#: `campaign run` with its local workers' request to the kernel (PR_SET_PDEATHSIG) left out: each worker
+#: process imports this file as its main module (multiprocessing's spawn), so that only the watcher thread
+#: of campaign.run.worker.die_with_parent can end it; each writes its pid into $ORPHANS_MARKS when it asks
+WATCHER_ONLY = """\
+import os
+import sys
+
+import campaign.run.worker
+
+
+def no_kernel_request(sig=None):
+    open(os.path.join(os.environ["ORPHANS_MARKS"], str(os.getpid())), "w").close()
+    return False
+
+
+campaign.run.worker._parent_death_signal = no_kernel_request
+if __name__ == "__main__":
+    from campaign import cli
+
+    sys.exit(cli.main(sys.argv[1:]))
+"""
+
+
+def _children(pid):
+    """The pids of the processes whose parent is ``pid``."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                if int((d / "stat").read_bytes().rsplit(b")", 1)[-1].split()[1]) == pid:
+                    out.append(int(d.name))
+            except (OSError, IndexError, ValueError):
+                pass
+    return out
+
+
+def _until(what, seen, limit):
+    """Look for the state ``seen()`` says (a true value when it is there) every 20 ms, at most
+    ``limit`` seconds; returns it."""
+    end = time.monotonic() + limit
+    while True:
+        got = seen()
+        if got or time.monotonic() > end:
+            assert got, f"not seen in {limit} s: {what}"
+            return got
+        time.sleep(0.02)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or not hasattr(os, "pidfd_open"),
+                    reason="reads /proc; waits on pid file descriptors")
+@pytest.mark.parametrize("how", ["as it runs", "watcher alone"])
+def test_a_killed_local_master_leaves_no_worker(tmp_path, how):
+    """A local run's master SIGKILLed once its progress file says its two workers hold tasks (each
+    computes for a minute): both workers end within 10 s, as the run is (the kernel's signal and the
+    watcher thread) and with the watcher thread alone (each worker is seen to leave the kernel's
+    request out)."""
+    spec = tmp_path / "s.yaml"
+    spec.write_text(SPEC)
+    out, marks = tmp_path / "o.h5", tmp_path / "marks"
+    marks.mkdir()
+    (tmp_path / "watcher_only.py").write_text(WATCHER_ONLY)
+    main = ["-m", "campaign"] if how == "as it runs" else [str(tmp_path / "watcher_only.py")]
+    p = subprocess.Popen([sys.executable, *main, "run", str(spec), "--out", str(out), "--workers", "2", "--quiet"],
+                         env=dict(_env("60"), ORPHANS_MARKS=str(marks)), stdout=subprocess.DEVNULL,
+                         stderr=subprocess.PIPE, start_new_session=True)
+    pidfds = []
+    try:
+        progress = Path(str(out) + ".progress.json")
+
+        def computing():  # the master dispatches once every worker said it is ready: tasks in flight
+            try:
+                state = json.loads(progress.read_text())
+            except (OSError, ValueError):
+                return None
+            workers = [pid for pid in _children(p.pid)
+                       if b"--multiprocessing-fork" in Path(f"/proc/{pid}/cmdline").read_bytes()]
+            return workers if state.get("running", 0) >= 2 and len(workers) == 2 else None
+
+        workers = _until("two workers computing", lambda: p.poll() is None and computing() or p.poll() is not None,
+                         60)
+        assert p.poll() is None, p.stderr.read().decode()[-2000:]
+        if how == "watcher alone":  # each worker left the kernel's request out
+            assert sorted(int(m.name) for m in marks.iterdir()) == sorted(workers), (list(marks.iterdir()), workers)
+        pidfds = [os.pidfd_open(pid) for pid in workers]
+        os.kill(p.pid, signal.SIGKILL)
+        assert p.wait(timeout=30) == -signal.SIGKILL  # the master's death, seen
+        t0, left = time.monotonic(), list(pidfds)
+        while left and time.monotonic() - t0 < 10:  # a pid file descriptor is readable once its process ended
+            ended, _, _ = select.select(left, [], [], 10 - (time.monotonic() - t0))
+            left = [fd for fd in left if fd not in ended]
+        assert not left and not _alive(workers), f"workers {_alive(workers)} still alive 10 s after the master's death"
+    finally:
+        for fd in pidfds:
+            os.close(fd)
+        try:
+            os.killpg(p.pid, signal.SIGKILL)
+        except OSError:
+            pass
+        p.wait(timeout=30)
+        p.stderr.close()
 
 
 def _datasets(path):

@@ -1,16 +1,21 @@
 """Readers refuse what does not match what was written (docs/STORE.md, "Block checksums").
 
 Two real small stores (synthetic tasks, blocks of 4 rows; one keeps configurations and has failed tasks).
+The quick suite moves one chunk of one column a block off its place in the first store's chunk index:
+the readers that read that column refuse it (exit 2, the paragraph naming it), the others read what they
+read before, `verify` names it. The sweeps below are slow.
 Damage: a bit of a chunk key's row offset in every chunk-index node of the file (HDF5's version-1
 B-trees: the chunk is then listed off its place, or its block reads as never written), and single-bit
 flips at random offsets (a fixed seed). After each: `status --json`, `reduce --json`, `export` (CSV; and
 XYZ, `analyze` of a configuration for the store that keeps them) and `verify`. No traceback, exit codes
-as documented (0 or 2 for the readers, 0 or 1 for verify), and no reader exits 0 with an output other
-than the clean store's.
+as documented (0 or 2 for the readers, 2 only with the damaged store's paragraph; 0 or 1 for verify), and
+no reader exits 0 with an output other than the clean store's.
 
 The same chunk-index damage in stores as 0.2.7 wrote them, without block checksums (tests/data): no
-traceback from any reader, nor from `verify --repair`, though most of it reads silently; and once
-`verify --repair` added their checksums, none of it reads silently.
+traceback from any reader, nor from `verify --repair`; what a reader refuses and every block of task
+identities that is not the spec's, `verify` finds; most of the rest reads silently (nothing recorded
+what the rows were: that is what the block checksums add); and once `verify --repair` added their
+checksums, none of it reads silently.
 """
 
 import contextlib
@@ -65,12 +70,13 @@ def store(request, tmp_path_factory):
     with h5py.File(d / "ref.h5", "r") as f:
         group = "/configurations/" + sorted(f["configurations"])[0] if "configurations" in f else None
     clean = _readers(d / "ref.h5", d / "clean", group)
-    assert all(code == 0 for code, _ in clean.values()), clean
+    assert all(code == 0 for code, _, _ in clean.values()), clean
     return d / "ref.h5", group, clean
 
 
 def _readers(path, out, group):
-    """Exit code and output of every reader of ``path``."""
+    """Exit code, output and error output of every reader of ``path``: 0, or 2 with the paragraph of a
+    damaged store (naming it, and `campaign verify` for the rest), never a traceback."""
     out = Path(out)
     out.mkdir(exist_ok=True)
     got = {}
@@ -90,8 +96,8 @@ def _readers(path, out, group):
     for k, (code, value, err) in got.items():
         assert "Traceback" not in err, (k, err)
         assert code in (0, 2), (k, code, err)
-        assert code == 0 or "is damaged" in err or err.strip(), (k, err)
-    return {k: (code, value) for k, (code, value, _) in got.items()}
+        assert code == 0 or (f"error: {path} is damaged: " in err and f"`campaign verify {path}`" in err), (k, err)
+    return got
 
 
 def _status_figures(text):
@@ -107,7 +113,7 @@ def _status_figures(text):
 def _silent(clean, got):
     """Readers that exited 0 with another output than the clean store's."""
     bad = []
-    for k, (code, value) in got.items():
+    for k, (code, value, _) in got.items():
         if code != 0:
             continue
         want = clean[k][1]
@@ -141,18 +147,76 @@ def chunk_keys(data):
     return out
 
 
-def _trial(ref, group, clean, tmp, offset, bit):
-    p = tmp / "d.h5"
+def _flip(ref, p, offset, bit):
+    """A copy ``p`` of the store ``ref`` with bit ``bit`` of byte ``offset`` flipped."""
     shutil.copy(ref, p)
     with open(p, "r+b") as fh:
         fh.seek(offset)
         b = fh.read(1)
         fh.seek(offset)
         fh.write(bytes([b[0] ^ (1 << bit)]))
+
+
+def _trial(ref, group, clean, tmp, offset, bit, report=False):
+    """Every reader and `verify` (its exit status; with ``report``, its report too) on a copy of ``ref``
+    with one bit flipped."""
+    p = tmp / "d.h5"
+    _flip(ref, p, offset, bit)
     got = _readers(p, tmp / "o", group)
-    code, out, err = _cli("verify", p, "--quiet")
+    code, out, err = _cli("verify", p, *(() if report else ("--quiet",)))
     assert code in (0, 1) and "Traceback" not in err, (offset, bit, code, err)
-    return got, code
+    return (got, code, out) if report else (got, code)
+
+
+def chunk_index_node(data, chunks):
+    """In the file's bytes ``data``: the chunk-index node (v1 B-tree, type 1, a leaf) of a dataset of rank
+    1 whose chunks lie at the file addresses ``chunks``, as the offsets of each of its keys' row offset."""
+    key = 8 + 8 * 2  # chunk size, filter mask; the row offset and the element offset
+    pos = data.find(b"TREE")
+    while pos >= 0:
+        kind, level, used = data[pos + 4], data[pos + 5], struct.unpack_from("<H", data, pos + 6)[0]
+        if kind == 1 and level == 0 and used:
+            keys = [pos + 24 + i * (key + 8) for i in range(used)]
+            children = [struct.unpack_from("<Q", data, k + key)[0] for k in keys]
+            if sorted(children) == sorted(chunks):
+                return [k + 8 for k in keys]
+        pos = data.find(b"TREE", pos + 4)
+    raise AssertionError("no chunk-index node lists those chunks")
+
+
+def test_a_chunk_listed_a_block_off_its_place_is_refused(tmp_path, monkeypatch):
+    """The quick suite's damage: a small store (blocks of 4 rows) whose chunk index lists one chunk of
+    scalars/A_G a block off its place (rows 16-19 where 20-23 are). The readers of that column,
+    `reduce` and `export`, refuse the store: exit 2, the paragraph naming scalars/A_G and `campaign
+    verify`; `status` reads what it read before; `verify` names the column (exit 1)."""
+    import campaign.storage.store
+
+    monkeypatch.setattr(campaign.storage.store, "BLOCK_ROWS", BLOCK)
+    monkeypatch.setenv("CAMPAIGN_SYNTHETIC_FAIL", "none")
+    (tmp_path / "s.yaml").write_text(SPECS["plain"])
+    ref = tmp_path / "ref.h5"
+    code, _, err = _cli("run", tmp_path / "s.yaml", "--out", ref, "--launcher", "inline", "--task-function",
+                        "synthetic", "--quiet")
+    assert code == 0, err
+    clean = _readers(ref, tmp_path / "clean", None)
+    assert all(code == 0 for code, _, _ in clean.values()), clean
+    with h5py.File(ref, "r") as f:
+        ds = f["scalars/A_G"]
+        chunks = {ds.id.get_chunk_info(i).chunk_offset[0]: ds.id.get_chunk_info(i).byte_offset
+                  for i in range(ds.id.get_num_chunks())}
+    keys = chunk_index_node(ref.read_bytes(), list(chunks.values()))
+    assert len(keys) == len(chunks) == 9  # 36 tasks
+    rows = {struct.unpack_from("<Q", ref.read_bytes(), k)[0]: k for k in keys}
+    assert sorted(rows) == sorted(chunks)
+    damaged = tmp_path / "d.h5"
+    _flip(ref, damaged, rows[16], int(np.log2(BLOCK)))  # the key of rows 16-19 now says 20-23
+    got = _readers(damaged, tmp_path / "o", None)
+    for reader in ("reduce", "export"):
+        code, _, err = got[reader]
+        assert code == 2 and "scalars/A_G" in err, (reader, code, err)
+    assert got["status"][0] == 0 and not _silent(clean, got), _silent(clean, got)
+    code, out, err = _cli("verify", damaged)
+    assert code == 1 and "scalars/A_G" in out, (code, out, err)
 
 
 @pytest.mark.slow
@@ -168,7 +232,7 @@ def test_every_chunk_index_damaged(store, tmp_path):
     for off in keys:
         got, verify = _trial(ref, group, clean, tmp_path, off, bit)
         assert not _silent(clean, got), (off, bit, _silent(clean, got), got)
-        if any(code == 2 for code, _ in got.values()):
+        if any(code == 2 for code, _, _ in got.values()):
             refused += 1
             assert verify == 1, (off, bit)
     print("chunk-index damage:", len(keys), "nodes,", refused, "refused by a reader, 0 silent")
@@ -185,7 +249,7 @@ def test_random_flips(store, tmp_path):
         off, bit = rng.randrange(size), rng.randrange(8)
         got, verify = _trial(ref, group, clean, tmp_path, off, bit)
         assert not _silent(clean, got), (off, bit, _silent(clean, got))
-        refused += any(code == 2 for code, _ in got.values())
+        refused += any(code == 2 for code, _, _ in got.values())
     print("random flips refused by a reader:", refused)
 
 
@@ -206,7 +270,7 @@ def old_store(request, tmp_path_factory):
         assert "checksums" not in f and "block_checksums" not in f.attrs and f.attrs["package_version"] == "0.2.7"
         group = "/configurations/" + sorted(f["configurations"])[0] if "configurations" in f else None
     clean = _readers(d / "old.h5", d / "clean-old", group)
-    assert all(code == 0 for code, _ in clean.values()), clean
+    assert all(code == 0 for code, _, _ in clean.values()), clean
     code, out, err = _cli("verify", d / "new.h5", "--repair")
     assert code == 0 and "PROTECTED: wrote" in out and "cannot be found" in out, (code, out, err)
     with h5py.File(d / "new.h5", "r") as f:
@@ -216,27 +280,58 @@ def old_store(request, tmp_path_factory):
     return d / "old.h5", d / "new.h5", group, clean
 
 
+def _identities(path):
+    """The task table's identity columns as read, and as the spec stored in the file gives them (None
+    for a column that cannot be read)."""
+    from campaign.plan.spec import parse_spec
+    from campaign.plan.tasks import expand
+
+    with h5py.File(path, "r") as f:
+        tasks = expand(parse_spec(f.attrs["spec_yaml"]))
+        want = {"id": [t.id for t in tasks], "variant": [t.variant for t in tasks], "N": [t.N for t in tasks],
+                "E": [t.E for t in tasks], "seed": [t.seed for t in tasks]}
+        got = {}
+        for col in want:
+            try:
+                v = f[f"tasks/{col}"][:]
+                got[col] = [x.decode().rstrip("\0") for x in v] if v.dtype.kind == "S" else v.tolist()
+            except Exception:  # noqa: BLE001 - an index that cannot be read at all
+                got[col] = None
+    return got, want
+
+
 @pytest.mark.slow
 def test_v027_store_chunk_index_damaged(old_store, tmp_path):
     """A store without block checksums, one chunk key's row offset moved by a block in every chunk-index
-    node: no reader ends in a traceback (most of the damage reads silently: nothing recorded what the rows
-    were), and `verify --repair`, which adds the checksums, ends with its report (0 or 1), never a
-    traceback. What it finds: the chunks whose index entry is inconsistent, and the task table's blocks
-    whose identities are not the spec's."""
+    node: no reader ends in a traceback, a reader refuses only the paragraph of a damaged store, and
+    `verify --repair`, which adds the checksums, ends with its report (0 or 1), never a traceback. What
+    a reader refuses, `verify` finds; and every block of the task table whose identities (read here)
+    are not the spec's (expanded here), `verify` finds and names. The rest mostly reads silently:
+    nothing recorded what the rows were (the counts are printed; what a store with block checksums
+    makes of the same damage, test_every_chunk_index_damaged asserts)."""
     old, _, group, clean = old_store
     keys = chunk_keys(Path(old).read_bytes())
     assert len(keys) >= 10
-    refused = silent = found = 0
+    refused = silent = found = identities = 0
     for off in keys:
-        got, verify = _trial(old, group, clean, tmp_path, off, int(np.log2(BLOCK)))
-        refused += any(code == 2 for code, _ in got.values())
+        got, verify, report = _trial(old, group, clean, tmp_path, off, int(np.log2(BLOCK)), report=True)
+        if any(code == 2 for code, _, _ in got.values()):
+            refused += 1
+            assert verify == 1, (off, report)
+        ids, want = _identities(tmp_path / "d.h5")
+        for col in want:
+            if ids[col] != want[col]:
+                identities += 1
+                assert verify == 1 and f"tasks/{col}" in report, (off, col, report)
         silent += bool(_silent(clean, got))
         found += verify == 1
         code, out, err = _cli("verify", tmp_path / "d.h5", "--repair", "--quiet")
         assert code in (0, 1) and "Traceback" not in err, (off, code, err)
         assert code == 1 or "PROTECTED: wrote" in out, (off, out)
-    print(f"0.2.7 store, chunk-index damage: {len(keys)} nodes, {refused} refused by a reader, {silent} silent, "
-          f"{found} found by verify, 0 tracebacks")
+    assert identities, "no damage reached the task table's identities: the check above checked nothing"
+    print(f"0.2.7 store, chunk-index damage: {len(keys)} nodes, {refused} refused by a reader, {identities} "
+          f"identity column(s) read from another place, all found by verify; {silent} silent, {found} found "
+          "by verify, 0 tracebacks")
 
 
 @pytest.mark.slow
@@ -250,7 +345,7 @@ def test_upgraded_store_chunk_index_damaged(old_store, tmp_path):
     for off in keys:
         got, verify = _trial(new, group, clean, tmp_path, off, int(np.log2(BLOCK)))
         assert not _silent(clean, got), (off, _silent(clean, got), got)
-        if any(code == 2 for code, _ in got.values()):
+        if any(code == 2 for code, _, _ in got.values()):
             refused += 1
             assert verify == 1, off
     print(f"upgraded 0.2.7 store, chunk-index damage: {len(keys)} nodes, {refused} refused by a reader, 0 silent")

@@ -1,6 +1,7 @@
 """Stores written before the block checksums (0.2.7 and older; docs/STORE.md, "Stores written before the
-block checksums"): the readers name them as unprotected, `campaign verify --repair` checks what can be
-checked and writes them anew with block checksums, keeping every value. The stores are 0.2.7's own
+block checksums"): every reader (status, reduce, export, plot, analyze and draw) names them as
+unprotected, a run resuming one says it adds no checksums (and adds none), `campaign verify --repair`
+checks what can be checked and writes them anew with block checksums, keeping every value. The stores are 0.2.7's own
 (tests/data/v027_stores.py, blocks of 4 rows); the chunk-index damage sweep over them is in
 tests/test_reader_damage.py.
 """
@@ -28,6 +29,16 @@ def _cli(*argv):
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         code = cli.main([str(a) for a in argv])
     return code, out.getvalue(), err.getvalue()
+
+
+def _note(command, path):
+    """The one line a reader prints about a store without block checksums."""
+    return (f"campaign {command}: note: {path} {NOTE}: damage to HDF5's chunk index would change what is read "
+            f"without an error. `campaign verify {path} --repair` checks what can be checked and adds them")
+
+
+def _notes(err):
+    return [line for line in err.splitlines() if NOTE in line]
 
 
 @pytest.fixture(params=["configs", pytest.param("plain", marks=pytest.mark.slow)])
@@ -72,10 +83,7 @@ def test_readers_name_it_and_the_command_that_protects_it(old, tmp_path):
     for argv in argvs:
         code, out, err = _cli(*argv)
         assert code == 0, err
-        lines = [line for line in err.splitlines() if NOTE in line]
-        assert lines == [f"campaign {argv[0]}: note: {old} {NOTE}: damage to HDF5's chunk index would change what "
-                         f"is read without an error. `campaign verify {old} --repair` checks what can be checked "
-                         "and adds them"], err
+        assert _notes(err) == [_note(argv[0], old)], err
     code, out, err = _cli("verify", old)
     assert code == 0 and "UNPROTECTED: no block checksums" in out and f"campaign verify {old} --repair" in out, out
     code, out, err = _cli("verify", old, "--repair")
@@ -85,6 +93,59 @@ def test_readers_name_it_and_the_command_that_protects_it(old, tmp_path):
         assert code == 0 and "block checksums" not in err, err
     code, out, err = _cli("verify", old)
     assert code == 0 and "UNPROTECTED" not in out and "block checksums added" in out and "OK: no damage" in out, out
+
+
+@pytest.fixture
+def configs(tmp_path):
+    """0.2.7's store that keeps configurations (and failed tasks: every task of seed 1), its spec, and
+    one of its configuration groups."""
+    for suffix in ("", ".journal"):
+        shutil.copy(DATA / f"v027-configs.h5{suffix}", tmp_path / f"s.h5{suffix}")
+    with h5py.File(tmp_path / "s.h5", "r") as f:
+        (tmp_path / "s.yaml").write_text(f.attrs["spec_yaml"])
+        group = "/configurations/" + sorted(f["configurations"])[0]
+    return tmp_path / "s.h5", tmp_path / "s.yaml", group
+
+
+def test_analyze_and_draw_name_it(configs, tmp_path):
+    """`analyze` and `draw` of one of its configurations say it in one line, as the other readers do;
+    nothing once `verify --repair` added the checksums."""
+    old, _, group = configs
+    argvs = [("analyze", old, "--group", group), ("draw", old, "--group", group, "--out", tmp_path / "d.png")]
+    for argv in argvs:
+        code, out, err = _cli(*argv)
+        assert code == 0, err
+        assert _notes(err) == [_note(argv[0], old)], err
+    assert _cli("verify", old, "--repair")[0] == 0
+    for argv in argvs:
+        code, out, err = _cli(*argv)
+        assert code == 0 and "block checksums" not in err, err
+
+
+@pytest.mark.slow  # every figure (25, about half a minute): tests/test_plots.py draws them in the quick suite
+def test_plot_names_it(configs, tmp_path):
+    old, _, _ = configs
+    code, out, err = _cli("plot", old, "--boot", 0, "--out", tmp_path / "fig", "--dpi", 20)
+    assert code == 0, err
+    assert _notes(err) == [_note("plot", old)], err
+
+
+def test_a_run_resuming_it_says_it_adds_no_checksums_and_adds_none(configs, monkeypatch):
+    """A run resuming it (its failed tasks run again) says so in one line and writes its rows as 0.2.7 did:
+    the store stays without block checksums, and `verify` finds it sound and unprotected."""
+    old, spec, _ = configs
+    monkeypatch.delenv("CAMPAIGN_NO_CHECKSUMS", raising=False)
+    code, out, err = _cli("run", spec, "--out", old, "--launcher", "inline", "--task-function", "synthetic",
+                          "--retry-failed", "--quiet")
+    assert code == 0, err
+    assert _notes(err) == [f"campaign: note: {old} {NOTE}: damage to HDF5's chunk index would change what is read "
+                           f"without an error. `campaign verify {old} --repair` checks what can be checked and adds "
+                           "them (this run adds none to it)"], err
+    with h5py.File(old, "r") as f:
+        assert (f["tasks/status"][:] == 1).all()
+        assert "checksums" not in f and "block_checksums" not in f.attrs, (list(f), dict(f.attrs))
+    code, out, err = _cli("verify", old)
+    assert code == 0 and "UNPROTECTED: no block checksums" in out and "OK: no damage" in out, out
 
 
 def test_repair_adds_the_checksums_and_keeps_every_value(old):

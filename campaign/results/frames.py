@@ -232,8 +232,12 @@ class Packings:
             n = out["radii"].shape[0]
             out["species"] = (np.asarray(got["species"]).astype(np.int64) if "species" in got
                               else np.zeros(n, np.int64))
-        except (KeyError, ValueError, IndexError) as exc:
-            raise UserError(f"{self.path}: could not read the configuration of task {task_id} ({exc})") from None
+        except (KeyError, ValueError, IndexError) as exc:  # the writer writes all four: the store is damaged
+            from campaign.errors import StoreDamaged
+            from campaign.storage.checksums import damaged_message
+
+            raise StoreDamaged(damaged_message(self.path, f"{name} (the configuration of task {task_id!r})",
+                                               f"is incomplete ({type(exc).__name__}: {exc})")) from None
         return out
 
     def read_all(self) -> dict:

@@ -15,6 +15,8 @@ The per-task work is a *task function* chosen by name in the run context:
   of ``STEPS x (1 + seed % 3)`` steps of ``SECONDS`` each (slept, one packing after the other, as
   the block's emulation runs them) that stops at a launch's step budget and goes on from its
   state (``SyntheticState``): the stop and go of ``campaign.run.gpuworker`` without the kernels.
+  Its scalar ``search_end`` is where the search ended, which depends on every bit of the state it
+  went on from.
 * ``"package.module:attribute"``: any object with ``run(payload, context)``
   and ``histogram_edges(context)`` (and optionally ``warm_up(context)``).
 
@@ -370,7 +372,10 @@ class SyntheticTask:
                     if isinstance(got, SyntheticState):
                         out.append(got)
                         continue
-                    launches = got
+                    launches, end = got
+                    scalars, hists, config = self.run(p, context)
+                    out.append(((dict(scalars, search_end=end), hists, config), float(len(payloads)), launches))
+                    continue
                 out.append((self.run(p, context), float(len(payloads)), launches))
             except Exception as exc:  # noqa: BLE001 - that task fails, the batch goes on
                 out.append(exc)
@@ -422,6 +427,11 @@ class SyntheticTask:
         if payload.get("start") is not None:
             # a ladder step: show which configuration it started from
             scalars["start_checksum"] = float(np.sum(payload["start"]["positions"]))
+        stepping = _synthetic_steps()
+        if stepping is not None and (payload.get("protocol") or {}).get("device") == "gpu":
+            # where its search ends when it runs in one go (a GPU worker's stop and go: start_batch)
+            start, stride = _synthetic_walk(payload)
+            scalars["search_end"] = _synthetic_end(start + stride * np.uint64(_synthetic_need(payload, stepping[1])))
         config = None
         if context.get("configurations") or payload.get("return_configuration"):
             pos = rng.random((N, 2))
@@ -478,45 +488,67 @@ def _synthetic_steps():
     return float(seconds), int(steps)
 
 
+def _synthetic_need(payload, steps):
+    """The steps of a task's synthetic search: ``steps`` times 1, 2 or 3 (by its seed)."""
+    return steps * (1 + int(payload["seed"]) % 3)
+
+
+def _synthetic_walk(payload):
+    """A synthetic search's walk: one uint64 word per coordinate of its N disks, from ``start``,
+    each step adding ``stride`` (mod 2^64; both the task's own). Multiples of 2^11 (53 significant
+    bits): a float64 position ``word / 2^64`` holds each exactly."""
+    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(list(payload["entropy"]) + [1])))
+    shape = (int(payload["N"]), 2)
+    start = rng.integers(0, 2**53, shape, dtype=np.uint64) << np.uint64(11)
+    stride = (rng.integers(0, 2**52, shape, dtype=np.uint64) * np.uint64(2) + np.uint64(1)) << np.uint64(11)
+    return start, stride
+
+
+def _synthetic_end(words) -> float:
+    """Where a synthetic search ended (its ``search_end``): the CRC-32 of its walk's last words."""
+    import zlib
+
+    return float(zlib.crc32(np.ascontiguousarray(words).tobytes()))
+
+
 def _synthetic_search(payload, state, budget, seconds, steps):
-    """Run a synthetic search (``CAMPAIGN_SYNTHETIC_STEPS``) on from ``state`` for at most
-    ``budget`` steps: its launches when it ends, else the ``SyntheticState`` it stopped in."""
-    need = steps * (1 + int(payload["seed"]) % 3)
-    done, launches = (0, 1) if state is None else (state.steps, state.launches + 1)
+    """Run a synthetic search (``CAMPAIGN_SYNTHETIC_STEPS``) on from ``state`` (its walk's words, None: the
+    task's start) for at most ``budget`` steps: ``(launches, search_end)`` when it ends, else the
+    ``SyntheticState`` it stopped in."""
+    need = _synthetic_need(payload, steps)
+    start, stride = _synthetic_walk(payload)
+    done, launches, words = (0, 1, start) if state is None else (state.steps, state.launches + 1, state.words)
     run = need - done if budget is None else min(need - done, int(budget))
     time.sleep(run * seconds)
+    words = words + stride * np.uint64(run)
     if done + run < need:
-        return SyntheticState(payload, done + run, launches, seconds)
-    return launches
+        return SyntheticState(payload, done + run, launches, seconds, words)
+    return launches, _synthetic_end(words)
 
 
 class SyntheticState:
-    """A synthetic search stopped at a step budget, shaped as ``kernels.gpu.batch.Suspended``:
-    its arrays (as large as a packing's of N disks) are a function of the task and the steps done,
-    so that a task that goes on from any other state fails instead of ending as it should."""
+    """A synthetic search stopped at a step budget, shaped as ``kernels.gpu.batch.Suspended``: its
+    walk's words as the positions of its N disks (arrays as large as a packing's) and its counters.
+    The search goes on from whatever words and steps its arrays hold, so that a task that goes on
+    from other bits than those it stopped with ends with another ``search_end`` than a search run
+    in one go."""
 
-    def __init__(self, payload, steps, launches, seconds):
+    def __init__(self, payload, steps, launches, seconds, words):
         self.payload, self.steps, self.launches, self.seconds = payload, int(steps), int(launches), seconds
+        self.words = words
         self.force_evaluations = self.steps
         self.device_clock = {"seconds": self.steps * seconds, "launches": self.launches}
 
-    @staticmethod
-    def _positions(payload, steps):
-        rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(list(payload["entropy"]) + [steps])))
-        return rng.random((int(payload["N"]), 2))
-
     def arrays(self):
-        pos = self._positions(self.payload, self.steps)
+        pos = self.words.astype(np.float64) * 2.0**-64  # exact: 53 significant bits
         return {"positions": pos, "velocities": pos.T * 0.5, "reference": pos.T.copy(),
                 "state": np.array([self.steps, self.launches, self.seconds], np.float64)}
 
     @classmethod
     def from_arrays(cls, arrays, payload):
         steps, launches, seconds = (float(x) for x in arrays["state"][:3])
-        got = cls(payload, int(steps), int(launches), seconds)
-        if not np.array_equal(np.asarray(arrays["positions"]), cls._positions(payload, int(steps))):
-            raise RuntimeError(f"synthetic task {payload['id']} resumed from a state that is not its own")
-        return got
+        words = (np.asarray(arrays["positions"], np.float64) * 2.0**64).astype(np.uint64)
+        return cls(payload, int(steps), int(launches), seconds, words)
 
 
 def resolve(name: str):

@@ -189,13 +189,13 @@ def make_block(jit, sync, slot_add, put_sum, put_max, total, now, exponent):
 
     ``search(t0, t1, nt, xy, fl, nbr, ninv, iv, cells, red, sh, prm, st)``,
 
-    and the phases it is made of (``forces``, ``move``, ``rebuild``, ``residual``, ``virial``)
-    and the ``control``. ``slot_add(cells, c)`` takes the next slot of cell ``c``
-    (``cells[0, c] += 1``, returning the old count); ``put_sum(red, k, t, v)`` and
-    ``put_max`` give thread ``t``'s partial of row ``k`` (called by every thread, in the same
-    order); ``total(t0, t1, nt, red, sh, out, nsum, nmax)`` completes the rows and thread 0
-    writes them to ``sh[out ...]``; ``now()`` the device's clock in ns (0 where the caller
-    keeps time)."""
+    and the phases it is made of (``forces``, ``move``, ``rebuild``, ``residual``, ``virial``),
+    the ``control`` and the ``pair`` energy and force they call, as compiled.
+    ``slot_add(cells, c)`` takes the next slot of cell ``c`` (``cells[0, c] += 1``, returning the
+    old count); ``put_sum(red, k, t, v)`` and ``put_max`` give thread ``t``'s partial of row ``k``
+    (called by every thread, in the same order); ``total(t0, t1, nt, red, sh, out, nsum, nmax)``
+    completes the rows and thread 0 writes them to ``sh[out ...]``; ``now()`` the device's clock
+    in ns (0 where the caller keeps time)."""
     pair = jit(pair_for(exponent))
     near = jit(near_image_py)
     fold = jit(fold_py)
@@ -654,4 +654,4 @@ def make_block(jit, sync, slot_add, put_sum, put_max, total, now, exponent):
                 st[k] = sh[k]
 
     return SimpleNamespace(search=search, forces=forces, move=move, rebuild=rebuild,
-                           residual=residual, virial=virial, control=control)
+                           residual=residual, virial=virial, control=control, pair=pair)
