@@ -119,17 +119,22 @@ def test_fixed_grid_specs_keep_their_hash():
 
 # --------------------------------------------------------------------------- the model
 
+def _uniform(spec_text, seeds, laws=None):
+    """A uniform campaign of ``seeds`` per cell on the known laws, reduced: (cells, table)."""
+    spec = parse_spec(spec_text)
+    tasks = expand(spec)
+    cells = M.campaign_cells(spec, tasks)
+    rows = np.flatnonzero(cells.tasks_of(np.full(cells.C, seeds)))
+    table = P.reduce_rows(cells, {"schema": "jamming-campaign/1"}, rows, np.ones(len(rows), np.int8),
+                          _draw(tasks, laws)(rows))
+    return cells, table
+
+
 def test_the_model_of_the_errors_matches_the_bootstrap():
     """On a uniform campaign of known laws, the Fisher model's error of every entry of the N_G -> inf
     row is the reducer's bootstrap error within 20% (the bootstrap's own scatter is ~5%); an intercept's
     with the reducer's sqrt(chi^2/dof) of its 1/N_G line, when above 1."""
-    spec = parse_spec(SPEC.replace("max_seeds: 40", "max_seeds: 60"))
-    tasks = expand(spec)
-    cells = M.campaign_cells(spec, tasks)
-    counts = np.full(cells.C, 60)
-    rows = np.flatnonzero(cells.tasks_of(counts))
-    table = P.reduce_rows(cells, {"schema": "jamming-campaign/1"}, rows, np.ones(len(rows), np.int8),
-                          _draw(tasks)(rows))
+    cells, table = _uniform(SPEC.replace("max_seeds: 40", "max_seeds: 60"), 60)
     n = np.zeros(cells.C)
     index = cells.index()
     g = table.grid
@@ -153,21 +158,15 @@ def test_the_model_of_the_errors_matches_the_bootstrap():
 def test_an_absent_law_is_out_of_reach_for_every_exponent():
     """No dependence of A_G on E_G (c_A = 0): the exponent has no amplitude to be measured by,
     whatever exponent the data allow, so the best case at any seed count misses a goal."""
-    spec = parse_spec(SPEC.replace("A_G_star_E: 1.5e-3, psi_O_star: 3.0e-3", "beta_E: 0.02"))
-    tasks = expand(spec)
-    cells = M.campaign_cells(spec, tasks)
-    counts = np.full(cells.C, 30)
-    rows = np.flatnonzero(cells.tasks_of(counts))
-    table = P.reduce_rows(cells, {"schema": "jamming-campaign/1"}, rows, np.ones(len(rows), np.int8),
-                          _draw(tasks, {"c_A": 0.0})(rows))
+    text = SPEC.replace("A_G_star_E: 1.5e-3, psi_O_star: 3.0e-3", "beta_E: 0.02")
+    cells, table = _uniform(text, 30, {"c_A": 0.0})
     law = M.build_law(table, cells, "default", "A_G", "E_G")
     t = A.Target("default", "beta_E", 0.02, np.nan, np.nan, law)
     now = np.full(cells.C, 30.0)
     huge = np.where(cells.relevant({"beta_E": 1}), 1e4, 30.0)
     assert not A.best_case(t, huge, now) <= 0.02 ** 2  # undetermined (inf) or above the goal
     # the laws as they are: the same seeds measure the exponent to better than the goal
-    table = P.reduce_rows(cells, {"schema": "jamming-campaign/1"}, rows, np.ones(len(rows), np.int8),
-                          _draw(tasks)(rows))
+    cells, table = _uniform(text, 30)
     t = A.Target("default", "beta_E", 0.02, np.nan, np.nan, M.build_law(table, cells, "default", "A_G", "E_G"))
     assert A.best_case(t, huge, now) < 0.02 ** 2
 
@@ -223,6 +222,7 @@ def test_a_decision_is_the_reduction_of_its_rounds(reference, tmp_path):
         assert row[t["key"]] == t["value"], t["key"]
 
 
+@pytest.mark.slow
 def test_the_same_store_from_two_local_workers(reference, tmp_path):
     out, _ = reference
     got = tmp_path / "two.h5"
@@ -337,6 +337,7 @@ def test_a_target_out_of_reach_ends_the_run(tmp_path):
     assert "beta_E cannot reach its goal 0.02" in r.stderr and "Traceback" not in r.stderr
 
 
+@pytest.mark.slow
 def test_the_budget_ends_the_run_and_says_what_the_targets_would_cost(tmp_path):
     spec = SPEC.replace("max_seeds: 40", "max_seeds: 40\n  budget: 0.01")
     out = tmp_path / "b.h5"

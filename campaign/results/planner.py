@@ -124,11 +124,12 @@ class Planner:
 
 # --------------------------------------------------------------------------- a campaign in memory
 
-def run_in_memory(cells: Cells, settings, draw, *, attrs=None, reducer=None, disk_seconds=1e-7, log=None):
+def run_in_memory(cells: Cells, settings, draw, *, attrs=None, reducer=None, disk_seconds=None, log=None):
     """A precision campaign's rounds without a store or workers: ``draw(rows) -> {scalar: values}``
     makes the packings of task rows (``cells.first[c] + seed``; a pure function of the row, as a
     packing is of its task). For the checks of docs/PRECISION.md (synthetic truths, many repeats).
     Returns ``(records, table)``: every decision's record and the reduction of every packing run."""
+    disk_seconds = seconds_per_disk_force_evaluation() if disk_seconds is None else disk_seconds
     T = cells.C * cells.seeds
     status = np.zeros(T, np.int8)
     data = {}
