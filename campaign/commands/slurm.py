@@ -92,7 +92,7 @@ def _precision_estimate(spec, tasks, results, cal, options):
     from campaign.results.errormodel import campaign_cells
     from campaign.results.planner import plan_from_prior
     from campaign.run.slurm import job_work
-    from campaign.storage.checksums import ROUNDS_GROUP, read_rounds
+    from campaign.storage.checksums import read_rounds
 
     cells = campaign_cells(spec, tasks)
     status, last = None, None
@@ -103,22 +103,20 @@ def _precision_estimate(spec, tasks, results, cal, options):
             with h5py.File(results, "r", locking=False) as f:
                 if f.attrs.get("spec_hash") == spec.hash:
                     status = f["tasks/status"][:]
-                    if ROUNDS_GROUP in f:
-                        got, _ = read_rounds(f[ROUNDS_GROUP])
-                        last = got[max(got)] if got else None
+                    got, _ = read_rounds(f)
+                    last = got[max(got)] if got else None
         except (OSError, KeyError, ValueError):
             status, last = None, None
     if last is not None:
         given = cells.tasks_of(last["early"])
         left = [t for t in tasks if given[t.index] and status[t.index] == 0]
-        extra = (last.get("to_targets_core_hours") or 0.0) * 3600.0 if last["action"] in ("pilot", "continue") else 0.0
-        if last["action"] == "pilot":
-            got = plan_from_prior(spec, tasks, seconds=lambda N, E, proto, alpha: cal.seconds(N, E, proto, alpha))
-            extra = got.get("plan_seconds", 0.0) if got.get("ok") and got.get("reachable") else 0.0
     else:
         left = [t for t in tasks if t.seed < spec.precision.pilot]
-        got = plan_from_prior(spec, tasks, seconds=lambda N, E, proto, alpha: cal.seconds(N, E, proto, alpha))
+    if last is None or last["action"] == "pilot":  # before the first decision: the prior's plan
+        got = plan_from_prior(spec, tasks)  # priced by the calibration in force: cal
         extra = got.get("plan_seconds", 0.0) if got.get("ok") and got.get("reachable") else 0.0
+    else:
+        extra = (last.get("to_targets_core_hours") or 0.0) * 3600.0 if last["action"] == "continue" else 0.0
     if not left and extra <= 0:
         return None, 0
     work = job_work(left or [t for t in tasks if t.seed == 0], cal, options)

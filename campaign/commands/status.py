@@ -129,12 +129,13 @@ def _scan(path):
 
 def _scan_open(f, np, DONE, FAILED, PENDING):
     from campaign.results.reading import given_rows
+    from campaign.storage.checksums import read_rounds
 
     t = f["tasks"]
     status_all = t["status"][:]
     T = len(status_all)
     given = given_rows(f, T)  # a precision campaign: the seeds its rounds gave out (else every row)
-    rounds = _rounds(f)
+    rounds = read_rounds(f)[0]
     wall_seconds = 0.0
     n_done = int(np.count_nonzero(status_all == DONE))
     stride = max(1, -(-n_done // FIT_ROWS))
@@ -213,15 +214,6 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
     return {"attrs": {k: f.attrs[k] for k in f.attrs}, "cells": cells, "totals": totals,
             "failures": failures, "sample": sample, "status": status_all, "devices": devices or {},
             "busy": busy.result(), "suspended": _suspended(f, status_all, np, PENDING), "rounds": rounds}
-
-
-def _rounds(f):
-    """A precision campaign's decisions (``{round: record}``; empty for a fixed grid)."""
-    from campaign.storage.checksums import ROUNDS_GROUP, read_rounds
-
-    if ROUNDS_GROUP not in f:
-        return {}
-    return read_rounds(f[ROUNDS_GROUP])[0]
 
 
 def precision_lines(rounds, totals) -> list:

@@ -118,7 +118,7 @@ def _precision_cost(spec, tasks, cal, est, longest):
     if done is not None:
         out.append(f"  {spec.output}: {done}")
         return out
-    got = plan_from_prior(spec, tasks, seconds=lambda N, E, proto, alpha: cal.seconds(N, E, proto, alpha))
+    got = plan_from_prior(spec, tasks)  # priced by the calibration in force: cal
     if not got["ok"]:
         out.append(f"  reaching the targets: needs the pilot ({got['why']}); run it with `campaign run {spec.source}`: "
                    "its first decision says what the rest costs (campaign status)")
@@ -149,12 +149,12 @@ def _last_decision(spec):
     try:
         import h5py
 
-        from campaign.storage.checksums import ROUNDS_GROUP, read_rounds
+        from campaign.storage.checksums import read_rounds
 
         with h5py.File(spec.output, "r", locking=False) as f:
-            if f.attrs.get("spec_hash") != spec.hash or ROUNDS_GROUP not in f:
+            if f.attrs.get("spec_hash") != spec.hash:
                 return None
-            got, _ = read_rounds(f[ROUNDS_GROUP])
+            got, _ = read_rounds(f)
     except (OSError, KeyError, ValueError):
         return None
     if not got:

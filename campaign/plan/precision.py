@@ -14,7 +14,6 @@ checked against them before anything runs; ``campaign.results.scaling`` uses the
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -183,16 +182,8 @@ def producible(key, N, variants) -> list:
     return out
 
 
-def seeds_per_cell(spec) -> int:
-    return spec.precision.max_seeds if spec.precision is not None else len(spec.seeds)
-
-
 def describe(p: Precision) -> str:
     parts = [f"{k} {v:g}" for k, v in p.targets]
     extra = f", budget {p.budget:g} core-hours" if p.budget is not None else ""
     return (f"targets {', '.join(parts)} (standard errors of the N_G -> inf row); pilot {p.pilot} seeds per cell, "
             f"at most {p.max_seeds}{extra}")
-
-
-def finite(x) -> bool:
-    return x is not None and math.isfinite(x)

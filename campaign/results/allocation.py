@@ -64,8 +64,6 @@ MIN_FIT_PACKINGS = 8
 #: few packings per cell, and a design it finds optimal (often a few cells) is taken a step at a
 #: time, re-estimated before it is trusted with more
 CELL_GROWTH = 4
-#: an undetermined target (no value from the reducer) is planned to this share of its goal
-UNDETERMINED_GOAL = 0.5
 #: a target with a value is planned to this share of its goal. Aiming below it costs that much more every
 #: time; aiming at it falls short about half the time, by a little, which a small last round makes up
 AIM = 1.0
@@ -433,7 +431,6 @@ class _Plan:
     n_met: int               # steps up to the point every target is projected met (len(steps) if never)
     cost_to_met: float
     final_variance: list
-    first_step_cost: float
     targets: list
     cells_cost: np.ndarray
     n0: np.ndarray
@@ -528,8 +525,7 @@ def plan_greedy(targets, cells, n_now, given, frac, cost, relevant, m, states, c
     if n_met is None:
         n_met = len(steps)
     final = [var.get(id(t), np.nan) if t.law.ok else np.nan for t in targets]
-    first = costs[0] if costs else 0.0
-    return _Plan(steps, np.array(costs), n_met, cost_to_met, final, first, targets, cost, n_now, frac, given)
+    return _Plan(steps, np.array(costs), n_met, cost_to_met, final, targets, cost, n_now, frac, given)
 
 
 def _errors_text(targets) -> str:

@@ -198,17 +198,16 @@ def _prior_cell(prior, N, E):
     return mean, np.array(near["cov"]) * near["N"] / N
 
 
-def plan_from_prior(spec, tasks, prior=None, seconds=None) -> dict:
+def plan_from_prior(spec, tasks, prior=None) -> dict:
     """What reaching a precision spec's targets would cost, planned before its pilot from the prior
     (``load_prior``): the model of the errors built on the prior's cells as if the pilot had run with
     their means and spreads, and the greedy plan from the pilot to the targets, priced per packing by
-    ``seconds(N, E, protocol, exponent)`` (the calibrated cost model). ``{"ok": False, "why": ...}``
+    the calibrated cost model in force (``campaign.plan.tasks.cost``). ``{"ok": False, "why": ...}``
     where the prior does not hold the campaign's system or energies; else the pilot's cost, the
     plan's, the errors projected, and what a uniform campaign would need for the same errors."""
     from campaign.plan import tasks as plan_tasks
 
     prior = load_prior() if prior is None else prior
-    seconds = seconds or (lambda N, E, proto, alpha: plan_tasks.cost(N, E, proto, alpha))
     settings = spec.precision.settings()
     cells = campaign_cells(spec, tasks)
     names = list(prior["names"])
@@ -226,8 +225,8 @@ def plan_from_prior(spec, tasks, prior=None, seconds=None) -> dict:
     pilot_n = int(settings["pilot"])
     m = int(settings["max_seeds"])
     relevant = cells.relevant(settings["target"])
-    cost = np.array([seconds(int(cells.N[c]), float(cells.E[c]), dict(tasks[cells.first[c]].protocol),
-                             float(cells.exponent[c])) for c in range(cells.C)])
+    cost = np.array([plan_tasks.cost(int(cells.N[c]), float(cells.E[c]), dict(tasks[cells.first[c]].protocol),
+                                     float(cells.exponent[c])) for c in range(cells.C)])
     n0 = np.full(cells.C, float(pilot_n))
     targets, laws = [], {}
     for v in sorted(set(cells.variant), key=cells.variant.index):

@@ -155,11 +155,9 @@ def given_rows(f, T):
     """Which rows of a store are tasks of its campaign: all of them, except in a campaign with precision
     targets, whose rounds give out seeds 0 .. n - 1 of each cell (the last decision's ``early``
     counts; its task table holds every seed up to ``max_seeds``, in cells of equal length)."""
-    from campaign.storage.checksums import ROUNDS_GROUP, read_rounds
+    from campaign.storage.checksums import read_rounds
 
-    if ROUNDS_GROUP not in f:
-        return np.ones(T, bool)
-    got, _ = read_rounds(f[ROUNDS_GROUP])
+    got, _ = read_rounds(f)
     if not got:
         return np.ones(T, bool)
     counts = np.asarray(got[max(got)]["early"], np.int64)

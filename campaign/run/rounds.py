@@ -44,6 +44,7 @@ class Rounds:
         if not self.records:
             self._keep(planner.pilot())
         self._masks()
+        self.queued = np.zeros(self.T, bool)  # the tasks handed to the master (``allowed``, ``_hand``)
         self._thread = self._result = None
 
     # ---- the decisions kept
@@ -122,8 +123,6 @@ class Rounds:
     def advance(self) -> list:
         """Make the next decisions (here, waiting for them) while every task of the rounds decided is
         finished; the tasks they give out (with the early seeds not handed out yet), as indices."""
-        if not hasattr(self, "queued"):
-            self.queued = np.zeros(self.T, bool)
         while self._due():
             k, given, through, last = self._inputs()
             self._keep(self.planner.decide(k, self.store, given, through, self.settings, last))

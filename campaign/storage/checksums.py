@@ -227,12 +227,16 @@ def write_round(group, k: int, text: str):
     return ds
 
 
-def read_rounds(group) -> tuple[dict, list]:
-    """The decisions a ``precision`` group holds, ``({round: record}, [problems])``: a record that
-    cannot be read, is not JSON or fails its checksum is left out and named (its round is decided
-    again from the packings, which decide it the same way)."""
+def read_rounds(f) -> tuple[dict, list]:
+    """The decisions a store (an open HDF5 file) holds in its ``precision`` group, ``({round: record},
+    [problems])``; none in a store without the group (a fixed grid). A record that cannot be read, is
+    not JSON or fails its checksum is left out and named (its round is decided again from the
+    packings, which decide it the same way)."""
     out, problems = {}, []
     try:
+        if ROUNDS_GROUP not in f:
+            return out, problems
+        group = f[ROUNDS_GROUP]
         names = sorted(group.keys())
     except Exception as exc:  # noqa: BLE001 - a damaged index: every decision is made again
         return {}, [f"its index cannot be read ({reason(exc)})"]

@@ -160,12 +160,7 @@ def _salvage_into(f, old_path, tasks, edges, B, state, drop=(), renames=None, ch
 def _carry_rounds(f, old):
     """A precision campaign's round decisions that read and match their checksum (the others are
     made again from the packings by the next run)."""
-    try:
-        if ROUNDS_GROUP not in old:
-            return
-        got, _ = read_rounds(old[ROUNDS_GROUP])
-    except (OSError, KeyError, ValueError, RuntimeError):
-        return
+    got, _ = read_rounds(old)
     if got:
         g = f.require_group(ROUNDS_GROUP)
         for k, record in sorted(got.items()):

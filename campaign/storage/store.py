@@ -217,8 +217,8 @@ class Store:
             self.have_checkpoints = set()
         self.have_failures = set(self.f["failures"].keys()) if "failures" in self.f else set()
         self._rerun_unrecorded_failures()
-        if ROUNDS_GROUP in self.f:  # a precision campaign's decisions so far
-            self.rounds_stored, problems = read_rounds(self.f[ROUNDS_GROUP])
+        if ROUNDS_GROUP in self.f:  # a precision campaign's decisions so far (a fixed grid has none)
+            self.rounds_stored, problems = read_rounds(self.f)
             if problems:
                 self.log(f"campaign: {self.path}: {len(problems)} round decision(s) cannot be used ("
                          + "; ".join(problems[:3]) + "); they are made again from the packings")
