@@ -6,6 +6,7 @@ against the truth:
     A_G   = A_inf + a_N / N + c_A E_G**beta_A (1 + k_A E_G**omega_A) + noise(sigma_A / sqrt(N))
     psi_O = P_inf + p_N / N + c_P E_G**beta_P + noise(sigma_P / sqrt(N))
     delta_Z = c_Z E_G**(1/(2 alpha)) (1 + noise)     (alpha = 2 by default: E_G**(1/4))
+    phi     = phi_inf + phi_N / N + c_phi E_G**(1/alpha) + noise(sigma_phi / sqrt(N));  N_R ~ Bin(N, f_R)
 
 so ``A_G - A* = B delta_Z**beta_Z`` with ``beta_Z = 2 alpha beta_A`` (``Truth.jamming``);
 ``k_A`` (0 by default) adds a correction to scaling of exponent ``omega_A``.
@@ -64,6 +65,13 @@ class Truth:
     # s = 1 - exp(-(N c_Z E^z_power / plateau)^2), and A_G - A*, psi_O - P* follow delta_Z (their
     # laws in delta_Z hold at every size, as measured), so below N_G delta_Z ~ plateau both saturate
     plateau: float = 0.0
+    # the jamming point: phi = phi_inf + phi_N / N + c_phi E_G**(1/alpha) + noise(sigma_phi / sqrt(N))
+    # (linear in the typical overlap); N_R ~ Binomial(N, f_R)
+    phi_inf: float = 0.84
+    phi_N: float = 0.0
+    c_phi: float = 0.5
+    sigma_phi: float = 0.0
+    f_R: float = 0.04
 
     @classmethod
     def jamming(cls, alpha, beta_Z, **kw):
@@ -205,7 +213,14 @@ def scalars_for(c: SyntheticCampaign, variant, N, E, rng):
         psi[m] = (t.P_star(n) + t.c_P * e**t.beta_P * sup ** (t.beta_P / t.z_power)
                   + noise_P[m] * t.sigma_P / np.sqrt(n))
         dZ[m] = np.where(e < t.iso_E, 0.0, t.c_Z * e**t.z_power * sup * (1 + t.sigma_Z * noise_Z[m]))
-    N_R = rng.binomial(N.astype(np.int64), 0.04)
+    N_R = rng.binomial(N.astype(np.int64), [c.truth_of(v).f_R for v in variant])
+    phi = np.empty(T)
+    for v in dict.fromkeys(variant):
+        m = variant == v
+        t = c.truth_of(v)
+        phi[m] = t.phi_inf + t.phi_N / N[m] + t.c_phi * E_G[m] ** (1.0 / t.alpha)
+        if t.sigma_phi > 0:  # drawn last: the other scalars stay as they were without it
+            phi[m] += rng.normal(0, 1, int(m.sum())) * t.sigma_phi / np.sqrt(N[m])
     N_G = N - N_R
     z_iso = 4.0 - 2.0 / N_G
     z = z_iso + dZ
@@ -214,7 +229,7 @@ def scalars_for(c: SyntheticCampaign, variant, N, E, rng):
     N_F = 2 * N_G - N_V
     return {
         "N": N, "N_G": N_G, "N_R": N_R.astype(float), "E_G": E_G,
-        "phi": 0.84 + 0.5 * np.sqrt(E_G), "pressure": np.sqrt(E_G), "A_G": A_G, "A_V": 1.0 - A_G,
+        "phi": phi, "pressure": np.sqrt(E_G), "A_G": A_G, "A_V": 1.0 - A_G,
         "N_C": N_C, "N_V": N_V, "N_F": N_F, "z_g_mean": z, "z_iso": z_iso, "delta_Z": dZ,
         "psi_O": psi, "psi_DO": N_F / N_V, "identities_ok": np.ones(T),
         "jam_status": np.zeros(T), "force_residual": 1e-7 * rng.random(T), "iterations": rng.integers(5, 40, T).astype(float),

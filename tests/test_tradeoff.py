@@ -162,4 +162,4 @@ def test_reduce_and_plot_a_campaign_with_variants(tmp_path, capsys, monkeypatch)
     red = reduce_campaign([tmp_path / "s.h5"], Settings(n_boot=0), distributions=False)
     monkeypatch.setattr(plots, "FIGURES", {})  # only the campaign-wide figure
     written = plots.make_figures(red, tmp_path / "fig")
-    assert [p.name for p in written] == ["pareto.png"] and written[0].stat().st_size > 10_000
+    assert [p.name for p in written] == ["pareto.png", "protocols.png"] and written[0].stat().st_size > 10_000

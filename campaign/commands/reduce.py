@@ -113,6 +113,11 @@ def main(args) -> int:
               "same packings; deviations: mean paired difference; bias in units of the reference's "
               "packing-to-packing spread)\n", file=text)
         print(tradeoff.table_markdown(red.variants), file=text)
+    if red.protocols.get("pairs"):
+        from campaign.results import protocols
+
+        print("\n" + protocols.markdown(red.jamming, red.protocols["jamming"], red.protocols).split("\n", 2)[2],
+              file=text)
     for n in red.notes:
         print(n, file=sys.stderr)
     if args.in_place:

@@ -319,6 +319,32 @@ def bootstrap_cell_means(groups, n_boot, seed=0, chunk=256):
     return out
 
 
+def bootstrap_seed_means(groups, seeds, n_boot, seed=0):
+    """Resample whole seeds and return the replicas' cell means, (n_boot, K, q): each replica draws
+    the size's seeds with replacement and every cell takes the packings of the seeds drawn, so a
+    seed's packings at every energy go together. For packings that share a history along a seed (an
+    energy ladder), where resampling within cells (``bootstrap_cell_means``) would count correlated
+    cells as independent. ``seeds``: per group, the (n_k,) seed of each packing. A replica that
+    draws none of a cell's seeds (a cell missing packings of most seeds) takes the cell's mean."""
+    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed)))
+    every = np.unique(np.concatenate([np.asarray(x) for x in seeds])) if len(seeds) else np.zeros(0)
+    S = len(every)
+    W = rng.multinomial(S, np.full(S, 1.0 / S), size=n_boot).astype(float) if S else np.zeros((n_boot, 0))
+    K = len(groups)
+    q = groups[0].shape[1] if K else 0
+    out = np.empty((n_boot, K, q))
+    for k, (g, sd) in enumerate(zip(groups, seeds)):
+        g = np.asarray(g, float)
+        M = np.zeros((S, len(g)))
+        M[np.searchsorted(every, sd), np.arange(len(g))] = 1.0
+        w = W @ M                                   # (n_boot, n_k): how often each packing is drawn
+        tot = w.sum(1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[:, k] = (w @ g) / tot[:, None]
+        out[tot == 0, k] = g.mean(0)
+    return out
+
+
 # --------------------------------------------------------------------------- linear fits
 def weighted_linear_fit(X, y, yerr):
     """Weighted least squares ``y = X @ p``. Returns p, cov (absolute sigma), chi2, dof."""

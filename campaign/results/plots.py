@@ -483,6 +483,46 @@ def fig_pareto(red, plt):
     return fig
 
 
+def fig_protocols(red, plt):
+    """(a) A_G against Delta Z per protocol: the cells' means at the largest size every variant has,
+    with their standard errors; (b) each variant's difference from the reference in its errors (z),
+    per N_G -> inf quantity, filled where it is significant at the family-wise rate (Holm)."""
+    from campaign.results.protocols import LABELS, QUANTITIES
+
+    prot = red.protocols
+    variants = [r["variant"] for r in prot["values"]]
+    cols = dict(zip(variants, _colors(len(variants), "tab10")))
+    c = red.cells
+    N = min(max(int(n) for n in c["N"][c["variant"] == v]) for v in variants)
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10.0, 4.0))
+    for k, v in enumerate(variants):
+        i = np.flatnonzero((c["variant"] == v) & (c["N"] == N) & (c["n_packings"] > 0))
+        x, y = c["mean_delta_Z"][i], c["mean_A_G"][i]
+        ok = np.isfinite(x) & np.isfinite(y) & (x > 0)
+        a1.errorbar(x[ok], y[ok], xerr=c["sem_delta_Z"][i][ok], yerr=c["sem_A_G"][i][ok], fmt=_MARKERS[k % 9] + "-",
+                    ms=3, lw=0.7, capsize=1.5, color=cols[v], label=v)
+    a1.set_xscale("log")
+    a1.set_xlabel(r"$\Delta Z$ (cell mean)")
+    a1.set_ylabel(r"$A_G$ (cell mean)")
+    a1.set_title(f"N_G = {N}", fontsize=9)
+    a1.legend(fontsize=7)
+    others = [v for v in variants if v != prot["reference"]]
+    for k, v in enumerate(others):
+        ps = [p for p in prot["pairs"] if p["variant"] == v]
+        ys = np.arange(len(ps)) + (k - (len(others) - 1) / 2) * 0.12
+        z = np.array([p["z"] for p in ps])
+        sig = np.array([p["significant"] for p in ps])
+        a2.scatter(z[~sig], ys[~sig], facecolors="none", edgecolors=cols[v], marker=_MARKERS[(k + 1) % 9], s=22)
+        a2.scatter(z[sig], ys[sig], color=cols[v], marker=_MARKERS[(k + 1) % 9], s=22, label=v)
+    a2.axvline(0, color="0.5", lw=0.7)
+    a2.set_yticks(np.arange(len(QUANTITIES)))
+    a2.set_yticklabels([LABELS[q] for q in QUANTITIES], fontsize=8)
+    a2.invert_yaxis()
+    a2.set_xlabel(f"(variant - {prot['reference']}) / error   (filled: significant, Holm)")
+    a2.set_xscale("symlog", linthresh=3)
+    return fig
+
+
 # --------------------------------------------------------------------------- systems
 _MARKERS = ("o", "s", "^", "D", "v", "P", "X", "<", ">")
 
@@ -813,6 +853,12 @@ def make_figures(red, out_dir, *, dpi=90):
     if red.variants:
         fig = fig_pareto(red, plt)
         p = out / "pareto.png"
+        fig.savefig(p, dpi=dpi)
+        plt.close(fig)
+        written.append(p)
+    if red.protocols.get("pairs"):
+        fig = fig_protocols(red, plt)
+        p = out / "protocols.png"
         fig.savefig(p, dpi=dpi)
         plt.close(fig)
         written.append(p)

@@ -321,6 +321,19 @@ def variant_systems(attrs, variants=()) -> dict:
     return out
 
 
+def ladder_variants(attrs) -> set:
+    """The variants of the stored spec whose packings of one seed share a history (``start:
+    ladder``: each energy from the seed's packing one energy up); empty for a spec this version
+    cannot read."""
+    from campaign.plan.spec import parse_spec
+
+    try:
+        spec = parse_spec(str(attrs.get("spec_yaml", "")), "the stored spec")
+    except UserError:
+        return set()
+    return {v.name for v in spec.variants if dict(v.protocol).get("start") == "ladder"}
+
+
 def _describe_system(system) -> dict:
     radii = () if system.sizes is not None else tuple(sorted({s.radius for s in system.species}, reverse=True))
     return {"exponent": float(system.exponent), "sizes": system.sizes_label(), "box": tuple(system.box),

@@ -29,7 +29,7 @@ from campaign.errors import UserError
 from campaign.results import fits
 from campaign.results.cells import area_distributions, cell_table, count_notes, grid, histograms
 from campaign.results.finitesize import extrapolate
-from campaign.results.reading import load_finished, variant_systems
+from campaign.results.reading import ladder_variants, load_finished, variant_systems
 from campaign.results.scaling import (DEFAULT_FIT_OVERLAP, fit_rule_name, fit_rule_text, is_default_range,
                                       scaling_fits)
 
@@ -87,6 +87,9 @@ class Reduction:
     variants: list = field(default_factory=list)  # campaign.results.tradeoff records, one per variant
     systems: list = field(default_factory=list)   # campaign.results.systems records, with two systems or more
     response: dict = field(default_factory=dict)  # campaign.results.response: {"cells", "fits"} records
+    jamming: list = field(default_factory=list)   # campaign.results.protocols: phi_J, N_R/N per (variant, N)
+    protocols: dict = field(default_factory=dict)  # campaign.results.protocols.compare: N_G -> inf jamming
+    #                                                 point per variant ("jamming") and the variants compared
 
     def fit_rule(self) -> dict:
         """Which cells the scaling fits use: the range's name and sentence, whether it is the
@@ -112,6 +115,7 @@ class Reduction:
         return clean({"fit_rule": self.fit_rule(), "rows": self.rows, "extrapolated": self.extrapolated,
                       "variants": self.variants, "systems": self.systems,
                       **({"response": self.response} if self.response else {}),
+                      "jamming": self.jamming, "protocols": self.protocols,
                       "status": {k: self.meta[k] for k in ("done", "pending", "failed", "total")},
                       "notes": self.notes})
 
@@ -158,7 +162,8 @@ def reduce_table(everything, s: Settings, per_size=True) -> Table:
     notes = count_notes(fin, g, reasons)
     vsys = variant_systems(fin.attrs, variants=g.cv)
     fit_records, residuals, rows, shared_in = scaling_fits(fin, g, s, cells, notes,
-                                                           {v: d["exponent"] for v, d in vsys.items()}, per_size)
+                                                           {v: d["exponent"] for v, d in vsys.items()}, per_size,
+                                                           chains=ladder_variants(fin.attrs))
     shared_fits = {}
     extrapolated = extrapolate(rows, shared_in, notes, shared_fits)
     return Table(everything=everything, good=good, reasons=reasons, fin=fin, grid=g, cells=cells, notes=notes,
@@ -200,6 +205,12 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
 
     resp = (respmod.reduce_response(fin, g, s, dists, {v: d["exponent"] for v, d in vsys.items()}, notes)
             if respmod.present(fin) else {})
+    from campaign.results import protocols as protmod
+
+    jam_rows, jam = protmod.jamming_point(fin, g, s, {v: d["exponent"] for v, d in vsys.items()})
+    same_sys = [v for v in sorted(set(g.cv), key=list(g.cv).index) if ref_sys is None or vsys.get(v) == ref_sys]
+    prot = protmod.compare(extrapolated, jam, s.reference, same_sys, fin=everything, usable=good)
+    prot["jamming"] = jam
     for rec in variants + systems:  # their exponents and A_G* come from the scaling fits
         rec["fit_rule"] = fit_rule_name(s)
     meta = {"sources": fin.paths, "done": int(len(fin)), "excluded": int(g.n_excluded.sum()),
@@ -216,4 +227,5 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                      area_hist=area_hist, fits=fit_records, residuals=residuals,
                      width_scaling=width, rows=rows, extrapolated=extrapolated,
                      peaks={v: three_disk_peaks(vsys[v]) for v in sorted(set(g.cv))},
-                     notes=notes, meta=meta, variants=variants, systems=systems, response=resp)
+                     notes=notes, meta=meta, variants=variants, systems=systems, response=resp,
+                     jamming=jam_rows, protocols=prot)

@@ -55,7 +55,7 @@ def _min_positive(x):
     return float(x.min()) if len(x) else np.nan
 
 
-def scaling_fits(fin, g: Grid, s, cells, notes, exponents=None, per_size=True):
+def scaling_fits(fin, g: Grid, s, cells, notes, exponents=None, per_size=True, chains=()):
     """The power-law fits of A_G and Psi_O against E_G and Delta Z per (variant, N), with
     bootstrap errors; returns (fit records, normalised residuals per cell, table rows, the
     inputs of the shared-exponent fits of ``campaign.results.finitesize``: (variant, quantity,
@@ -105,8 +105,12 @@ def scaling_fits(fin, g: Grid, s, cells, notes, exponents=None, per_size=True):
         boot = None
         if have and len(usable) >= 3 and s.n_boot > 1:
             data = [np.column_stack([fin.scalars[c][g.packings(i)] for c in cols]) for i in usable]
-            data = [d[np.all(np.isfinite(d), axis=1)] for d in data]
-            if all(len(d) >= 2 for d in data):
+            keep = [np.all(np.isfinite(d), axis=1) for d in data]
+            data = [d[k] for d, k in zip(data, keep)]
+            if all(len(d) >= 2 for d in data) and v in chains:
+                seeds = [fin.seed[g.packings(i)][k] for i, k in zip(usable, keep)]
+                boot = fits.bootstrap_seed_means(data, seeds, s.n_boot, seed=[s.boot_seed, gi])
+            elif all(len(d) >= 2 for d in data):
                 boot = fits.bootstrap_cell_means(data, s.n_boot, seed=[s.boot_seed, gi])
         not_determined = []
         for quantity, absc, key, bkey in FITS:

@@ -218,6 +218,13 @@ def write_reduced(red: Reduction, h5path, *, mode="w"):
             _write_columns(g.create_group("variants"), red.variants)
         if red.systems:
             _write_columns(g.create_group("systems"), red.systems)
+        if red.jamming:
+            _write_columns(g.create_group("jamming"), red.jamming)
+        if red.protocols.get("pairs"):
+            pg = g.create_group("protocols")
+            pg.attrs.update(reference=red.protocols["reference"], alpha=red.protocols["alpha"])
+            for key in ("values", "pairs", "homogeneity"):
+                _write_columns(pg.create_group(key), red.protocols[key])
         if red.response:
             rg = g.create_group("response")
             for key in ("cells", "fits", "exponents"):
@@ -234,12 +241,20 @@ def write_outputs(red: Reduction, out_dir, *, write_h5=True):
         "cells.csv": records_csv(cells_records(red)), "fits.csv": records_csv(red.fits),
         "width_scaling.csv": records_csv(red.width_scaling),
         "variants.csv": records_csv(red.variants),
+        "jamming.csv": records_csv(red.jamming),
         "summary.json": json.dumps(red.to_json(), indent=1) + "\n",
     }
     if red.response:
         files["response_cells.csv"] = records_csv(red.response.get("cells", []))
         files["response_fits.csv"] = records_csv(red.response.get("fits", []))
         files["response_exponents.csv"] = records_csv(red.response.get("exponents", []))
+    if red.jamming:
+        from campaign.results import protocols
+
+        files["protocols.md"] = protocols.markdown(red.jamming, red.protocols.get("jamming", {}), red.protocols)
+    if red.protocols.get("pairs"):
+        files["protocols.csv"] = records_csv(red.protocols["pairs"])
+        files["protocol_tests.csv"] = records_csv(red.protocols["homogeneity"])
     if red.systems:
         from campaign.results import systems
 

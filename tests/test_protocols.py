@@ -1,0 +1,300 @@
+"""The jamming point (phi_J, the rattler fraction) per variant and the protocols compared
+(campaign.results.protocols, docs/PROTOCOLS.md): against synthetic truths, a slow reference of
+Holm's procedure, the bootstrap's errors against the spread of repeated experiments, and the
+family-wise error rate of the tests under the null."""
+
+from __future__ import annotations
+
+import math
+
+import h5py
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from synthetic_store import SyntheticCampaign, Truth, write_store
+
+from campaign import cli
+from campaign.plan.precision import typical_overlap
+from campaign.results import protocols as P
+from campaign.results import reduce as R
+
+FAST = R.Settings(n_boot=200)
+N_SIZES = (64, 128, 256, 512)
+# three protocols of one system: the reference, one whose jamming point moves (phi_J, the rattlers;
+# A_G* too: the synthetic store shifts A_G by 0.01 per variant), one that differs only in A_G
+TRUTHS = {"default": Truth(sigma_phi=0.02, phi_N=-0.3),
+          "dilute": Truth(sigma_phi=0.02, phi_N=-0.3, phi_inf=0.836, f_R=0.03),
+          "same-jamming": Truth(sigma_phi=0.02, phi_N=-0.3)}
+
+
+@pytest.fixture(scope="module")
+def three(tmp_path_factory):
+    path = tmp_path_factory.mktemp("prot") / "p.h5"
+    camp = SyntheticCampaign(N=N_SIZES, seeds=16, variants=tuple(TRUTHS), truth=TRUTHS["default"],
+                             variant_truth=TRUTHS, histograms=("z_g",))
+    write_store(path, camp)
+    return path, camp, R.reduce_campaign(path, FAST, distributions=False)
+
+
+def test_the_jamming_point_is_the_truth_at_every_size_and_at_infinity(three):
+    _, camp, red = three
+    pulls = []
+    for r in red.jamming:
+        t = TRUTHS[r["variant"]]
+        assert r["n_cells"] == 5 and r["n_packings"] == 5 * camp.seeds  # the fit range: E_G <= 5e-7
+        pulls.append((r["phi_J"] - (t.phi_inf + t.phi_N / r["N_G"])) / r["phi_J_err"])
+        pulls.append((r["rattler_fraction"] - t.f_R) / r["rattler_fraction_err"])
+    assert np.all(np.abs(pulls) < 4.5) and 0.5 < np.std(pulls) < 1.6
+    for v, x in red.protocols["jamming"].items():
+        t = TRUTHS[v]
+        assert abs(x["phi_J"] - t.phi_inf) < 4 * x["phi_J_err"] and x["phi_J_err"] < 2e-3
+        assert abs(x["rattler_fraction"] - t.f_R) < 4 * x["rattler_fraction_err"]
+        assert x["phi_J_sizes"] == " ".join(map(str, N_SIZES))
+
+
+def test_a_moved_jamming_point_is_found_and_an_unmoved_one_is_not(three):
+    _, _, red = three
+    prot = red.protocols
+    assert prot["reference"] == "default" and [r["variant"] for r in prot["values"]][0] == "default"
+    sig = {(p["variant"], p["quantity"]): p["significant"] for p in prot["pairs"]}
+    # dilute: phi_J 0.004 and the rattlers 0.01 lower, A_G* 0.01 off (the store's variant shift)
+    assert sig[("dilute", "phi_J")] and sig[("dilute", "rattler_fraction")] and sig[("dilute", "A_G_star_E")]
+    assert not sig[("same-jamming", "phi_J")] and not sig[("same-jamming", "rattler_fraction")]
+    assert sig[("same-jamming", "A_G_star_E")]  # shifted by 0.02
+    assert not any(sig[(v, q)] for v in ("dilute", "same-jamming") for q in ("beta_E", "psi_O_star"))
+    hom = {h["quantity"]: h for h in prot["homogeneity"]}
+    assert hom["phi_J"]["significant"] and hom["A_G_star_E"]["significant"] and hom["phi_J"]["dof"] == 2
+    assert not hom["beta_E"]["significant"] and not hom["psi_O_star"]["significant"]
+    d = next(p for p in prot["pairs"] if p["variant"] == "dilute" and p["quantity"] == "phi_J")
+    assert abs(d["difference"] + 0.004) < 4 * d["error"]
+    # the synthetic packings of two variants are drawn independently: their pairs do not correlate
+    assert abs(d["pair_correlation_A_G"]) < 0.15
+
+
+def test_differences_are_the_rows_and_the_homogeneity_test_is_its_definition(three):
+    _, _, red = three
+    prot = red.protocols
+    vals = {r["variant"]: r for r in prot["values"]}
+    for v in ("default", "dilute"):
+        for q in ("A_G_star_E", "beta_E", "psi_O_star"):
+            assert vals[v][q] == red.extrapolated[v][q] and vals[v][f"{q}_err"] == red.extrapolated[v][f"{q}_err"]
+    for p in prot["pairs"]:
+        a, r = vals[p["variant"]], vals["default"]
+        q = p["quantity"]
+        assert p["difference"] == a[q] - r[q]
+        assert p["error"] == pytest.approx(math.hypot(a[f"{q}_err"], r[f"{q}_err"]), rel=1e-12)
+        assert p["p"] == pytest.approx(math.erfc(abs(p["z"]) / math.sqrt(2)), rel=1e-12)
+    from scipy import stats
+
+    for h in prot["homogeneity"]:
+        x = np.array([vals[v][h["quantity"]] for v in vals])
+        e = np.array([vals[v][h["quantity"] + "_err"] for v in vals])
+        m = np.sum(x / e**2) / np.sum(1 / e**2)
+        chi2 = float(np.sum(((x - m) / e) ** 2))
+        assert h["chi2"] == pytest.approx(chi2, rel=1e-9)
+        assert h["p"] == pytest.approx(stats.chi2.sf(chi2, len(x) - 1), rel=1e-9, abs=1e-300)
+
+
+def _holm_reference(p, alpha):
+    """Holm's step-down procedure as written: sort, reject while p_(k) <= alpha / (m - k)."""
+    order = sorted(range(len(p)), key=lambda i: p[i])
+    rejected = set()
+    for k, i in enumerate(order):
+        if p[i] <= alpha / (len(p) - k):
+            rejected.add(i)
+        else:
+            break
+    return rejected
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(0.0, 1.0), min_size=1, max_size=40), st.sampled_from([0.01, 0.05, 0.1]))
+def test_holm_rejects_what_the_step_down_procedure_rejects(p, alpha):
+    adj = P.holm(p)
+    assert np.all(adj >= np.asarray(p) - 1e-15) and np.all(adj <= 1.0)
+    # the adjusted values rejected at alpha are the procedure's rejections (ties at alpha aside)
+    if not any(abs(x * k - alpha) < 1e-12 for x in p for k in range(1, len(p) + 1)):
+        assert {i for i, a in enumerate(adj) if a <= alpha} == _holm_reference(p, alpha)
+
+
+def test_holm_leaves_missing_tests_out():
+    adj = P.holm([0.01, np.nan, 0.04])
+    assert np.isnan(adj[1]) and adj[0] == pytest.approx(0.02) and adj[2] == pytest.approx(0.04)
+
+
+def test_under_the_null_the_family_wise_error_rate_is_held():
+    """Five protocols equal to the reference in all seven quantities, errors known: the chance
+    that any of the 35 differences is called significant is at most alpha (Holm)."""
+    rng = np.random.default_rng(4)
+    variants = ["default", "a", "b", "c", "d", "e"]
+    reps, false = 2000, 0
+    for _ in range(reps):
+        ex = {v: {} for v in variants}
+        jam = {v: {} for v in variants}
+        for v in variants:
+            for q in P.QUANTITIES:
+                d = jam[v] if q in ("phi_J", "rattler_fraction") else ex[v]
+                e = 10.0 ** rng.uniform(-4, -2)
+                d[q], d[f"{q}_err"] = rng.normal(0.5, e), e
+        out = P.compare(ex, jam, "default", variants)
+        false += any(p["significant"] for p in out["pairs"])
+    rate = false / reps
+    assert rate <= P.ALPHA + 3 * math.sqrt(P.ALPHA * (1 - P.ALPHA) / reps)
+    assert rate > 0.01  # the tests are not empty: Holm is conservative, not blind
+
+
+def _experiment(rng, seeds, energies, a, b, sd_packing, sd_seed):
+    """One (variant, N_G): value = a + b x(E) + a per-seed offset shared by the seed's energies
+    (as along an energy ladder) + per-packing noise."""
+    E = np.repeat(energies, seeds)
+    seed = np.tile(np.arange(seeds), len(energies))
+    offset = rng.normal(0, sd_seed, seeds)[seed]
+    return E, seed, a + b * typical_overlap(E, 2.0) + offset + rng.normal(0, sd_packing, len(E))
+
+
+@pytest.mark.parametrize("sd_seed", [0.0, 0.01])
+def test_the_seed_bootstrap_error_is_the_spread_of_repeated_experiments(sd_seed):
+    """Independent packings (sd_seed 0) and packings sharing a seed's history (a ladder): the
+    bootstrap over seeds gives the spread of the intercept over repeated experiments."""
+    rng = np.random.default_rng(11)
+    energies = 10.0 ** -np.arange(7, 16, 2.0)
+    est, errs = [], []
+    for k in range(300):
+        E, seed, y = _experiment(rng, 12, energies, 0.84, 0.6, 0.01, sd_seed)
+        f = P.size_fit(E, seed, y, 2.0, 200, np.random.default_rng(k))
+        est.append(f["value"])
+        errs.append(f["err"])
+    spread = np.std(est, ddof=1)
+    assert abs(np.mean(est) - 0.84) < 4 * spread / math.sqrt(len(est))
+    # the bootstrap of 12 seeds runs short by about sqrt(11/12); within 15% of the spread
+    assert 0.8 < np.median(errs) / spread < 1.1
+    if sd_seed:  # what a per-cell error would give is far too small: the seeds carry the error
+        assert spread > 2.5 * 0.01 / math.sqrt(12 * len(energies))
+
+
+def test_an_exact_line_is_recovered_and_few_cells_say_why():
+    energies = np.array([1e-7, 1e-9, 1e-11, 1e-13])
+    E = np.repeat(energies, 3)
+    seed = np.tile(np.arange(3), 4)
+    f = P.size_fit(E, seed, 0.8412 + 0.3 * np.sqrt(E), 2.0, 50, np.random.default_rng(0))
+    assert f["value"] == pytest.approx(0.8412, abs=1e-12) and f["slope"] == pytest.approx(0.3, rel=1e-9)
+    assert f["err"] == pytest.approx(0.0, abs=1e-12) and f["n_cells"] == 4 and f["dof"] == 2
+    short = P.size_fit(E[:6], seed[:6], np.ones(6), 2.0, 50, np.random.default_rng(0))
+    assert math.isnan(short["value"]) and "2 cell(s)" in short["note"]
+
+
+def test_reduce_writes_the_jamming_point_and_the_comparison(three, tmp_path, capsys):
+    path, _, _ = three
+    assert cli.main(["reduce", str(path), "--out", str(tmp_path / "red"), "--boot", "30"]) == 0
+    md = (tmp_path / "red" / "protocols.md").read_text()
+    assert "| dilute | inf |" in md and "Holm" in md and "| phi_J |" in md
+    assert (tmp_path / "red" / "protocols.csv").read_text().startswith("variant,reference,quantity,difference")
+    assert "phi_J" in (tmp_path / "red" / "jamming.csv").read_text().splitlines()[0]
+    with h5py.File(tmp_path / "red" / "reduced.h5") as f:
+        assert f["reduced/protocols"].attrs["reference"] == "default"
+        assert len(f["reduced/protocols/pairs/quantity"]) == 2 * len(P.QUANTITIES)
+        assert len(f["reduced/jamming/phi_J"]) == 3 * len(N_SIZES)
+
+
+def test_one_variant_has_its_jamming_point_and_no_comparison(tmp_path):
+    camp = SyntheticCampaign(N=(64, 128), seeds=6, histograms=("z_g",))
+    write_store(tmp_path / "one.h5", camp)
+    red = R.reduce_campaign(tmp_path / "one.h5", R.Settings(n_boot=50), distributions=False)
+    assert red.protocols["pairs"] == [] and red.protocols["homogeneity"] == []
+    x = red.protocols["jamming"]["default"]
+    assert abs(x["phi_J"] - 0.84) < 1e-3 and math.isfinite(x["rattler_fraction_err"])
+    from campaign.results.writing import write_outputs
+
+    written = [p.name for p in write_outputs(red, tmp_path / "o", write_h5=False)]
+    assert "protocols.md" in written and "protocols.csv" not in written
+
+
+def test_the_protocols_figure(three, tmp_path, monkeypatch):
+    pytest.importorskip("matplotlib")
+    from campaign.results import plots
+
+    _, _, red = three
+    monkeypatch.setattr(plots, "FIGURES", {})
+    written = [p.name for p in plots.make_figures(red, tmp_path / "fig")]
+    assert "protocols.png" in written and (tmp_path / "fig" / "protocols.png").stat().st_size > 10_000
+
+
+LADDER_SPEC = """\
+name: ladder-errors
+seed: 3
+system:
+  box: [1.0, 1.0]
+  species: [{name: A, fraction: 0.5, radius: 1.4}, {name: B, fraction: 0.5, radius: 1.0}]
+  potential: {exponent: 2.0}
+grid:
+  N_G: [64, 128, 256]
+  E_G: [1.0e-15, 1.0e-13, 1.0e-11, 1.0e-9, 1.0e-7]
+  seeds: 12
+protocol: {window: 0.1, force_tolerance: 1.0e-6}
+variants:
+  - {name: ladder, start: ladder}
+"""
+
+
+def _chained(rng, sd_seed=0.003, sd_packing=0.001):
+    """Both variants with packings that share a seed's history: a per-seed offset of A_G at every
+    energy (as along a ladder), on the synthetic laws."""
+    from campaign.results.reading import finished_from_arrays
+
+    v, N, E, seed = (a.ravel() for a in np.meshgrid(np.array(["default", "ladder"], object), [64, 128, 256],
+                                                    [1e-15, 1e-13, 1e-11, 1e-9, 1e-7], np.arange(12), indexing="ij"))
+    N = N.astype(float)
+    offset = rng.normal(0, 1, (2, 3, 1, 12))
+    off = np.broadcast_to(offset, (2, 3, 5, 12)).ravel() * sd_seed / np.sqrt(N / 64)
+    A = 0.45 - 0.5 / N + 2.0 * E ** 0.28 + off + rng.normal(0, sd_packing, len(N))
+    scal = {"E_G": E, "A_G": A, "delta_Z": 3.0 * E ** 0.25 * (1 + 0.05 * rng.normal(0, 1, len(N))),
+            "psi_O": 0.37 + 0.6 * E ** 0.27 + rng.normal(0, 0.005, len(N)), "phi": 0.84 + np.sqrt(E),
+            "N": N, "N_G": N, "N_R": np.zeros(len(N))}
+    return finished_from_arrays(attrs={"spec_yaml": LADDER_SPEC, "schema": "jamming-campaign/1"}, variant=v, N=N.astype(int), E=E,
+                                ids=np.arange(len(N)), seed=seed, status=np.ones(len(N), int), scalars=scal)
+
+
+@pytest.mark.slow
+def test_a_ladders_table_errors_come_from_whole_seeds():
+    """A_G* of packings sharing a seed's history: the ladder variant's bootstrap over whole seeds
+    gives the spread of repeated campaigns; resampling packings within cells (what the reducer
+    does for independent packings, here the 'default' variant given the same correlated data)
+    gives errors too small."""
+    rng = np.random.default_rng(5)
+    s = R.Settings(n_boot=100)
+    est, err = {"default": [], "ladder": []}, {"default": [], "ladder": []}
+    for _ in range(60):
+        t = R.reduce_table(_chained(rng), s, per_size=False)
+        for v in est:
+            est[v].append(t.extrapolated[v]["A_G_star_E"])
+            err[v].append(t.extrapolated[v]["A_G_star_E_err"])
+    spread = {v: np.std(x, ddof=1) for v, x in est.items()}
+    assert 0.8 < np.median(err["ladder"]) / spread["ladder"] < 1.25
+    # within cells the errors miss the seeds' common part: about sqrt(sum of the squared weights of the
+    # cells in the intercept) ~ 0.7 of the spread here
+    assert np.median(err["default"]) / spread["default"] < 0.85
+
+
+def test_the_seed_bootstrap_moves_a_seeds_packings_together():
+    """Cells whose packings are one per-seed value (a ladder's extreme): the replicas of every cell
+    are the same. Otherwise two cells' replicas correlate as their packings do across the seeds
+    (the sample's correlation, what the bootstrap estimates), each with the variance of a mean."""
+    from campaign.results import fits
+
+    rng = np.random.default_rng(2)
+    seeds = [np.arange(10), np.arange(10), np.arange(10)[::-1]]
+    per_seed = rng.normal(0, 1, 10)
+    shared = [np.column_stack([per_seed[sd], 2 * per_seed[sd]]) for sd in seeds]
+    b = fits.bootstrap_seed_means(shared, seeds, 400, seed=1)
+    assert b.shape == (400, 3, 2)
+    assert np.allclose(b[:, 0], b[:, 1]) and np.allclose(b[:, 0], b[:, 2]) and np.allclose(b[:, 0, 1], 2 * b[:, 0, 0])
+    indep = [rng.normal(0, 1, (10, 1)) for _ in seeds]
+    b = fits.bootstrap_seed_means(indep, seeds, 4000, seed=1)
+    sample = np.corrcoef(indep[0][:, 0], indep[1][:, 0])[0, 1]
+    assert np.corrcoef(b[:, 0, 0], b[:, 1, 0])[0, 1] == pytest.approx(sample, abs=0.05)
+    for k, g in enumerate(indep):
+        assert np.var(b[:, k, 0]) == pytest.approx(np.var(g) / 10, rel=0.1)
+    # a cell missing most seeds: a replica drawing none of them keeps the cell's mean
+    few = fits.bootstrap_seed_means([np.ones((1, 1)) * 3.0, np.zeros((10, 1))], [np.array([4]), np.arange(10)], 300)
+    assert np.all(few[:, 0, 0] == 3.0)
