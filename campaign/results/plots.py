@@ -485,8 +485,9 @@ def fig_pareto(red, plt):
 
 def fig_protocols(red, plt):
     """(a) A_G against Delta Z per protocol: the cells' means at the largest size every variant has,
-    with their standard errors; (b) each variant's difference from the reference in its errors (z),
-    per N_G -> inf quantity, filled where it is significant at the family-wise rate (Holm)."""
+    with their standard errors; (b) the same near jamming (the fit range's cells, where the
+    N_G -> inf values come from); (c) each variant's difference from the reference in its errors
+    (z), per N_G -> inf quantity, filled where it is significant at the family-wise rate (Holm)."""
     from campaign.results.protocols import LABELS, QUANTITIES
 
     prot = red.protocols
@@ -494,32 +495,42 @@ def fig_protocols(red, plt):
     cols = dict(zip(variants, _colors(len(variants), "tab10")))
     c = red.cells
     N = min(max(int(n) for n in c["N"][c["variant"] == v]) for v in variants)
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10.0, 4.0))
+    from campaign.plan.precision import typical_overlap
+
+    dmax = red.meta.get("fit_overlap", np.inf)
+    fig, (a1, a1z, a2) = plt.subplots(1, 3, figsize=(14.0, 4.2))
     for k, v in enumerate(variants):
         i = np.flatnonzero((c["variant"] == v) & (c["N"] == N) & (c["n_packings"] > 0))
         x, y = c["mean_delta_Z"][i], c["mean_A_G"][i]
         ok = np.isfinite(x) & np.isfinite(y) & (x > 0)
-        a1.errorbar(x[ok], y[ok], xerr=c["sem_delta_Z"][i][ok], yerr=c["sem_A_G"][i][ok], fmt=_MARKERS[k % 9] + "-",
-                    ms=3, lw=0.7, capsize=1.5, color=cols[v], label=v)
-    a1.set_xscale("log")
-    a1.set_xlabel(r"$\Delta Z$ (cell mean)")
-    a1.set_ylabel(r"$A_G$ (cell mean)")
-    a1.set_title(f"N_G = {N}", fontsize=9)
+        near = typical_overlap(c["E"][i], prot["values"][k].get("exponent", 2.0)) <= dmax * (1 + 1e-9)
+        for ax, m in ((a1, ok), (a1z, ok & near)):
+            ax.errorbar(x[m], y[m], xerr=c["sem_delta_Z"][i][m], yerr=c["sem_A_G"][i][m],
+                        fmt=_MARKERS[k % 9] + "-", ms=3, lw=0.7, capsize=1.5, color=cols[v], label=v)
+    for ax, title in ((a1, f"(a) N_G = {N}, every energy"), (a1z, f"(b) N_G = {N}, typical overlap <= {dmax:g}")):
+        ax.set_xscale("log")
+        ax.set_xlabel(r"$\Delta Z$ (cell mean)")
+        ax.set_ylabel(r"$A_G$ (cell mean)")
+        ax.set_title(title, fontsize=9)
     a1.legend(fontsize=7)
     others = [v for v in variants if v != prot["reference"]]
     for k, v in enumerate(others):
         ps = [p for p in prot["pairs"] if p["variant"] == v]
         ys = np.arange(len(ps)) + (k - (len(others) - 1) / 2) * 0.12
-        z = np.array([p["z"] for p in ps])
+        z = np.clip([p["z"] for p in ps], -12, 12)
         sig = np.array([p["significant"] for p in ps])
-        a2.scatter(z[~sig], ys[~sig], facecolors="none", edgecolors=cols[v], marker=_MARKERS[(k + 1) % 9], s=22)
-        a2.scatter(z[sig], ys[sig], color=cols[v], marker=_MARKERS[(k + 1) % 9], s=22, label=v)
+        mk = _MARKERS[(variants.index(v)) % 9]
+        a2.scatter(z[~sig], ys[~sig], facecolors="none", edgecolors=cols[v], marker=mk, s=22)
+        a2.scatter(z[sig], ys[sig], color=cols[v], marker=mk, s=22)
     a2.axvline(0, color="0.5", lw=0.7)
+    for x in (-2, 2):
+        a2.axvline(x, color="0.8", lw=0.7, ls="--")
+    a2.set_xlim(-12.5, 12.5)
     a2.set_yticks(np.arange(len(QUANTITIES)))
     a2.set_yticklabels([LABELS[q] for q in QUANTITIES], fontsize=8)
     a2.invert_yaxis()
     a2.set_xlabel(f"(variant - {prot['reference']}) / error   (filled: significant, Holm)")
-    a2.set_xscale("symlog", linthresh=3)
+    a2.set_title("(c) N_G -> inf, differences (clipped at 12)", fontsize=9)
     return fig
 
 

@@ -211,6 +211,8 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
     same_sys = [v for v in sorted(set(g.cv), key=list(g.cv).index) if ref_sys is None or vsys.get(v) == ref_sys]
     prot = protmod.compare(extrapolated, jam, s.reference, same_sys, fin=everything, usable=good)
     prot["jamming"] = jam
+    for rec in prot["values"]:
+        rec["exponent"] = float(vsys[rec["variant"]]["exponent"])  # the potential's alpha
     for rec in variants + systems:  # their exponents and A_G* come from the scaling fits
         rec["fit_rule"] = fit_rule_name(s)
     meta = {"sources": fin.paths, "done": int(len(fin)), "excluded": int(g.n_excluded.sum()),
