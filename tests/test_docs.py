@@ -46,7 +46,7 @@ _SKIP_DIRS = {"__pycache__", "jamming_campaign.egg-info"}
 #: Files the reducer writes next to its output (campaign/results/writing.py), not documents of
 #: this repository: named in the docs and the code as outputs. Each must still be a name the
 #: results package writes (test_output_names_are_written), so that this list cannot outlive them.
-REDUCER_OUTPUTS = {"table.md", "systems.md"}
+REDUCER_OUTPUTS = {"table.md", "systems.md", "protocols.md"}
 _MD_NAME = re.compile(r"(?<![\w./-])((?:[\w.-]+/)*[\w.-]*\w\.md)\b")
 #: Addresses of other projects' files (a link to a URL is not a file of this repository).
 _URL = re.compile(r"[a-z][a-z0-9+.-]*://\S+")
