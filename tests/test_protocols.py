@@ -299,3 +299,24 @@ def test_the_seed_bootstrap_moves_a_seeds_packings_together():
     # a cell missing most seeds: a replica drawing none of them keeps the cell's mean
     few = fits.bootstrap_seed_means([np.ones((1, 1)) * 3.0, np.zeros((10, 1))], [np.array([4]), np.arange(10)], 300)
     assert np.all(few[:, 0, 0] == 3.0)
+
+
+@pytest.mark.slow
+def test_the_shipped_stores_reduce_to_the_documented_table():
+    """docs/PROTOCOLS.md's N_G -> inf table is what `campaign reduce data/protocols.h5
+    data/protocols-more.h5` gives (the default settings), entry for entry as printed."""
+    from pathlib import Path
+
+    from campaign.results.tables import fmt_err
+
+    root = Path(__file__).resolve().parents[1]
+    red = R.reduce_campaign([root / "data" / "protocols.h5", root / "data" / "protocols-more.h5"],
+                            R.Settings(), distributions=False)
+    text = (root / "docs" / "PROTOCOLS.md").read_text()
+    table = text[text.index("## The table"):text.index("Does each quantity depend")]
+    lines = {ln.split("|")[1].strip().split(" ")[0]: [c.strip() for c in ln.split("|")[2:-1]]
+             for ln in table.splitlines() if ln.startswith("| ") and "variant" not in ln}
+    assert set(lines) == {r["variant"] for r in red.protocols["values"]}
+    for r in red.protocols["values"]:
+        assert lines[r["variant"]] == [fmt_err(r[q], r[f"{q}_err"]) for q in P.QUANTITIES], r["variant"]
+    assert red.meta["done"] == 9360 and red.meta["excluded"] == 0
