@@ -119,5 +119,7 @@ def test_plot_survives_missing_cells_histograms_and_variants(tmp_path, monkeypat
     assert set(extrapolations) == {"default", "hertz"}
     for v, fig in extrapolations.items():  # one size, two energies: rows without a fit draw nothing
         _check_extrapolation(red, v, fig, every_size=False)
-    # one set per variant, and the campaign-wide cost-against-deviation figure
-    _check(written, [f"{n}_{v}.png" for n in plots.FIGURES for v in ("default", "hertz")] + ["pareto.png"])
+    # one set per variant, and the campaign-wide figures: cost against deviation, and the protocols
+    # compared (A_G against Delta Z per variant; no N_G -> inf value to compare with one size)
+    _check(written, [f"{n}_{v}.png" for n in plots.FIGURES for v in ("default", "hertz")]
+           + ["pareto.png", "protocols.png"])
