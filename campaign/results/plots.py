@@ -488,6 +488,7 @@ def fig_protocols(red, plt):
     with their standard errors; (b) the same near jamming (the fit range's cells, where the
     N_G -> inf values come from); (c) each variant's difference from the reference in its errors
     (z), per N_G -> inf quantity, filled where it is significant at the family-wise rate (Holm)."""
+    from campaign.plan.precision import typical_overlap
     from campaign.results.protocols import LABELS, QUANTITIES
 
     prot = red.protocols
@@ -495,8 +496,6 @@ def fig_protocols(red, plt):
     cols = dict(zip(variants, _colors(len(variants), "tab10")))
     c = red.cells
     N = min(max(int(n) for n in c["N"][c["variant"] == v]) for v in variants)
-    from campaign.plan.precision import typical_overlap
-
     dmax = red.meta.get("fit_overlap", np.inf)
     fig, (a1, a1z, a2) = plt.subplots(1, 3, figsize=(14.0, 4.2))
     for k, v in enumerate(variants):
