@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from synthetic_store import SyntheticCampaign, write_store  # noqa: E402
 
 from campaign.results import reduce as R  # noqa: E402
-from campaign.results.writing import write_outputs  # noqa: E402
+from campaign.report.writing import write_outputs  # noqa: E402
 
 
 def main(argv=None):

@@ -8,7 +8,7 @@ imports only from itself and the wings before it; ``errors`` and ``version`` ser
 numerical work lives in the sibling package ``kernels``.
 
 ``campaign.read_packings(path)`` and ``campaign.read_cells(path)`` give a store's
-results as pandas DataFrames (``campaign.results.frames``, the ``frames`` extra); they are
+results as pandas DataFrames (``campaign.report.frames``, the ``frames`` extra); they are
 imported on first use, so ``import campaign`` stays cheap.
 """
 
@@ -19,7 +19,7 @@ _FRAMES = ("read_packings", "read_cells")
 
 def __getattr__(name):
     if name in _FRAMES:
-        from campaign.results import frames
+        from campaign.report import frames
 
         return getattr(frames, name)
     raise AttributeError(f"module 'campaign' has no attribute {name!r}")

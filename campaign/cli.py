@@ -65,7 +65,7 @@ def main(argv=None) -> int:
     finally:
         if "campaign.storage.checksums" in sys.modules:
             from campaign.storage.checksums import unprotected_note, unprotected_seen
-            from campaign.storage.storefile import FORMAT_VERSION, SCHEMA
+            from campaign.storage.layout import FORMAT_VERSION, SCHEMA
 
             seen = unprotected_seen()
             command = next((a for a in argv if a in SUBCOMMANDS), None)

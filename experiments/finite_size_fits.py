@@ -196,7 +196,7 @@ def print_rows(rows, title):
 
 def store_data(paths, halves):
     """{label: {N: [cells]}} of a store's default variant: every seed, or two disjoint halves."""
-    from campaign.results.reading import load_finished
+    from campaign.results.finished import load_finished
 
     fin = load_finished(paths)
     ok, _ = fin.usable()

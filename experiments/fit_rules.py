@@ -378,7 +378,7 @@ def print_pivot(rows, size="inf", file=sys.stdout):
 # --------------------------------------------------------------------------- real stores
 def store_cells(paths):
     """{(variant, N): (Es, cells)} of a store's usable packings (3 or more per cell)."""
-    from campaign.results.reading import load_finished, variant_systems
+    from campaign.results.finished import load_finished, variant_systems
 
     fin = load_finished(paths)
     ok, _ = fin.usable()

@@ -34,7 +34,7 @@ import sys
 import numpy as np
 
 from campaign.results.fits import bootstrap_cell_means, fit_power_law
-from campaign.results.reading import load_finished
+from campaign.results.finished import load_finished
 
 
 def cells(fin, quantity, abscissa, keep=None):

@@ -11,7 +11,7 @@ E_G 1e-15..1e-3) whose packings come from the generator of the fit-range test
 (1 + k Delta Z^omega)``, the spread of A_G between packings paper-small's ``0.10 / sqrt(N_G)``), with
 psi_O drawn alike (``Delta Psi_O = B_P Delta Z^beta_Z``, spread ``0.17 / sqrt(N_G)``) and force
 evaluations from the calibrated cost model (``campaign.plan.tasks.cost``), run through
-``campaign.results.planner.run_in_memory`` (the decisions of a real run, on these packings) until
+``campaign.precision.planner.run_in_memory`` (the decisions of a real run, on these packings) until
 it stops. The truth: ``A_G* = 0.446``, ``Psi_O* = 0.369`` (no 1/N_G term) and ``beta_E =
 beta_Z / (2 alpha) = 0.2625``. Per target: the median of (value - truth) / error, and the share of
 1- and 2-sigma intervals that hold the truth (nominal 0.68, 0.95); beside it the same for a uniform
@@ -36,7 +36,7 @@ import fit_rules  # noqa: E402 - the generator of the fit-range test
 
 from campaign.plan.spec import parse_spec  # noqa: E402
 from campaign.plan.tasks import cost as task_cost, expand  # noqa: E402
-from campaign.results import errormodel, planner  # noqa: E402
+from campaign.precision import errormodel, planner  # noqa: E402
 from campaign.results.reduce import Settings  # noqa: E402
 
 SPEC = """\
@@ -87,7 +87,7 @@ def draw_factory(spec, tasks, rep, scenario):
 def one(job):
     rep, text, scenario, boot, uniform, floor = job
     if floor:
-        from campaign.results import allocation
+        from campaign.precision import allocation
 
         allocation.MIN_FIT_PACKINGS = floor
     spec = parse_spec(text)
@@ -144,7 +144,7 @@ def main(argv=None):
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--floor", type=int, default=0,
                    help="packings every cell of the fit range holds before the rounds concentrate (default: "
-                        "campaign.results.allocation.MIN_FIT_PACKINGS)")
+                        "campaign.precision.allocation.MIN_FIT_PACKINGS)")
     p.add_argument("--json")
     a = p.parse_args(argv)
     text = SPEC % {"a": a.targets[0], "b": a.targets[1], "p": a.targets[2], "pilot": a.pilot, "max": a.max_seeds}

@@ -5,7 +5,7 @@
 
 The shipped one (campaign/plan/precision_prior.json) comes from `campaign run campaigns/paper-small.yaml`
 (the paper's mixture, alpha = 2, a fixed unit box, FIRE on the O'Hern route; N_G 64..1024, E_G 1e-15..1e-3,
-20 seeds per cell). `campaign.results.allocation.plan_from_prior` reads it; docs/PRECISION.md says how
+20 seeds per cell). `campaign.precision.allocation.plan_from_prior` reads it; docs/PRECISION.md says how
 it stands in for sizes it does not hold.
 """
 
@@ -18,7 +18,7 @@ import sys
 import numpy as np
 
 from campaign.plan.spec import parse_spec
-from campaign.results.reading import load_finished, usable_mask
+from campaign.results.finished import load_finished, usable_mask
 
 NAMES = ("E_G", "delta_Z", "A_G", "psi_O")
 

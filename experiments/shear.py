@@ -27,7 +27,7 @@ import sys
 import numpy as np
 
 import campaign
-from campaign.results.frames import Packings
+from campaign.report.frames import Packings
 from kernels.network import contact_bonds
 from kernels.potential import stress_from_bonds
 

@@ -94,7 +94,7 @@ def main(argv=None):
     ap.add_argument("--json", metavar="FILE")
     args = ap.parse_args(argv)
 
-    from campaign.results.reading import load_finished
+    from campaign.results.finished import load_finished
 
     everything = load_finished(args.store)
     out = {}

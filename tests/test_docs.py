@@ -43,7 +43,7 @@ def test_relative_links_resolve(page):
 # --------------------------------------------------------------------------- documents named anywhere
 
 _SKIP_DIRS = {"__pycache__", "jamming_campaign.egg-info"}
-#: Files the reducer writes next to its output (campaign/results/writing.py), not documents of
+#: Files the reducer writes next to its output (campaign/report/writing.py), not documents of
 #: this repository: named in the docs and the code as outputs. Each must still be a name the
 #: results package writes (test_output_names_are_written), so that this list cannot outlive them.
 REDUCER_OUTPUTS = {"table.md", "systems.md", "protocols.md"}
@@ -84,7 +84,7 @@ def test_md_name_pattern():
 
 
 def test_output_names_are_written():
-    code = "".join(p.read_text() for p in (ROOT / "campaign" / "results").glob("*.py"))
+    code = "".join(p.read_text() for wing in ("results", "report") for p in (ROOT / "campaign" / wing).glob("*.py"))
     for name in REDUCER_OUTPUTS:
         assert f'"{name}"' in code or f"'{name}'" in code, name
 

@@ -16,7 +16,7 @@ import pytest  # noqa: E402
 
 import kernels  # noqa: E402
 from campaign import cli  # noqa: E402
-from campaign.results import draw
+from campaign.report import draw
 from kernels.network import network  # noqa: E402
 
 

@@ -125,7 +125,7 @@ def test_read_packings_is_the_store_bit_for_bit(real):
 
 
 def test_read_packings_keeps_the_rows_the_reducer_uses(synth):
-    from campaign.results.reading import load_finished
+    from campaign.results.finished import load_finished
 
     t, s, done, good = _h5(synth)
     assert (t["status"] == 2).any() and (t["status"] == 0).any() and (done & ~good).sum() == 3
@@ -388,7 +388,7 @@ def test_analyze_an_exported_frame_gives_the_stores_scalars(real, tmp_path, caps
 
 
 def test_draw_an_exported_frame(real, tmp_path, capsys):
-    from campaign.results import draw
+    from campaign.report import draw
 
     out = tmp_path / "p.gsd"
     assert _export(capsys, real, "--out", out)[0] == 0
@@ -581,7 +581,7 @@ def test_extended_xyz_header_parser():
 def test_frame_columns_keep_their_types(tmp_path):
     """Strings stay strings (a variant named like a number, a one-letter one), numbers numbers."""
     from campaign.storage.configio import read_configuration
-    from campaign.results.export import xyz_frame
+    from campaign.report.export import xyz_frame
 
     conf = {"positions": np.array([[0.1, 0.2], [0.6, 0.7]]), "radii": np.array([0.1, 0.12]),
             "box": np.array([1.0, 1.0]), "species": np.array([0, 1])}

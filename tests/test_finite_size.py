@@ -11,7 +11,7 @@ from synthetic_store import SyntheticCampaign, Truth, task_table, write_store
 from campaign.results import fits
 from campaign.results import reduce as R
 from campaign.results.scaling import TABLE_KEYS
-from campaign.results.writing import table_csv, table_markdown
+from campaign.report.writing import table_csv, table_markdown
 
 # The grid of a small campaign: four sizes, eight energies, 16 seeds (five energies inside the
 # default window typical overlap <= 0.001, E_G <= 1e-6 at alpha = 2).

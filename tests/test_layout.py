@@ -2,7 +2,8 @@
 (every import counts, also those inside functions), the kernels import nothing from
 the orchestration, no module imports its own package's ``__init__`` (nothing runs back up),
 and ``campaign``'s wings import only from themselves and the wings before them on the data's
-path: plan -> storage -> run | results -> commands -> cli (docs/DEVELOPMENT.md, "The house")."""
+path: plan -> storage -> run | results -> precision | report -> commands -> cli (docs/DEVELOPMENT.md,
+"The house")."""
 
 import ast
 from pathlib import Path
@@ -72,9 +73,11 @@ def test_the_circle_check_finds_a_circle():
 
 
 #: campaign's wings in the order of the data's path; run and results are side by side (neither
-#: imports the other). ``errors`` and ``version`` serve every wing.
-WINGS = {"errors": 0, "version": 0, "plan": 1, "storage": 2, "run": 3, "results": 3, "commands": 4,
-         "cli": 5, "__main__": 6, "": 6}
+#: imports the other), and so are precision (the rounds' decisions, which reduce the store and are
+#: handed to a run by the commands) and report (what people read of a reduction). ``errors`` and
+#: ``version`` serve every wing.
+WINGS = {"errors": 0, "version": 0, "plan": 1, "storage": 2, "run": 3, "results": 3, "precision": 4,
+         "report": 4, "commands": 5, "cli": 6, "__main__": 7, "": 7}
 
 
 def _wing(module):

@@ -9,7 +9,7 @@ from synthetic_store import SyntheticCampaign, Truth, write_store
 
 from campaign import cli
 
-from campaign.results import plots
+from campaign.report import plots
 from campaign.results import reduce as R
 
 PNG = b"\x89PNG\r\n\x1a\n"

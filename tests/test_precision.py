@@ -23,15 +23,15 @@ import pytest
 from helpers import assert_same_contents, store_contents
 
 from campaign.plan.spec import parse_spec
-from campaign.plan.precision import FITS
+from campaign.plan.targets import FITS
 from campaign.plan.tasks import expand
-from campaign.results import allocation as A
-from campaign.results import errormodel as M
-from campaign.results import planner as P
+from campaign.precision import allocation as A
+from campaign.precision import errormodel as M
+from campaign.precision import planner as P
 from campaign.run.worker import synthetic_laws
 from campaign.storage.checksums import sums_name, write_sums
 from campaign.storage.journal import read_journal
-from campaign.storage.storefile import BLOCK_ROWS
+from campaign.storage.layout import BLOCK_ROWS
 
 ROOT = Path(__file__).resolve().parents[1]
 MPIEXEC = Path(sys.executable).parent / "mpiexec"

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from synthetic_store import SyntheticCampaign, Truth, write_store
 
 from campaign import cli
-from campaign.plan.precision import typical_overlap
+from campaign.plan.targets import typical_overlap
 from campaign.results import protocols as P
 from campaign.results import reduce as R
 
@@ -204,7 +204,7 @@ def test_one_variant_has_its_jamming_point_and_no_comparison(tmp_path):
     assert red.protocols["pairs"] == [] and red.protocols["homogeneity"] == []
     x = red.protocols["jamming"]["default"]
     assert abs(x["phi_J"] - 0.84) < 1e-3 and math.isfinite(x["rattler_fraction_err"])
-    from campaign.results.writing import write_outputs
+    from campaign.report.writing import write_outputs
 
     written = [p.name for p in write_outputs(red, tmp_path / "o", write_h5=False)]
     assert "protocols.md" in written and "protocols.csv" not in written
@@ -212,7 +212,7 @@ def test_one_variant_has_its_jamming_point_and_no_comparison(tmp_path):
 
 def test_the_protocols_figure(three, tmp_path, monkeypatch):
     pytest.importorskip("matplotlib")
-    from campaign.results import plots
+    from campaign.report import plots
 
     _, _, red = three
     monkeypatch.setattr(plots, "FIGURES", {})
@@ -240,7 +240,7 @@ variants:
 def _chained(rng, sd_seed=0.003, sd_packing=0.001):
     """The same packings under two names, 'default' and 'ladder', on the synthetic laws, with a
     per-seed offset of A_G at every energy (as along a ladder: one seed's packings share a history)."""
-    from campaign.results.reading import finished_from_arrays
+    from campaign.results.finished import finished_from_arrays
 
     Ns, Es, S = np.array([64, 128, 256]), np.array([1e-15, 1e-13, 1e-11, 1e-9, 1e-7]), 12
     N, E, seed = (a.ravel() for a in np.meshgrid(Ns, Es, np.arange(S), indexing="ij"))

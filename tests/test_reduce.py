@@ -11,7 +11,7 @@ from campaign import cli
 from campaign.errors import UserError
 from campaign.results import reduce as R
 from campaign.results.tables import fmt_err
-from campaign.results.writing import table_markdown, write_reduced
+from campaign.report.writing import table_markdown, write_reduced
 from synthetic_store import SyntheticCampaign, Truth, split_store, write_store
 
 FAST = R.Settings(n_boot=150)

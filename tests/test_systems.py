@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 from synthetic_store import SyntheticCampaign, Truth, write_store
 
-from campaign.results import plots, systems
+from campaign.report import plots
+from campaign.results import systems
 from campaign.results import reduce as R
-from campaign.results.reading import variant_systems
+from campaign.results.finished import variant_systems
 from campaign.results.tables import fmt_err
-from campaign.results.writing import write_outputs
+from campaign.report.writing import write_outputs
 
 ROOT = Path(__file__).resolve().parents[1]
 PNG = b"\x89PNG\r\n\x1a\n"

@@ -229,7 +229,7 @@ def test_positions_are_checked_in_the_cells_fractional_coordinates(tmp_path, cap
 def test_hoomd_positions_lie_in_hoomds_tilted_box():
     """HOOMD's box is centred: s in [-1/2, 1/2) with r = (Lx s_x + xy Ly s_y, Ly s_y), computed here
     from the float32 values HOOMD reads, and every point is its packing's centre up to float32."""
-    from campaign.results.export import hoomd_positions
+    from campaign.report.export import hoomd_positions
 
     rng = np.random.default_rng(4)
     for box in (np.array([1.03, 1 / 1.03, 0.04]), np.array([0.8, 0.69282032, -0.57735027]),
@@ -252,7 +252,7 @@ def test_a_hoomd_frame_with_a_tilted_box_is_read(tmp_path, capsys):
     """A GSD frame as HOOMD writes it (float32 only, the tilted centred box)."""
     import gsd.hoomd
 
-    from campaign.results.export import hoomd_positions
+    from campaign.report.export import hoomd_positions
 
     pos, rad, box = _sheared()
     fr = gsd.hoomd.Frame()
@@ -276,7 +276,7 @@ def test_extended_xyz_of_a_tilted_cell(tmp_path, monkeypatch):
     import ase.io as ase_io
     import ase.parallel
 
-    from campaign.results.export import xyz_frame
+    from campaign.report.export import xyz_frame
 
     monkeypatch.setattr(ase.parallel.world, "comm", ase.parallel.DummyMPI())  # serial, as test_export
     pos, rad, box = _sheared(xy=-0.3, stretch=1.1)
@@ -308,7 +308,7 @@ def _by_gid(fig):
 
 def test_draw_the_triangular_crystal_in_its_tilted_cell(tmp_path, capsys):
 
-    from campaign.results import draw
+    from campaign.report import draw
 
     pos, rad, box = _crystal()
     n = len(rad)
@@ -349,7 +349,7 @@ def test_draw_the_triangular_crystal_in_its_tilted_cell(tmp_path, capsys):
 
 def test_region_is_checked_against_the_cells_bounding_box(tmp_path, capsys):
     from campaign.errors import UserError
-    from campaign.results import draw
+    from campaign.report import draw
 
     pos, rad, box = _sheared(xy=-0.3)
     Lx, Ly, xy = box
@@ -370,7 +370,7 @@ def test_region_is_checked_against_the_cells_bounding_box(tmp_path, capsys):
 
 def test_the_rectangular_drawing_is_the_tilted_one_at_zero_tilt():
     """The rectangular path (unchanged) and the tilted machinery at xy = 0 draw the same picture."""
-    from campaign.results import draw
+    from campaign.report import draw
 
     rows = [line.split() for line in EXAMPLE.read_text().splitlines() if line and not line.startswith("#")]
     arr = np.array([[float(x) for x in r] for r in rows[1:]])
@@ -493,8 +493,8 @@ def test_a_stored_configuration_read_in_place_knows_its_cell(real, capsys):
 def test_read_packings_reduce_verify_and_draw(real, tmp_path, capsys):
     import campaign
     from campaign.results import tradeoff
-    from campaign.results.frames import Packings
-    from campaign.results.reading import load_finished
+    from campaign.report.frames import Packings
+    from campaign.results.finished import load_finished
     from campaign.results.reduce import Settings, reduce_campaign
 
     t, s, boxes = _h5(real)

@@ -156,7 +156,7 @@ def test_reduce_and_plot_a_campaign_with_variants(tmp_path, capsys, monkeypatch)
                  "--boot", "0"]) == 0
     assert "Variants against 'ladder'" in capsys.readouterr().out
     pytest.importorskip("matplotlib")
-    from campaign.results import plots
+    from campaign.report import plots
     from campaign.results.reduce import Settings, reduce_campaign
 
     red = reduce_campaign([tmp_path / "s.h5"], Settings(n_boot=0), distributions=False)

@@ -100,7 +100,7 @@ def _store_records(path, seeds):
     in the model)."""
     from campaign.plan.calibration import _fixed_factor
     from campaign.plan.spec import parse_spec
-    from campaign.results.frames import Packings
+    from campaign.report.frames import Packings
 
     with Packings(path, good=False) as pk:
         cols = pk.read_all()

@@ -56,7 +56,7 @@ def configure(parser):
 def main(args) -> int:
     from pathlib import Path
 
-    from campaign.results import draw
+    from campaign.report import draw
     from campaign.errors import UserError
 
     layers = draw.check_layers(args.layers) if args.layers else draw.DEFAULT_LAYERS
@@ -67,7 +67,7 @@ def main(args) -> int:
         raise UserError(f"--out {args.out}: expected a .png, .svg or .pdf file")
     if out is not None and not out.parent.is_dir():
         raise UserError(f"--out {args.out}: no directory {str(out.parent)!r}")
-    from campaign.results.plots import _plt
+    from campaign.report.plots import _plt
 
     plt = _plt()  # fail early when matplotlib is missing
     src = draw.read_source(args.source, task=args.task, index=args.index, fmt=args.format,

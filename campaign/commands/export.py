@@ -37,7 +37,7 @@ a missing extra, no configurations for gsd/xyz), 1 internal fault.
 def configure(parser):
     import argparse
 
-    from campaign.results.export import FORMATS
+    from campaign.report.export import FORMATS
 
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = EPILOG
@@ -57,7 +57,7 @@ def configure(parser):
 def main(args) -> int:
     from pathlib import Path
 
-    from campaign.results.export import EXTENSION, export, format_of, require_format
+    from campaign.report.export import EXTENSION, export, format_of, require_format
 
     fmt = format_of(args.format, args.out)
     require_format(fmt)  # a missing extra is reported before the store is read

@@ -27,9 +27,9 @@ def configure(parser):
 
 
 def main(args) -> int:
-    from campaign.results import plots
+    from campaign.report import plots
     from campaign.results import reduce as R
-    from campaign.results.writing import default_out_dir
+    from campaign.report.writing import default_out_dir
 
     if args.boot < 0 or args.boot == 1:
         raise UserError(f"--boot must be 0 or at least 2, got {args.boot}")
@@ -51,8 +51,8 @@ def main(args) -> int:
 
 
 def _gallery(files, out, dpi):
-    """packing_gallery.png from the first file that keeps configurations (campaign.results.draw), or None."""
-    from campaign.results import draw
+    """packing_gallery.png from the first file that keeps configurations (campaign.report.draw), or None."""
+    from campaign.report import draw
 
     for f in files:
         if draw.store_packings(f)[2].size:

@@ -75,7 +75,7 @@ def fit_range(args, settings):
 
 def main(args) -> int:
     from campaign.results import reduce as R
-    from campaign.results import writing
+    from campaign.report import writing
 
     if args.boot < 0 or args.boot == 1:
         raise UserError(f"--boot must be 0 (no errors) or at least 2, got {args.boot}")
@@ -140,7 +140,7 @@ def _write_in_place(red, path):
     import fcntl
     import os
 
-    from campaign.results.writing import write_reduced
+    from campaign.report.writing import write_reduced
 
     if red.meta["pending"]:
         raise UserError(f"{path}: {red.meta['pending']} tasks are still pending (a run may be "

@@ -104,7 +104,7 @@ def main(args) -> int:
     if args.task_function is None:
         args.task_function = os.environ.get("CAMPAIGN_TASK_FUNCTION") or "kernels"
     # a campaign with precision targets decides its rounds with the reducer (the run wing does not reduce)
-    from campaign.results.planner import Planner
+    from campaign.precision.planner import Planner
 
     args.planner = Planner
     if use_mpi:

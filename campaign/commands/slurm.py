@@ -82,15 +82,15 @@ def _estimate(spec, results, cal, options):
 def _precision_estimate(spec, tasks, results, cal, options):
     """A precision campaign's work for the chain: the tasks its rounds gave out and not done, plus what
     its last decision projects for reaching the targets; before the pilot, the prior's plan
-    (``campaign.results.planner.plan_from_prior``), else the pilot alone. The chain's jobs go on
+    (``campaign.precision.planner.plan_from_prior``), else the pilot alone. The chain's jobs go on
     through the rounds: each resumes, decides when a round is complete and exits at once when the
     campaign has ended."""
     import math
     from dataclasses import replace
 
     from campaign.plan.calibration import Estimate
-    from campaign.results.errormodel import campaign_cells
-    from campaign.results.planner import plan_from_prior
+    from campaign.precision.errormodel import campaign_cells
+    from campaign.precision.planner import plan_from_prior
     from campaign.run.slurm import job_work
     from campaign.storage.checksums import read_rounds
 

@@ -128,7 +128,7 @@ def _scan(path):
 
 
 def _scan_open(f, np, DONE, FAILED, PENDING):
-    from campaign.results.reading import given_rows
+    from campaign.results.finished import given_rows
     from campaign.storage.checksums import read_rounds
 
     t = f["tasks"]

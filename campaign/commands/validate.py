@@ -28,7 +28,7 @@ def _main(args, cal) -> int:
     from campaign.errors import UserError
     from campaign.plan.tasks import energy_floor_problems, estimate, expand, task_cost
     from campaign.plan.calibration import calibrated_on, machine
-    from campaign.plan import precision as precision_mod
+    from campaign.plan import targets
 
     spec = load_spec(args.spec)
     problems = energy_floor_problems(spec)
@@ -49,7 +49,7 @@ def _main(args, cal) -> int:
         n_cells = len(tasks) // spec.precision.max_seeds
         print(f"  tasks       {n_cells * spec.precision.pilot} in the pilot ({grid} x {spec.precision.pilot} seeds), at most "
               f"{len(tasks)} ({spec.precision.max_seeds} seeds in every cell)")
-        print(f"  precision   {precision_mod.describe(spec.precision)}")
+        print(f"  precision   {targets.describe(spec.precision)}")
     print(f"  variants    {', '.join(v.name for v in spec.variants)}")
     if any(v.system != spec.system for v in spec.variants):
         # several physical systems: each a sub-campaign with its own ids, table and figures
@@ -105,9 +105,9 @@ def _main(args, cal) -> int:
 def _precision_cost(spec, tasks, cal, est, longest):
     """A precision campaign's price: its pilot and its ceiling by the cost model; what reaching its
     targets would cost, from its store's last decision when its pilot has run, else from the prior
-    (campaign.results.planner.plan_from_prior), or why that needs the pilot."""
+    (campaign.precision.planner.plan_from_prior), or why that needs the pilot."""
     from campaign.plan.tasks import estimate
-    from campaign.results.planner import plan_from_prior
+    from campaign.precision.planner import plan_from_prior
 
     p = spec.precision
     pilot = [t for t in tasks if t.seed < p.pilot]

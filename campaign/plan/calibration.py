@@ -168,7 +168,7 @@ class Calibration:
     gpu: dict | None = None
     # core-seconds per disk per force evaluation of a packing (search and analysis spread over its
     # steps): what a precision campaign's rounds price a packing at from its force evaluations
-    # (campaign.results.allocation); None: DISK_FE_SECONDS
+    # (campaign.precision.allocation); None: DISK_FE_SECONDS
     disk_fe_seconds: float | None = None
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 

@@ -33,7 +33,7 @@ import numpy as np
 import yaml
 
 from campaign.errors import UserError
-from campaign.plan import precision as precision_mod
+from campaign.plan import targets
 from kernels.names import (CELL_NAMES, DEFAULT_OBSERVABLES, HISTOGRAMS, MAX_POLYDISPERSITY,  # noqa: F401 - re-exported
                            MINIMIZER_NAMES, OBSERVABLES, ROUTES, SIZE_DISTRIBUTIONS, STOP_RULES, protocol_problem)
 
@@ -166,9 +166,9 @@ class Spec:
     configurations: bool = False
     retries: int = 2
     output: str = ""
-    #: precision targets (``campaign.plan.precision``): seeds 0..max_seeds-1 in every cell, given out in
+    #: precision targets (``campaign.plan.targets``): seeds 0..max_seeds-1 in every cell, given out in
     #: rounds; None for a fixed grid
-    precision: "precision_mod.Precision | None" = None
+    precision: "targets.Precision | None" = None
     text: str = field(default="", compare=False)
     source: str = field(default="<spec>", compare=False)
     #: the spec's identity (what decides its tasks and what is stored: ``canonical``), once
@@ -498,7 +498,7 @@ def parse_spec(text: str, source: str = "<spec>") -> Spec:
     precision = None
     if wants_precision:
         given = isinstance(top.get("grid"), dict) and "seeds" in top["grid"]
-        precision = precision_mod.parse(c, top["precision"], ("precision",), seeds_given=given, N=N,
+        precision = targets.parse(c, top["precision"], ("precision",), seeds_given=given, N=N,
                                         variants=variants, check_grid=not c.errors)
         if precision is not None:
             seeds = tuple(range(precision.max_seeds))
@@ -610,7 +610,7 @@ def _system(c, value, path, base: System | None = None) -> System:
 
 def _grid(c, value, path, precision=False):
     """``N_G``, ``E_G`` and ``seeds``; with precision targets the seeds are the campaign's to choose
-    (``campaign.plan.precision.parse`` refuses them)."""
+    (``campaign.plan.targets.parse`` refuses them)."""
     g = c.mapping(value, path, ("N_G", "E_G", "seeds"), ("N_G", "E_G") + (() if precision else ("seeds",)))
     if g is None:
         return (), (), ()

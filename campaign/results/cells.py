@@ -3,7 +3,7 @@ cell: the counts (done, excluded, pending, failed) and the notes on them, the me
 deviation and standard error of every scalar, P(A_G) with its best Gaussian and the width
 scaling sigma(A_G) ~ N^-gamma, and the one pass over the histograms (summed distributions,
 self-averaging, P(sin theta)). Works on the ``Finished`` packings of
-``campaign.results.reading``; ``s`` is the reducer's ``Settings`` (``campaign.results.reduce``,
+``campaign.results.finished``; ``s`` is the reducer's ``Settings`` (``campaign.results.reduce``,
 which imports this module). docs/REDUCED.md describes the outputs.
 """
 
@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from campaign.results import fits
-from campaign.results.reading import STATUS_FAILED, STATUS_PENDING
+from campaign.results.finished import STATUS_FAILED, STATUS_PENDING
 
 #: Histograms whose self-averaging is not tested: radial pair counts are not per-object
 #: variables; gaps and forces are counted on log-spaced bins for their small-value tails.

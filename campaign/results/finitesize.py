@@ -18,7 +18,7 @@ def extrapolate(rows, shared_in, notes, fitted=None) -> dict:
     extrapolated linearly in 1/N_G, the row's intercept. A size with fewer than three cells in
     the fit range does not enter; an undetermined shared exponent gives no value. ``fitted``, a
     dict, receives per (variant, quantity, abscissa) the sizes, the shared fit and the 1/N_G line
-    (``campaign.results.allocation`` plans from them)."""
+    (``campaign.precision.allocation`` plans from them)."""
     extrapolated = {}
     for v in sorted({r["variant"] for r in rows}):
         out = {}

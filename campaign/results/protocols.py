@@ -29,7 +29,7 @@ import math
 
 import numpy as np
 
-from campaign.plan.precision import typical_overlap
+from campaign.plan.targets import typical_overlap
 from campaign.results import fits
 
 #: the N_G -> inf entries compared across protocols: the table's, then the jamming point's

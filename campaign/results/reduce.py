@@ -2,18 +2,18 @@
 
 ``reduce_campaign`` takes its steps in this order, each one's machinery in the module named:
 
-1. the finished packings, and which of them are usable (``campaign.results.reading``, the one
+1. the finished packings, and which of them are usable (``campaign.results.finished``, the one
    place that knows the store layout of docs/CONTRACTS.md; only rows with status 1 are used);
 2. the cells (variant, N, E): counts and the notes on what is left out, the statistics of every
    scalar, P(A_G) (``campaign.results.cells``);
-3. the physical system of each variant (``campaign.results.reading``);
+3. the physical system of each variant (``campaign.results.finished``);
 4. the scaling fits per size over the fit range (``campaign.results.scaling``);
 5. the N_G -> inf row (``campaign.results.finitesize``);
 6. the histograms summed per cell (``campaign.results.cells``);
 7. the variants and systems compared (``tradeoff``, ``systems``), the linear response (``response``).
 
-Its result, a ``Reduction``, is written by ``campaign.results.writing`` and drawn by
-``campaign.results.plots``. The output layout (``/reduced`` group and the tables) is documented
+Its result, a ``Reduction``, is written by ``campaign.report.writing`` and drawn by
+``campaign.report.plots``. The output layout (``/reduced`` group and the tables) is documented
 in docs/REDUCED.md.
 """
 
@@ -29,7 +29,7 @@ from campaign.errors import UserError
 from campaign.results import fits
 from campaign.results.cells import area_distributions, cell_table, count_notes, grid, histograms
 from campaign.results.finitesize import extrapolate
-from campaign.results.reading import ladder_variants, load_finished, variant_systems
+from campaign.results.finished import ladder_variants, load_finished, variant_systems
 from campaign.results.scaling import (DEFAULT_FIT_OVERLAP, fit_rule_name, fit_rule_text, is_default_range,
                                       scaling_fits)
 
@@ -56,7 +56,7 @@ class Settings:
 
 
 def three_disk_peaks(system: dict) -> dict:
-    """The exact three-disk peaks of a variant's system (``reading.variant_systems``): of its discrete
+    """The exact three-disk peaks of a variant's system (``finished.variant_systems``): of its discrete
     radii; for a continuous size distribution only the equal-disk edge triangle
     (``alpha_e = sqrt(3)/4``, ``theta = pi/3``), the centre of the continuum of peaks a
     polydisperse packing smears out, and no ``alpha_v`` (its scale, the packing's largest
@@ -127,14 +127,14 @@ class Table:
     N_G the inputs of the shared-exponent fit (cell means, errors, bootstrap replicas, the cells of
     ``grid`` they come from), or why the size did not enter."""
 
-    everything: object           # campaign.results.reading.Finished: every finished packing
+    everything: object           # campaign.results.finished.Finished: every finished packing
     good: np.ndarray             # which of them are usable
     reasons: dict
     fin: object                  # the usable ones
     grid: object                 # campaign.results.cells.Grid
     cells: dict
     notes: list
-    systems: dict                # variant -> its system (reading.variant_systems)
+    systems: dict                # variant -> its system (finished.variant_systems)
     fit_records: list
     residuals: np.ndarray
     rows: list
@@ -145,10 +145,10 @@ class Table:
 
 def reduce_table(everything, s: Settings, per_size=True) -> Table:
     """Steps 1-5 of ``reduce_campaign`` on the finished packings ``everything``
-    (``campaign.results.reading.Finished``, from the store or built from arrays): the cells, their
+    (``campaign.results.finished.Finished``, from the store or built from arrays): the cells, their
     statistics, the scaling fits per size and the ``N_G -> inf`` row, with their bootstrap errors.
     The same function serves ``campaign reduce`` and the rounds of a campaign with precision
-    targets (``campaign.results.allocation``), so both see the same table and errors (those rounds
+    targets (``campaign.precision.allocation``), so both see the same table and errors (those rounds
     need the ``N_G -> inf`` row only: ``per_size=False`` leaves the per-size fits out, which that
     row does not use)."""
     # statistics use the converged packings whose identities hold; the others are

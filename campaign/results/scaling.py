@@ -15,7 +15,7 @@ import numpy as np
 from campaign.errors import UserError
 # The four laws fitted per (variant, N) with their table keys, the row's keys and the default fit range
 # (docs/REDUCED.md, "The fit range"): defined with the spec, whose precision targets name them.
-from campaign.plan.precision import DEFAULT_FIT_OVERLAP, FITS, TABLE_KEYS, typical_overlap  # noqa: F401
+from campaign.plan.targets import DEFAULT_FIT_OVERLAP, FITS, TABLE_KEYS, typical_overlap  # noqa: F401
 from campaign.results import fits
 from campaign.results.cells import Grid
 

@@ -68,7 +68,7 @@ def compare(rows, extrapolated, systems, reference="default") -> list:
 
     ``rows``: the reducer's table rows (per variant and ``N_G``); ``extrapolated``: variant ->
     the ``N_G -> inf`` entries; ``systems``: variant -> ``{"exponent", "sizes", "box"}``
-    (``campaign.results.reading.variant_systems``; a variant it does not list has the "default" one's
+    (``campaign.results.finished.variant_systems``; a variant it does not list has the "default" one's
     system). ``reference``: the variant ``beta_Z_diff`` is taken against (the first variant
     when it is absent).
 

@@ -1,7 +1,7 @@
 """The rounds of a campaign with precision targets, on the master's side (docs/PRECISION.md).
 
 A precision campaign's task table holds seeds ``0 .. max_seeds - 1`` of every cell; only the seeds
-its decisions give out run. Decision ``k`` (``campaign.results.allocation``, reached through the
+its decisions give out run. Decision ``k`` (``campaign.precision.allocation``, reached through the
 ``planner`` that ``campaign run`` hands in: the run wing does not reduce) says, per cell, how many
 seeds rounds ``0 .. k`` hold (``allocated``) and how many more the next round starts with
 (``early``). It is made when every task of rounds ``0 .. k - 1`` is finished, from those tasks only,
@@ -25,7 +25,7 @@ import numpy as np
 
 from campaign.storage.store import PENDING
 
-#: decisions that end a campaign (``campaign.results.allocation.ACTIONS``, the others go on)
+#: decisions that end a campaign (``campaign.precision.allocation.ACTIONS``, the others go on)
 STOPS = ("met", "budget", "max_seeds", "unreachable")
 
 

@@ -5,7 +5,7 @@ What carries a checksum (docs/STORE.md, "Checksums, verify and repair"): every p
 dataset and the bin edges (HDF5's ``fletcher32`` filter, checked by HDF5 on every read), every
 configuration (attribute ``crc32`` of its arrays' bytes, ``config_crc``, checked by
 ``check_configuration``), every failure record (``failure_crc``) and the list of the scalars'
-names. The writers (``campaign.storage.store``, ``campaign.storage.storefile``) and every reader use this module;
+names. The writers (``campaign.storage.store``, ``campaign.storage.layout``) and every reader use this module;
 finding damage (``campaign verify``'s scan, and ``read_failure``, the error a reader raises when a
 read of the store fails) is ``campaign.storage.integrity``, which builds on it, and repairing it
 ``campaign.storage.repair``.

@@ -149,7 +149,7 @@ class GuardedFile:
 
     What failed is kept here, for whoever holds the handle: ``failed`` (a write the file system
     refused) and ``poisoned``: a write step through this handle failed (``poison()``, by
-    ``campaign.storage.storespace``'s ``write_step``), so HDF5's cache may hold blocks that never
+    ``campaign.storage.space``'s ``write_step``), so HDF5's cache may hold blocks that never
     reached the disk and nothing may be written through it any more; the store then closes it
     with ``discard()`` first.
     """

@@ -151,7 +151,7 @@ class Scan:
 
     # ---- root attributes and the spec
     def _root(self):
-        from campaign.storage.storefile import FORMAT_VERSION, SCHEMA, format_problem
+        from campaign.storage.layout import FORMAT_VERSION, SCHEMA, format_problem
 
         f, r = self.f, self.report
         attrs, unreadable = {}, []
@@ -233,7 +233,7 @@ class Scan:
     def _layout(self):
         """The groups and names the layout has: a damaged link name shows as a member missing and a
         stray one."""
-        from campaign.storage.storefile import TASK_FIELDS
+        from campaign.storage.layout import TASK_FIELDS
 
         f, r = self.f, self.report
         spec = r.spec
@@ -347,7 +347,7 @@ class Scan:
         try:
             r.B = int(f["tasks/attempts"].chunks[0])
         except Exception:  # noqa: BLE001
-            from campaign.storage.storefile import BLOCK_ROWS
+            from campaign.storage.layout import BLOCK_ROWS
 
             r.B = max(1, min(BLOCK_ROWS, r.T))
 

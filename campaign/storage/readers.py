@@ -1,7 +1,7 @@
 """Reading a campaign store from outside its run (``campaign status``, ``validate``, ``slurm``,
 ``draw``): open it read-only and checked (``open_store``), retry a read caught in the middle of a
 run's flush (``read_retrying``), the task table's columns (``read_summary``). The reducer has its own
-reader, ``campaign.results.reading``.
+reader, ``campaign.results.finished``.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 
 from campaign.errors import StoreDamaged, UserError
-from campaign.storage.storefile import TASK_FIELDS, check_format
+from campaign.storage.layout import TASK_FIELDS, check_format
 
 def open_store(path):
     """Open a campaign store read-only (``locking=False``: fine while a run writes it).

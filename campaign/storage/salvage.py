@@ -3,10 +3,10 @@ its file (the journal is replayed on top), and ``campaign verify --repair``
 (``campaign.storage.repair``, which says what to drop) (docs/STORE.md, "Kill and resume" and
 "Checksums, verify and repair").
 
-The new file is made by ``campaign.storage.storefile.create_file`` (under a temporary name, the
+The new file is made by ``campaign.storage.layout.create_file`` (under a temporary name, the
 space reserved first, renamed into place when complete): a full disk leaves the damaged store as
 it was. Calls go one way: ``campaign.storage.store`` and ``campaign.storage.repair`` -> here ->
-``campaign.storage.storefile`` (the layout) and ``campaign.storage.checksums``.
+``campaign.storage.layout`` (the layout) and ``campaign.storage.checksums``.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from campaign.storage.checksums import (PROTECTION_ATTR, ROUNDS_GROUP, SUMS_GROU
                                         checksums_on, configuration_problem, create_fill_sums, failure_problem,
                                         good_scalar_name, has_sums, protection_text, sums_name, write_checkpoint,
                                         write_configuration, write_failure, write_scalar_names, write_sums)
-from campaign.storage.storefile import (DONE, FAILED, PENDING, ROW_FIELDS, create_file, dataset_kwargs,
+from campaign.storage.layout import (DONE, FAILED, PENDING, ROW_FIELDS, create_file, dataset_kwargs,
                                         fill_value)
 
 

@@ -8,7 +8,7 @@ Two files per campaign, written only by the master:
   grid; a chunk never written costs nothing. ``tasks/status`` (one byte a task, not
   compressed) is the commit marker: a row counts once its status says so. Its layout
   (with a block of rows built from the tasks' records), creation and checking:
-  ``campaign.storage.storefile``; the salvage of a damaged one: ``campaign.storage.salvage``.
+  ``campaign.storage.layout``; the salvage of a damaged one: ``campaign.storage.salvage``.
 * ``OUT.journal``: a write-ahead log (``campaign.storage.journal``). One length-prefixed,
   CRC-checked record per finished task, written with a single ``write()`` before
   anything touches the HDF5 file. At a *checkpoint* (when the journal passes
@@ -36,7 +36,7 @@ with the damage are counted and run again: packings are pure functions of the sp
 
 A full disk (or quota, or a file system that fails) never leaves the two files
 disagreeing: every HDF5 write step first reserves the space it may need and raises
-``OutOfSpace`` before writing anything when it is not there (``campaign.storage.storespace``:
+``OutOfSpace`` before writing anything when it is not there (``campaign.storage.space``:
 the estimate, the reservation, what finishing needs; the store hands it data, the blocks its
 file holds once when it opens it, and it never calls back); a journal append that fails is cut
 back to the previous record. Should HDF5 itself still meet a failed write, its handle is
@@ -51,7 +51,7 @@ state and counters, with a checksum) at the next flush; the task stays pending, 
 removed in the write step that commits the task's row. A checkpoint that cannot be read or does
 not match its checksum is ignored (``Store.suspended``): its task starts over.
 
-Calls go one way: here -> ``storespace``, ``salvage``, ``storefile``, ``checksums``,
+Calls go one way: here -> ``space``, ``salvage``, ``layout``, ``checksums``,
 ``journal``, ``faults``; none of them imports this module.
 """
 
@@ -67,7 +67,7 @@ import numpy as np
 
 from campaign.errors import OutOfSpace, StoreDamaged, UserError
 from campaign.storage.faults import GuardedFile, write_fault
-from campaign.storage.storefile import BLOCK_ROWS  # rows per chunk of every per-task dataset
+from campaign.storage.layout import BLOCK_ROWS  # rows per chunk of every per-task dataset
 from campaign.storage.checksums import (CHECKPOINT_ATTRS, CHECKPOINT_KEYS, CONFIG_KEYS, ROUNDS_GROUP, BlockMismatch,
                                         check_configuration, check_rows, checkpoint_problem, checksums_on,
                                         create_fill_sums, has_sums, read_rounds, sums_name, unprotected_note,
@@ -75,13 +75,13 @@ from campaign.storage.checksums import (CHECKPOINT_ATTRS, CHECKPOINT_KEYS, CONFI
                                         write_scalar_names, write_sums)
 from campaign.storage.journal import (  # noqa: F401 - part of this module's interface
     MAX_RECORD, Journal, decode_payload, encode_record, read_journal, scan_journal)
-from campaign.storage.storefile import (  # noqa: F401 - part of this module's interface
+from campaign.storage.layout import (  # noqa: F401 - part of this module's interface
     CHUNK_CACHE, COMPRESSION, DONE, ERROR_LEN, FAILED, FORMAT_VERSION, HOST_LEN, OLD_FORMAT_HELP, PENDING,
     ROW_FIELDS, SCHEMA, SLACK, TASK_FIELDS, VARIANT_LEN, check_file, check_format, create_file, dataset_kwargs,
     fill_value, fixed, format_problem, fsync_path, load_state, row_dtype, row_values)
 from campaign.storage.salvage import salvage
-from campaign.storage.storefile import block_values, column_block
-from campaign.storage.storespace import StoreSpace
+from campaign.storage.layout import block_values, column_block
+from campaign.storage.space import StoreSpace
 
 FLUSH_SECONDS = 0.5     # staged complete blocks are written at least this often
 HOLD_SECONDS = 2.0      # a block still partly pending is written after waiting this long
@@ -351,7 +351,7 @@ class Store:
 
     # ---- a precision campaign's rounds (campaign.run.rounds)
     def record_round(self, record: dict):
-        """Keep one round's decision (``campaign.results.allocation.Decision.to_record``): into the
+        """Keep one round's decision (``campaign.precision.allocation.Decision.to_record``): into the
         journal first, then ``/precision/roundKKKK`` at the next flush. A round decided again (after a
         lost record) replaces its record."""
         text = json.dumps(record, sort_keys=True, separators=(",", ":"), allow_nan=False)

@@ -17,7 +17,7 @@ from campaign.storage.damage import Damage
 def identities(spec) -> dict:
     """The task table's identity columns (id, variant, N, E, seed) as the spec gives them, stored types."""
     from campaign.plan.tasks import expand
-    from campaign.storage.storefile import VARIANT_LEN, fixed
+    from campaign.storage.layout import VARIANT_LEN, fixed
 
     tasks = expand(spec)
     return {"id": np.array([t.id.encode() for t in tasks], "S32"),
@@ -61,7 +61,7 @@ def journal_rows(scan):
     row the store holds for it, where both say done. A row that differs was read from another place, or
     changed since it was written: a repair drops it, and the next run replays the record."""
     from campaign.storage.journal import scan_journal
-    from campaign.storage.storefile import DONE, row_values
+    from campaign.storage.layout import DONE, row_values
 
     r = scan.report
     if scan.summed:  # the block checksums say it all

@@ -4,7 +4,7 @@ reservation around every write step (and what a failed one leaves), and what fin
 campaign needs on disk.
 
 Calls go one way: ``campaign.storage.store`` -> here -> ``campaign.storage.faults`` (reserving,
-releasing, classifying a failed write) and ``campaign.storage.storefile`` (the layout: dtypes,
+releasing, classifying a failed write) and ``campaign.storage.layout`` (the layout: dtypes,
 fill values, a block's columns built from its rows, as the store writes them). The store hands
 over what an estimate needs (the blocks its file holds when it opens it, its staged records, its
 scalar names, the datasets it has just written); nothing here calls back into it, and nothing of
@@ -16,7 +16,7 @@ HDF5 may place a rewritten chunk at the end of the file, so each counts in full:
 times the compression ratio of its column, plus a quarter. The ratios are learnt from the
 chunks the store has written (the largest of the last eight, per column), and before there are
 any, by compressing the block about to be written (built as the store builds it:
-``storefile.column_block``) with HDF5's own filters (shuffle, then deflate level 1).
+``layout.column_block``) with HDF5's own filters (shuffle, then deflate level 1).
 Configurations and failure records are not compressed; new datasets, grown symbol tables and
 chunk indices, and a large file's larger structures get fixed room (``slack``). ``tests/test_store.py::test_reservations_cover_every_write_step`` checks that no
 step grows the file by more than it reserved.
@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from campaign.storage.faults import release, reserve, write_fault
-from campaign.storage.storefile import FAILED, ROW_FIELDS, SLACK, block_values, column_block, row_dtype
+from campaign.storage.layout import FAILED, ROW_FIELDS, SLACK, block_values, column_block, row_dtype
 
 
 class StoreSpace:

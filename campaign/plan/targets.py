@@ -6,7 +6,7 @@ cell (variant, N_G, E_G), then rounds: after each, the reducer's ``N_G -> inf`` 
 decide which cells get more seeds, until every target is met, the ``budget`` is spent, or the
 cells that matter hold ``max_seeds``. Its task table is the grid with seeds ``0 .. max_seeds - 1``
 in every cell; a round gives a cell its next integers. The allocation is decided by
-``campaign.results.allocation`` and recorded in the store; this module only reads the spec.
+``campaign.precision.allocation`` and recorded in the store; this module only reads the spec.
 
 The reducer's fit range and its table keys are defined here (the plan wing), so that a spec can be
 checked against them before anything runs; ``campaign.results.scaling`` uses them.

@@ -1,7 +1,7 @@
 """A precision campaign's decisions from its packings: the planner a run asks (``Planner``, through
 ``campaign.run.rounds``), the same rounds without a store (``run_in_memory``, for the checks of
 docs/PRECISION.md), and the plan before a pilot from the prior (``plan_from_prior``, for ``campaign
-validate`` and ``campaign slurm``). The decisions themselves are ``campaign.results.allocation``'s.
+validate`` and ``campaign slurm``). The decisions themselves are ``campaign.precision.allocation``'s.
 """
 
 from __future__ import annotations
@@ -10,11 +10,11 @@ import math
 
 import numpy as np
 
-from campaign.plan.precision import law_of
+from campaign.plan.targets import law_of
 from campaign.results import fits
-from campaign.results.allocation import (MIN_FIT_PACKINGS, State, Target, fill_costs, plan_greedy, smooth_costs, decide, pilot,
+from campaign.precision.allocation import (MIN_FIT_PACKINGS, State, Target, fill_costs, plan_greedy, smooth_costs, decide, pilot,
                                          seconds_per_disk_force_evaluation)
-from campaign.results.errormodel import Cells, LawModel, campaign_cells, param_index as _k
+from campaign.precision.errormodel import Cells, LawModel, campaign_cells, param_index as _k
 
 #: the scalars a decision reads (the laws' quantities and abscissae, the cost, which packings are usable)
 DECISION_SCALARS = ("E_G", "delta_Z", "A_G", "psi_O", "force_evaluations", "jam_status", "identities_ok")
@@ -23,7 +23,7 @@ DECISION_SCALARS = ("E_G", "delta_Z", "A_G", "psi_O", "force_evaluations", "jam_
 def reduce_rows(cells: Cells, attrs, rows, status, scalars, ids=None, settings=None):
     """The reducer's table (``reduce_table``, the default settings unless ``settings``) of the task
     rows ``rows`` of a campaign with cells ``cells``: their status and scalars (per row)."""
-    from campaign.results.reading import finished_from_arrays
+    from campaign.results.finished import finished_from_arrays
     from campaign.results.reduce import Settings, reduce_table
 
     c = (np.asarray(rows) // cells.seeds).astype(np.int64)
@@ -78,7 +78,7 @@ class Planner:
     reduce`` reduces them (``reduce_table`` with the default settings)."""
 
     def __init__(self, spec, tasks):
-        from campaign.storage.storefile import SCHEMA
+        from campaign.storage.layout import SCHEMA
 
         self.spec, self.tasks = spec, tasks
         self.cells = campaign_cells(spec, tasks)
@@ -275,7 +275,7 @@ def plan_from_prior(spec, tasks, prior=None) -> dict:
 def _prior_law(cells, stats, names, variant, quantity, absc, pilot_n) -> LawModel:
     """A ``LawModel`` of one variant's law on the prior's cells (``_prior_cell``), the sizes with
     ``SHARED_FIT_CELLS`` cells of a positive mean abscissa in the fit range, fitted to their means."""
-    from campaign.plan.precision import SHARED_FIT_CELLS
+    from campaign.plan.targets import SHARED_FIT_CELLS
 
     iq, ix = names.index(quantity), names.index(absc)
     in_range = cells.relevant({"x": 1})

@@ -332,7 +332,7 @@ def render(sc: Scene, *, title=None, ax=None, legend=True, scale=True, size=None
     """
     from matplotlib.collections import EllipseCollection, LineCollection, PolyCollection
 
-    from campaign.results.plots import _plt
+    from campaign.report.plots import _plt
 
     plt = _plt()
     x0, y0, x1, y1 = sc.window
@@ -615,7 +615,7 @@ def gallery(path, out, *, dpi=90):
     best = sorted(best, key=lambda r: E[r])
     chosen = [best[0], best[len(best) // 2], best[-1]] if len(best) >= 3 else best
     chosen = list(dict.fromkeys(chosen))
-    from campaign.results.plots import _plt
+    from campaign.report.plots import _plt
 
     plt = _plt()
     fig, axes = plt.subplots(1, len(chosen), figsize=(3.6 * len(chosen), 4.2), layout="constrained",

@@ -14,7 +14,7 @@ is the inverse of the Fisher information
 bootstrap carries it; pooled with the other sizes' at the cell's energy, ``_shrunk``). The same
 with a free intercept per size gives the sizes' intercept errors, and with them the reducer's
 ``sqrt(chi^2/dof)`` of its 1/N_G line where a size lies off it (``LawModel.inflation``).
-``campaign.results.allocation`` turns this into decisions.
+``campaign.precision.allocation`` turns this into decisions.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from campaign.plan.precision import in_fit_range
+from campaign.plan.targets import in_fit_range
 from campaign.results import fits
 
 #: a size whose intercept lies off the 1/N_G line by more than this many of its errors has a systematic

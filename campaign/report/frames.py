@@ -5,7 +5,7 @@
     ``variant``, ``N``, ``E``, ``seed``, ``status`` and every stored scalar under its store
     name (``A_G``, ``N_G``, ``psi_O``, ``gamma`` and ``sigma_xy`` (the cell's tilt and residual
     shear stress; absent from stores written before them), ...). ``good=True`` keeps exactly the packings the
-    reducer uses (``campaign.results.reading.first_done`` and ``usable_mask``: done, first row of its
+    reducer uses (``campaign.results.finished.first_done`` and ``usable_mask``: done, first row of its
     task id, ``jam_status == 0``, ``identities_ok == 1``); ``good=False`` every finished row.
 ``read_cells(path)``
     the reducer's per-(variant, N, E) table (``/reduced/cells``), computed by the reducer.
@@ -158,7 +158,7 @@ class Packings:
     # ------------------------------------------------------------------ reading
     def blocks(self):
         """Yield the selected packings block by block (see the class docstring)."""
-        from campaign.results.reading import first_done, usable_mask
+        from campaign.results.finished import first_done, usable_mask
 
         f, t = self._f, self._f["tasks"]
         try:

@@ -47,7 +47,7 @@ def usable_mask(scalars, n):
     converged (``jam_status == 0``) and the analysis identities held (``identities_ok == 1``).
     ``scalars`` maps names to (n,) arrays; ``reasons`` maps each failed condition to its (n,)
     bool mask. Without one of the two columns a packing is taken as passing that condition.
-    The one definition of the packings the reducer uses (also ``campaign.results.frames``)."""
+    The one definition of the packings the reducer uses (also ``campaign.report.frames``)."""
     reasons = {}
     if "jam_status" in scalars:
         reasons["jam_status != 0"] = ~(np.asarray(scalars["jam_status"]) == 0)

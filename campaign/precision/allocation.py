@@ -46,9 +46,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from campaign.plan.precision import law_of
+from campaign.plan.targets import law_of
 from campaign.results import fits
-from campaign.results.errormodel import (NO_DEPENDENCE_P, Cells, LawModel, inverse, build_law,
+from campaign.precision.errormodel import (NO_DEPENDENCE_P, Cells, LawModel, inverse, build_law,
                                          param_index as _k)
 
 #: a round commits at most this multiple of what the campaign has spent before it

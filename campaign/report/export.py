@@ -1,7 +1,7 @@
 """``campaign export``: a store's packings as CSV, Parquet, GSD or extended XYZ.
 
 ``export(path, out, fmt, variant=None, good=True) -> dict`` writes ``out`` and returns what it
-wrote. The rows are those of ``campaign.read_packings`` (``campaign.results.frames.Packings``, read in
+wrote. The rows are those of ``campaign.read_packings`` (``campaign.report.frames.Packings``, read in
 blocks, histograms never read), in store order:
 
 * ``csv``, ``parquet``: one row per packing, columns ``row``, ``id``, ``variant``, ``N``, ``E``,
@@ -72,7 +72,7 @@ def require_format(fmt):
 def export(path, out, fmt, *, variant=None, good=True) -> dict:
     """Write the selected packings of the store ``path`` to ``out`` in ``fmt`` (see the module
     docstring). Returns ``{"format", "out", "packings", "without_configuration"}``."""
-    from campaign.results.frames import Packings
+    from campaign.report.frames import Packings
 
     if fmt not in FORMATS:
         raise UserError(f"--format: expected one of {', '.join(FORMATS)}, got {fmt!r}")

@@ -1,7 +1,7 @@
 """The campaign store's HDF5 layout: its names and types, the format version, a block of rows
 built from the tasks' records, creating a fresh file, and checking an existing one against a spec.
 
-``campaign.storage.store`` (the master's writer), ``campaign.storage.storespace`` (the space
+``campaign.storage.store`` (the master's writer), ``campaign.storage.space`` (the space
 accounting), ``campaign.storage.salvage`` (a damaged store's readable rows copied into a new file)
 and the readers use these; nothing here imports them back. The store re-exports the names it held
 before the layout was split out. The layout itself is documented in docs/STORE.md.

@@ -488,7 +488,7 @@ def fig_protocols(red, plt):
     with their standard errors; (b) the same near jamming (the fit range's cells, where the
     N_G -> inf values come from); (c) each variant's difference from the reference in its errors
     (z), per N_G -> inf quantity, filled where it is significant at the family-wise rate (Holm)."""
-    from campaign.plan.precision import typical_overlap
+    from campaign.plan.targets import typical_overlap
     from campaign.results.protocols import LABELS, QUANTITIES
 
     prot = red.protocols

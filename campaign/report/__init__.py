@@ -1,0 +1,4 @@
+"""What people read, made from a ``Reduction`` (``campaign.results``) or a store: the tables,
+CSVs, JSON and ``/reduced`` group written (``writing``), the figures (``plots``), pictures of one
+packing (``draw``), DataFrames (``frames``) and exports to other programs' formats (``export``).
+Imports from every wing below it; nothing but the commands imports it."""
