@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# A SLURM cluster on this machine, for the test suite (tests/test_slurm_cluster.py) and for trying
+# A SLURM cluster on this machine, for the test suite (tests/run/test_slurm_cluster.py) and for trying
 # the generated batch scripts by hand: one node, or K nodes. Needs root (the daemons and the jobs run
 # as root).
 #

@@ -3,7 +3,7 @@
 * The tests' own modules (``references``: the oracles, ``helpers``: packing makers, fakes and
   store readers, ``synthetic_store``) are importable by their plain names from every test
   module, whichever import mode pytest runs with. No test module imports another
-  (``tests/test_docs.py``).
+  (``tests/project/test_docs.py``).
 * The quick suite and the full one: ``python -m pytest`` runs the tests not marked ``slow``
   (the README's test command: minutes); ``--full`` runs every test (``.ci/run``: the SLURM
   cluster, the full-disk and orphan runs, the CUDA simulator and the PTX compile, the long

@@ -1,6 +1,6 @@
 """Shared helpers of the tests: packing makers, a fake communicator, store readers.
 
-Test modules import these instead of importing each other (``tests/test_docs.py`` checks that
+Test modules import these instead of importing each other (``tests/project/test_docs.py`` checks that
 none does). The oracles the kernels are compared with are in ``references.py``.
 """
 
@@ -176,7 +176,7 @@ def clipped_area(poly, x0, y0, x1, y1):
     return abs(polygon_area(np.array(pts)))
 
 
-#: The ladder campaign of tests/test_ladder.py (also reduced by tests/test_tradeoff.py).
+#: The ladder campaign of tests/run/test_ladder.py (also reduced by tests/results/test_tradeoff.py).
 LADDER_SPEC = """\
 name: lad
 seed: 3
@@ -187,7 +187,7 @@ observables: [scalars]
 
 
 #: A synthetic campaign with ladder children, configurations and (with CAMPAIGN_SYNTHETIC_FAIL=seed:1)
-#: failure records: the damaged stores of tests/test_integrity.py and tests/test_reader_damage.py.
+#: failure records: the damaged stores of tests/storage/test_integrity.py and tests/storage/test_reader_damage.py.
 DAMAGE_SPEC = """\
 name: integ
 seed: 5

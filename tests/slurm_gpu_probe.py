@@ -1,4 +1,4 @@
-"""The task function of the GPU jobs in tests/test_slurm_cluster.py: the synthetic task, whose
+"""The task function of the GPU jobs in tests/run/test_slurm_cluster.py: the synthetic task, whose
 warm-up also records, per process, what that process was given and chose.
 
 Each warm-up (the master's; the node's, by the first rank of every other node; every worker's

@@ -17,7 +17,7 @@ from the base's (and ``variant_system``, any other ``system`` override).
 Histograms are Poisson counts around fixed shapes (uniform angles with the
 three-disk peaks, etc.); they only need to be plausible and additive.
 
-Used by tests/test_reduce.py, tests/test_plots.py and benchmarks/bench_reduce.py.
+Used by tests/results/test_reduce.py, tests/report/test_plots.py and benchmarks/bench_reduce.py.
 """
 
 from __future__ import annotations

@@ -92,7 +92,7 @@ def expand(spec: Spec) -> list[Task]:
 
     Ids and seed words are the hashes of ``task_id`` and ``seed_entropy``; the canonical JSON
     is assembled from its constant and varying parts (sorted keys: E, N, campaign_seed,
-    protocol, seed, system), which tests/test_tasks.py checks against those functions.
+    protocol, seed, system), which tests/plan/test_tasks.py checks against those functions.
     """
     cseed = int(spec.seed)
     out = []

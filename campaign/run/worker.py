@@ -327,7 +327,7 @@ def _matches(spec: str, payload) -> bool:
     return False
 
 
-#: Bins per histogram of kernels.analysis.DEFAULT_BINS (tests/test_store.py checks they agree);
+#: Bins per histogram of kernels.analysis.DEFAULT_BINS (tests/storage/test_store.py checks they agree);
 #: written out so that the synthetic task does not import numba.
 SYNTHETIC_BINS = {"contact_angle": 180, "contact_length": 160, "z_g": 21, "z_v": 41, "alpha_e": 200,
                   "alpha_v": 400, "fictitious_length": 300, "radial_grains": 400, "radial_contacts": 300}

@@ -18,7 +18,7 @@ chunks the store has written (the largest of the last eight, per column), and be
 any, by compressing the block about to be written (built as the store builds it:
 ``layout.column_block``) with HDF5's own filters (shuffle, then deflate level 1).
 Configurations and failure records are not compressed; new datasets, grown symbol tables and
-chunk indices, and a large file's larger structures get fixed room (``slack``). ``tests/test_store.py::test_reservations_cover_every_write_step`` checks that no
+chunk indices, and a large file's larger structures get fixed room (``slack``). ``tests/storage/test_store.py::test_reservations_cover_every_write_step`` checks that no
 step grows the file by more than it reserved.
 """
 

@@ -1,11 +1,11 @@
 """Writes tests/data/v027-plain.h5 and v027-configs.h5 (with their journals): stores as jamming-campaign
-0.2.7 wrote them, before the block checksums (tests/test_unprotected.py). Run it with 0.2.7's code:
+0.2.7 wrote them, before the block checksums (tests/storage/test_unprotected.py). Run it with 0.2.7's code:
 
     git worktree add --detach /tmp/v027 cd07d52          # the commit of 0.2.7
     PYTHONPATH=/tmp/v027 python tests/data/v027_stores.py
 
 Synthetic tasks (no kernels), blocks of 4 rows (so that a small store has many chunks), the specs of
-tests/test_reader_damage.py; the second keeps configurations and has failed tasks (every task of seed 1).
+tests/storage/test_reader_damage.py; the second keeps configurations and has failed tasks (every task of seed 1).
 The specs are written out here on purpose, not imported from the tests: this script runs on 0.2.7's
 tree, and the stores it wrote are frozen whatever the tests' specs become.
 """

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), ROOT / "slurm" / "README.md"]
 
 
@@ -70,7 +70,7 @@ def _md_names(path):
 
 def test_citing_files_are_found():
     files = {p.relative_to(ROOT).as_posix() for p in _citing_files()}
-    for expected in ("README.md", "docs/CONTRACTS.md", "kernels/network.py", "tests/test_docs.py",
+    for expected in ("README.md", "docs/CONTRACTS.md", "kernels/network.py", "tests/project/test_docs.py",
                      "campaigns/ci.yaml"):
         assert expected in files
     assert not any(f.startswith((".venv/", ".git/")) for f in files)

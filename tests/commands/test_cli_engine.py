@@ -15,7 +15,7 @@ import pytest
 from campaign import cli
 from campaign.storage.progress import Progress
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SPEC = """\
 name: cli
 seed: 9

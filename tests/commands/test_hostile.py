@@ -28,7 +28,7 @@ from hypothesis import strategies as st
 
 from campaign import cli
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 LIMIT = 10.0  # seconds any one run may take ("a few seconds"; generous for a shared machine)
 FAST = settings(max_examples=40, deadline=None, derandomize=True,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])

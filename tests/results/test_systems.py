@@ -19,7 +19,7 @@ from campaign.results.finished import variant_systems
 from campaign.results.tables import fmt_err
 from campaign.report.writing import write_outputs
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PNG = b"\x89PNG\r\n\x1a\n"
 
 # three systems obeying beta_E = beta_Z / (2 alpha): alpha 2 and 2.5 share beta_Z = 1, alpha 3

@@ -31,7 +31,7 @@ from campaign.storage.checksums import CHECKPOINT_KEYS
 from campaign.storage.store import Store
 from helpers import SKIP_RUN_DATASETS, assert_same_contents, cuda_missing, store_contents, synthetic_run
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
 
 GPU_SPEC = """\

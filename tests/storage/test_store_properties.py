@@ -477,7 +477,7 @@ TWO_SYSTEMS = {"sizes": [16, 24, 32], "energies": [1e-5, 1e-7, 1e-8, 1e-9], "see
                "flags": "some_bad", "histograms": "zero", "refused": False, "seed": 5}
 
 
-@pytest.mark.slow  # every figure of two stores: tests/test_plots.py draws them in the quick suite
+@pytest.mark.slow  # every figure of two stores: tests/report/test_plots.py draws them in the quick suite
 @settings(max_examples=2, deadline=None, derandomize=True, database=None,
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 @given(campaigns(variant=st.just(False)))  # every figure is drawn, about half a second each: one system

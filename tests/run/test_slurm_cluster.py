@@ -35,7 +35,7 @@ from helpers import (SKIP_DATASETS, durable_packings, mpich_segments, processes,
 
 pytestmark = [pytest.mark.slurm, pytest.mark.slow]
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
 CONF = os.environ.get("CAMPAIGN_TEST_SLURM")
 ENABLE = ("no SLURM cluster to test against: start one with `dir=$(slurm/testcluster.sh start)` (as root) and "

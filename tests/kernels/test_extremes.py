@@ -5,7 +5,7 @@ the analysis.
 
 Every packing test asserts what the packing promises (status, energy window, force
 balance recomputed here by brute force, the identities of docs/PHYSICS.md); every bad
-request asserts a clear refusal. ``pytest -m slow tests/test_extremes.py`` runs the
+request asserts a clear refusal. ``pytest -m slow tests/kernels/test_extremes.py`` runs the
 long ones (N = 16384, full energy ladders).
 """
 

@@ -17,7 +17,7 @@ import campaign
 from campaign import cli
 from campaign.storage.store import FORMAT_VERSION, SCHEMA
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SEMVER = re.compile(r"^(0|[1-9]\d*)\.(0|[1-9]\d*)\.(0|[1-9]\d*)$")
 #: a released entry's heading: ``## [X.Y.Z] - YYYY-MM-DD`` (Keep a Changelog); ``[Unreleased]`` is not one
 HEADING = re.compile(r"^## \[(?P<version>[^\]]+)\] - (?P<date>\d{4}-\d{2}-\d{2})\s*$", re.M)

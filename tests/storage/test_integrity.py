@@ -22,7 +22,7 @@ import pytest
 from campaign import cli
 from helpers import DAMAGE_SPEC, assert_same_contents, store_contents
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SPEC = DAMAGE_SPEC
 FAIL = "seed:1"  # the synthetic tasks of seed 1 fail: the store has failure records
 BLOCK = 4        # rows per chunk in these tests (256 in real stores): 24 tasks make 6 blocks
@@ -305,7 +305,7 @@ import contextlib, io, json, os, random, shutil, sys
 import h5py, numpy as np
 import campaign.storage.store
 from campaign import cli
-sys.path.insert(0, os.path.dirname(os.path.abspath(sys.argv[1])))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(sys.argv[1]))))  # tests/, for helpers
 campaign.storage.store.BLOCK_ROWS = int(sys.argv[6])
 ref, spec, d, n, seed = sys.argv[2], sys.argv[3], sys.argv[4], int(sys.argv[5]), int(sys.argv[7])
 from helpers import DAMAGE_SPEC, assert_same_contents, store_contents

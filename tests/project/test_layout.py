@@ -8,7 +8,7 @@ path: plan -> storage -> run | results -> precision | report -> commands -> cli 
 import ast
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _graph(package):

@@ -18,7 +18,7 @@ import pytest
 from campaign.cli import main as cli_main
 from kernels.analysis import analyze
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 EXAMPLE = DATA / "config_packing32.txt"
 REQUIRED = ["N", "N_G", "N_R", "E_G", "phi", "pressure", "A_G", "A_V", "N_C", "N_V", "N_F",
             "z_g_mean", "z_iso", "delta_Z", "psi_O", "psi_DO", "identities_ok"]

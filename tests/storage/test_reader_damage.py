@@ -255,7 +255,7 @@ def test_random_flips(store, tmp_path):
 
 # --------------------------------------------------------------------------- stores written before block checksums
 
-DATA = Path(__file__).resolve().parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 
 
 @pytest.fixture(scope="module", params=["configs", "plain"])

@@ -24,7 +24,7 @@ from kernels.gpu.state import (FX, FY, N_FL, N_IV, N_ST, NNB, R, ROWS, RX, RY, S
                                S_NCX, S_NCY, S_NG, S_RESV, S_RMAX, S_SIN_TOL, S_SKIN, S_TE, S_XY)
 from helpers import cuda_missing, require_cuda
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
 
 

@@ -12,7 +12,7 @@ from helpers import mpich_segments, remove_segments_of_killed_jobs
 
 pytestmark = pytest.mark.mpi
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
 SPEC = """\
 name: mpi
@@ -288,7 +288,7 @@ def test_newton_endgame_is_identical_for_1_2_3_workers(tmp_path):
 def test_large_ladder_starts_do_not_deadlock_under_mpi(tmp_path):
     """Ladder steps of 20000 disks (a 480 kB start, beyond MPI's eager limit) to one busy worker:
     the master's blocking send and the worker's result would wait for each other forever if the
-    step were sent while the worker is busy (tests/test_ladder.py, the same with local workers)."""
+    step were sent while the worker is busy (tests/run/test_ladder.py, the same with local workers)."""
     spec = tmp_path / "big.yaml"
     spec.write_text(SPEC.replace("N_G: [16, 32]", "N_G: [20000]").replace("seeds: 4", "seeds: 2")
                     .replace("variants: [{name: loose, force_tolerance: 1.0e-3}, {name: ladder, start: ladder}]",

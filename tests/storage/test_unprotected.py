@@ -3,7 +3,7 @@ block checksums"): every reader (status, reduce, export, plot, analyze and draw)
 unprotected, a run resuming one says it adds no checksums (and adds none), `campaign verify --repair`
 checks what can be checked and writes them anew with block checksums, keeping every value. The stores are 0.2.7's own
 (tests/data/v027_stores.py, blocks of 4 rows); the chunk-index damage sweep over them is in
-tests/test_reader_damage.py.
+tests/storage/test_reader_damage.py.
 """
 
 import contextlib
@@ -20,7 +20,7 @@ from campaign.plan.spec import parse_spec
 from campaign.plan.tasks import expand
 from campaign.storage.journal import encode_record
 
-DATA = Path(__file__).resolve().parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 NOTE = "has no block checksums (written before 0.3.0)"
 
 
@@ -122,7 +122,7 @@ def test_analyze_and_draw_name_it(configs, tmp_path):
         assert code == 0 and "block checksums" not in err, err
 
 
-@pytest.mark.slow  # every figure (25, about half a minute): tests/test_plots.py draws them in the quick suite
+@pytest.mark.slow  # every figure (25, about half a minute): tests/report/test_plots.py draws them in the quick suite
 def test_plot_names_it(configs, tmp_path):
     old, _, _ = configs
     code, out, err = _cli("plot", old, "--boot", 0, "--out", tmp_path / "fig", "--dpi", 20)

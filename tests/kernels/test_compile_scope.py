@@ -17,7 +17,7 @@ import numpy as np
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 #: One subprocess: the jams named on the command line in that order (then ``analyze`` with
 #: scalars only), their arrays into OUT.npz, and what it compiled and loaded into OUT.json.
@@ -68,7 +68,7 @@ def _cached_modules(cache):
 @pytest.mark.slow
 def test_a_fire_task_compiles_only_fire_and_gets_the_same_bits(tmp_path):
     # another minimiser first (CG, then FIRE) in one process, from a cold cache (the Newton
-    # endgame's compilation, most of a cold cache's minute, is left to tests/test_newton.py)
+    # endgame's compilation, most of a cold cache's minute, is left to tests/kernels/test_newton.py)
     everything, arrays_all = _run(tmp_path, tmp_path / "cache-all", "all", "cg", "fire")
     assert {"cg", "linesearch", "fire"} <= set(everything["modules"])
     assert {"protocol._ohern_cg", "protocol._ohern_fire", "cg._cg_core"} <= set(everything["compiled"])

@@ -309,7 +309,7 @@ def test_the_shipped_stores_reduce_to_the_documented_table():
 
     from campaign.results.tables import fmt_err
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     red = R.reduce_campaign([root / "data" / "protocols.h5", root / "data" / "protocols-more.h5"],
                             R.Settings(), distributions=False)
     text = (root / "docs" / "PROTOCOLS.md").read_text()

@@ -11,7 +11,7 @@ from campaign.errors import UserError
 from campaign.plan.spec import load_spec, packaged_spec_text, parse_spec
 from kernels.names import DEFAULT_OBSERVABLES
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 BAD = sorted((ROOT / "tests" / "bad_specs").glob("*.yaml"))
 
 MINIMAL = """\

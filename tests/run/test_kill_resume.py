@@ -27,7 +27,7 @@ from campaign.plan.spec import parse_spec
 from campaign.plan.tasks import expand
 from helpers import SKIP_DATASETS, durable_packings, store_data_and_attrs
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SPEC = """\
 name: kill
 seed: 99

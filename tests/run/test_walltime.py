@@ -23,7 +23,7 @@ from campaign.plan.tasks import expand
 from campaign.run.walltime import Deadline, deadline, parse_limit
 from helpers import SKIP_DATASETS, store_data_and_attrs
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
 SPEC = """\
 name: walltime

@@ -33,7 +33,7 @@ from campaign.storage.checksums import sums_name, write_sums
 from campaign.storage.journal import read_journal
 from campaign.storage.layout import BLOCK_ROWS
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
 
 #: three sizes, seven energies in the fit range (1e-12 .. 1e-6) and two above it; four rounds or so

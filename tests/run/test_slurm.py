@@ -1,7 +1,7 @@
 """SLURM scripts: golden files, shell syntax, chains, option errors.
 
 The golden scripts are the examples users read in slurm/examples/. After an intended change to
-the template, regenerate them with ``UPDATE_GOLDEN=1 python -m pytest tests/test_slurm.py``
+the template, regenerate them with ``UPDATE_GOLDEN=1 python -m pytest tests/run/test_slurm.py``
 and review the diff.
 """
 
@@ -22,7 +22,7 @@ from campaign.cli import main as cli_main
 from campaign.errors import UserError
 from campaign.run.slurm import SlurmOptions, chain_commands, parse_time
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 EXAMPLES = REPO / "slurm" / "examples"
 PAPER = REPO / "campaigns" / "paper.yaml"
 GPU_LARGE = REPO / "campaigns" / "gpu-equivalence-large.yaml"  # a spec with device: gpu tasks
@@ -417,7 +417,7 @@ def _worker_visible(context):
 
 def test_master_warms_no_gpu_kernel_beside_gpu_workers(tmp_path):
     """The master compiles no GPU kernel when GPU workers run them (it would hold a GPU beside them);
-    the GPU worker warms its own (a local run; tests/test_slurm_cluster.py checks it under SLURM)."""
+    the GPU worker warms its own (a local run; tests/run/test_slurm_cluster.py checks it under SLURM)."""
     spec = tmp_path / "g.yaml"
     spec.write_text(GPU_SPEC)
     probe = tmp_path / "probe"

@@ -25,7 +25,7 @@ import pytest
 from helpers import (SKIP_DATASETS, durable_packings, mpich_segments, processes, remove_segments_of_killed_jobs,
                      store_data_and_attrs)
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
 # 240 tasks keeping their configurations: about 3 MB at the journal's peak and 1.4 MB in the store.
 SPEC = """\

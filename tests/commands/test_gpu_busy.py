@@ -15,7 +15,7 @@ from campaign.commands.status import run_spans
 from campaign.run.worker import SyntheticTask, run_task
 from helpers import synthetic_run
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 SPEC = """\
 name: busy

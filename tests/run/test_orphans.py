@@ -29,7 +29,7 @@ import pytest
 
 from helpers import mpich_segments, processes, remove_segments_of_killed_jobs
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
 SPEC = """\
 name: orphans

@@ -25,7 +25,7 @@ from campaign.plan.spec import load_spec, parse_spec  # noqa: E402
 from campaign.run.worker import SyntheticTask  # noqa: E402
 from campaign.storage.configio import read_configuration  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "tests" / "data" / "config_packing32.txt"
 
 MINIMAL = """\
