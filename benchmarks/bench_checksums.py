@@ -39,7 +39,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
 def _spec(n_tasks):
-    from campaign.plan.spec import parse_spec
+    from campaign.plan.parse import parse_spec
 
     seeds = max(1, n_tasks // 10)
     return parse_spec(f"name: cks\nseed: 1\ngrid: {{N_G: [16], E_G: {{log_range: [1.0e-10, 1.0e-1], per_decade: 1}}, "

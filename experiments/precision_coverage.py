@@ -34,7 +34,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import fit_rules  # noqa: E402 - the generator of the fit-range test
 
-from campaign.plan.spec import parse_spec  # noqa: E402
+from campaign.plan.parse import parse_spec  # noqa: E402
 from campaign.plan.tasks import cost as task_cost, expand  # noqa: E402
 from campaign.precision import errormodel, planner  # noqa: E402
 from campaign.results.reduce import Settings  # noqa: E402

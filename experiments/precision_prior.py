@@ -17,7 +17,7 @@ import sys
 
 import numpy as np
 
-from campaign.plan.spec import parse_spec
+from campaign.plan.parse import parse_spec
 from campaign.results.finished import load_finished, usable_mask
 
 NAMES = ("E_G", "delta_Z", "A_G", "psi_O")

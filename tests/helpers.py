@@ -16,7 +16,7 @@ import h5py
 import numpy as np
 import pytest
 
-from campaign.plan.spec import parse_spec
+from campaign.plan.parse import parse_spec
 from campaign.plan.tasks import expand
 from campaign.run.worker import SyntheticTask, run_task
 from campaign.storage.store import Store, read_journal

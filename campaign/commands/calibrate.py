@@ -99,7 +99,7 @@ def _store_records(path, seeds):
     """The store's finished packings as fit records, and what was skipped (their protocols are not
     in the model)."""
     from campaign.plan.calibration import _fixed_factor
-    from campaign.plan.spec import parse_spec
+    from campaign.plan.parse import parse_spec
     from campaign.report.frames import Packings
 
     with Packings(path, good=False) as pk:

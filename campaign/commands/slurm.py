@@ -128,7 +128,7 @@ def _precision_estimate(spec, tasks, results, cal, options):
 def _main(args, cal) -> int:
     from campaign.run.slurm import (SlurmOptions, advice_text, advise, chain_commands, refuse_without_gpu_tasks,
                                     render_script)
-    from campaign.plan.spec import load_spec
+    from campaign.plan.parse import load_spec
 
     spec = load_spec(args.spec)
     results = Path(args.results or spec.output or f"results/{spec.name}.h5")

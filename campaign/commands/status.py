@@ -399,7 +399,7 @@ def _remaining_core_hours(attrs, s):
     same, so the sum over the unfinished tasks is the count per cell times the cell's estimate."""
     from campaign.plan.costmodel import CostModel
     from campaign.errors import UserError
-    from campaign.plan.spec import parse_spec
+    from campaign.plan.parse import parse_spec
 
     try:
         spec = parse_spec(str(attrs["spec_yaml"]), "the file's spec")

@@ -24,7 +24,7 @@ def main(args) -> int:
 
 def _main(args, cal) -> int:
     from campaign.storage.progress import fmt_duration
-    from campaign.plan.spec import load_spec
+    from campaign.plan.parse import load_spec
     from campaign.errors import UserError
     from campaign.plan.tasks import energy_floor_problems, estimate, expand, task_cost
     from campaign.plan.calibration import calibrated_on, machine

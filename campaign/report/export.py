@@ -148,7 +148,8 @@ def variant_types(attrs) -> dict:
     """``{variant: (species names, exponent, cell)}`` from the spec stored in the file (``cell``:
     the protocol's, "fixed" or "shear"); a spec this version cannot read gives the paper's system
     (A, B; exponent 2) in a fixed cell."""
-    from campaign.plan.spec import System, parse_spec
+    from campaign.plan.spec import System
+    from campaign.plan.parse import parse_spec
 
     def describe(system, protocol=()):
         names = ("A",) if system.sizes is not None else tuple(s.name for s in system.species)

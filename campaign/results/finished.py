@@ -309,7 +309,8 @@ def variant_systems(attrs, variants=()) -> dict:
     A spec this version cannot read gives every variant the paper's system (exponent 2, the
     1.4:1 mixture).
     """
-    from campaign.plan.spec import System, parse_spec
+    from campaign.plan.spec import System
+    from campaign.plan.parse import parse_spec
 
     try:
         spec = parse_spec(str(attrs.get("spec_yaml", "")), "the stored spec")
@@ -325,7 +326,7 @@ def ladder_variants(attrs) -> set:
     """The variants of the stored spec whose packings of one seed share a history (``start:
     ladder``: each energy from the seed's packing one energy up); empty for a spec this version
     cannot read."""
-    from campaign.plan.spec import parse_spec
+    from campaign.plan.parse import parse_spec
 
     try:
         spec = parse_spec(str(attrs.get("spec_yaml", "")), "the stored spec")

@@ -159,7 +159,7 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     from campaign.storage.faults import check_writable, stop_paragraph
     from campaign.run.master import Master
     from campaign.storage.progress import Progress
-    from campaign.plan.spec import load_spec
+    from campaign.plan.parse import load_spec
     from campaign.storage.store import Store
     from campaign.plan.tasks import energy_floor_problems, expand, warm_ups
     from campaign.run.worker import resolve

@@ -380,7 +380,7 @@ def _text(v):
 def stored_spec(attrs):
     """The spec that wrote a store (its ``spec_yaml``, which must hash to its ``spec_hash``), or None:
     unreadable, or a file made otherwise (by hand, by another program) whose spec does not describe it."""
-    from campaign.plan.spec import parse_spec
+    from campaign.plan.parse import parse_spec
 
     try:
         spec = parse_spec(str(_text(attrs.get("spec_yaml")) or ""), "the stored spec")

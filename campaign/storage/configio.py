@@ -322,7 +322,7 @@ def _store_cell(fh, group):
     if len(parts) != 2 or parts[0] != "configurations" or "spec_yaml" not in fh.attrs:
         return None
     try:
-        from campaign.plan.spec import parse_spec
+        from campaign.plan.parse import parse_spec
 
         text = fh.attrs["spec_yaml"]
         spec = parse_spec(text.decode() if isinstance(text, bytes) else str(text), "the stored spec")

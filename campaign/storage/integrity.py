@@ -205,7 +205,7 @@ class Scan:
             if "spec_yaml" in attrs:
                 self.add(Damage("/@spec_yaml", "is not text", repair="none"))
             return
-        from campaign.plan.spec import parse_spec
+        from campaign.plan.parse import parse_spec
 
         try:
             spec = parse_spec(text, "the stored spec")

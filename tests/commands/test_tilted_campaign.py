@@ -21,7 +21,7 @@ import pytest  # noqa: E402
 
 from campaign import cli  # noqa: E402
 from campaign.plan import tasks  # noqa: E402
-from campaign.plan.spec import load_spec, parse_spec  # noqa: E402
+from campaign.plan.parse import load_spec, parse_spec  # noqa: E402
 from campaign.run.worker import SyntheticTask  # noqa: E402
 from campaign.storage.configio import read_configuration  # noqa: E402
 

@@ -7,7 +7,7 @@ import pytest
 
 import kernels
 from campaign.errors import UserError
-from campaign.plan.spec import parse_spec
+from campaign.plan.parse import parse_spec
 from campaign.plan.tasks import expand
 from kernels.barostat import BARO_SCALE, PRESSURE_TOL, _enthalpy_core
 from kernels.fire import _fire_core

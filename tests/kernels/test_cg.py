@@ -229,7 +229,7 @@ variants: [{name: halving, search: halving}]
 
 def test_settings_are_protocol_keys_and_part_of_the_task_identity():
     from campaign.errors import UserError
-    from campaign.plan.spec import parse_spec
+    from campaign.plan.parse import parse_spec
     from campaign.plan.tasks import expand
 
     ids = {t.variant: t.id for t in expand(parse_spec(SPEC))}

@@ -155,7 +155,7 @@ def test_jam_and_the_spec_accept_exactly_the_runnable_combinations():
     import itertools
 
     from campaign.errors import UserError
-    from campaign.plan.spec import parse_spec
+    from campaign.plan.parse import parse_spec
     from kernels.jamming import _prepare
     from kernels.names import CHOICE_DEFAULTS, CHOICES, RUNNABLE
 
@@ -203,7 +203,7 @@ def test_compile_report_names_kernels_and_summarises():
 def test_the_warm_up_covers_every_minimiser_the_tasks_use():
     """A spec whose variants (or ``endgame: auto``) use several minimisers warms each once, so no
     task's time includes a compilation; one variant, one warm-up."""
-    from campaign.plan.spec import parse_spec
+    from campaign.plan.parse import parse_spec
     from campaign.plan.tasks import expand
     from campaign.plan.tasks import warm_ups as _warm_ups
 
@@ -235,7 +235,7 @@ def test_the_analysis_helper_compiles_what_a_task_analyses():
     analysis calls (contacts, rattlers, voids, fictitious contacts, every histogram filled); the
     quickstart's spec here. Without the helper, or where it misses a kernel, the master compiles
     it: only the time is at stake."""
-    from campaign.plan.spec import load_spec
+    from campaign.plan.parse import load_spec
     from campaign.plan.tasks import expand, warm_ups
     from campaign.run.worker import KernelTask, _warm_analysis
 

@@ -472,7 +472,7 @@ def test_tiny_gpu_campaign_under_the_cuda_simulator_equals_the_emulation(tmp_pat
         seed = f["tasks/seed"][0]
         tid = f["tasks/id"][0].decode()
         pos = f[f"configurations/{tid}/positions"][()]
-    from campaign.plan.spec import load_spec
+    from campaign.plan.parse import load_spec
     from campaign.plan.tasks import expand
 
     st = subprocess.run([sys.executable, "-m", "campaign", "status", str(tmp_path / "g.h5")], env=env,
@@ -488,7 +488,7 @@ def test_tiny_gpu_campaign_under_the_cuda_simulator_equals_the_emulation(tmp_pat
 
 def test_spec_device_keys_give_their_own_ids(tmp_path):
     from campaign.errors import UserError
-    from campaign.plan.spec import load_spec
+    from campaign.plan.parse import load_spec
     from campaign.plan.tasks import expand
 
     def ids(protocol):

@@ -12,7 +12,8 @@ from campaign import cli
 from campaign.errors import UserError
 from campaign.plan import calibration, spec as spec_module
 from campaign.plan.calibration import BLOCKS, Calibration, fit, from_dict, packaged
-from campaign.plan.spec import auto_endgame, harmonic_energy, parse_spec, resolve_protocol
+from campaign.plan.spec import auto_endgame, harmonic_energy, resolve_protocol
+from campaign.plan.parse import parse_spec
 from campaign.plan.tasks import estimate, expand, task_cost
 
 SPEC = """\

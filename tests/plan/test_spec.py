@@ -8,7 +8,7 @@ import pytest
 from campaign import cli
 from campaign.plan import tasks
 from campaign.errors import UserError
-from campaign.plan.spec import load_spec, packaged_spec_text, parse_spec
+from campaign.plan.parse import load_spec, packaged_spec_text, parse_spec
 from kernels.names import DEFAULT_OBSERVABLES
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -7,7 +7,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from campaign import cli
-from campaign.plan.spec import System, parse_spec
+from campaign.plan.spec import System
+from campaign.plan.parse import parse_spec
 from campaign.plan.tasks import expand, seed_entropy, task_id
 
 BASE = """\

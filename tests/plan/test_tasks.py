@@ -4,7 +4,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from campaign.plan.spec import parse_spec
+from campaign.plan.parse import parse_spec
 from campaign.plan.tasks import cost, dispatch_order, expand, task_cost
 
 BASE = """\

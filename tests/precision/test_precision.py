@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from helpers import assert_same_contents, store_contents
 
-from campaign.plan.spec import parse_spec
+from campaign.plan.parse import parse_spec
 from campaign.plan.targets import FITS
 from campaign.plan.tasks import expand
 from campaign.precision import allocation as A

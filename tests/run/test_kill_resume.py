@@ -23,7 +23,7 @@ import h5py
 import numpy as np
 import pytest
 
-from campaign.plan.spec import parse_spec
+from campaign.plan.parse import parse_spec
 from campaign.plan.tasks import expand
 from helpers import SKIP_DATASETS, durable_packings, store_data_and_attrs
 

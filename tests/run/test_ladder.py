@@ -9,7 +9,7 @@ import pytest
 
 from campaign.errors import UserError
 from campaign.run.master import Master
-from campaign.plan.spec import parse_spec
+from campaign.plan.parse import parse_spec
 from campaign.storage.store import DONE, FAILED, PENDING, Store
 from campaign.plan.tasks import expand, task_cost
 from campaign.run.worker import SyntheticTask

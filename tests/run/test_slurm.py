@@ -346,7 +346,7 @@ def test_gpu_job_is_priced_in_gpu_hours(tmp_path, capsys, mixed):
     """With a GPU calibration a GPU job's device: gpu tasks cost their GPU-seconds (CPU seconds times the
     measured ratio), its CPU tasks their core-seconds, shared by N x G GPU workers; the wall is at
     least a launch of the calibration's batch of the longest task."""
-    from campaign.plan.spec import parse_spec
+    from campaign.plan.parse import parse_spec
     from campaign.plan.tasks import expand
 
     text = GPU_SPEC.replace("N_G: [16, 32], E_G: [1.0e-3, 1.0e-6], seeds: 3", "N_G: [1024, 4096], E_G: [1.0e-3, "

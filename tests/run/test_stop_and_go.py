@@ -380,7 +380,7 @@ def _kernel_run(tmp_path, name, steps=False, gpu=True):
     steps. Returns the master's outcome."""
     import campaign.run.gpuworker
     from campaign.run.comm import InlineComm
-    from campaign.plan.spec import load_spec
+    from campaign.plan.parse import load_spec
     from campaign.plan.tasks import expand, warm_ups
     from campaign.run.worker import KernelTask
 

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from campaign.errors import UserError
-from campaign.plan.spec import parse_spec
+from campaign.plan.parse import parse_spec
 from campaign.storage.store import DONE
 from campaign.plan.tasks import expand
 from campaign.run.walltime import Deadline, deadline, parse_limit

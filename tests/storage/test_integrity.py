@@ -196,7 +196,7 @@ def test_checksums_are_written(reference):
 def test_a_run_meeting_a_damaged_chunk_stops_and_loses_nothing(reference, blocks, tmp_path, capsys):
     """A run adding rows to a block whose chunk fails its checksum stops (exit 2, no traceback) before
     writing it back; the journal keeps what it finished; repair + rerun gives the reference."""
-    from campaign.plan.spec import parse_spec
+    from campaign.plan.parse import parse_spec
     from campaign.storage.store import Store
     from campaign.plan.tasks import expand
     from campaign.run.worker import SyntheticTask, run_task

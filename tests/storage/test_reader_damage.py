@@ -283,7 +283,7 @@ def old_store(request, tmp_path_factory):
 def _identities(path):
     """The task table's identity columns as read, and as the spec stored in the file gives them (None
     for a column that cannot be read)."""
-    from campaign.plan.spec import parse_spec
+    from campaign.plan.parse import parse_spec
     from campaign.plan.tasks import expand
 
     with h5py.File(path, "r") as f:

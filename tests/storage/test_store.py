@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from campaign.errors import UserError
-from campaign.plan.spec import parse_spec
+from campaign.plan.parse import parse_spec
 from campaign.storage.store import DONE, FAILED, PENDING, Store, encode_record, read_journal, scan_journal
 from campaign.plan.tasks import expand
 from campaign.run.worker import SyntheticTask, run_task

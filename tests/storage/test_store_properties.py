@@ -54,7 +54,7 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from campaign import cli
-from campaign.plan.spec import parse_spec
+from campaign.plan.parse import parse_spec
 from campaign.plan.tasks import expand
 from campaign.run.worker import SyntheticTask
 from campaign.storage.store import Store

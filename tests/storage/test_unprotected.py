@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from campaign import cli
-from campaign.plan.spec import parse_spec
+from campaign.plan.parse import parse_spec
 from campaign.plan.tasks import expand
 from campaign.storage.journal import encode_record
 
