@@ -64,7 +64,7 @@ stops at the top of a FIRE step (its forces just computed and counted) with comm
 the scale, rebuilds the neighbour rows from ``RX, RY`` (a row is every disk within contact plus
 the skin of those positions, in increasing index: the same rows), recomputes the forces (the
 same bits, not counted again) and continues, so that the packing ends with the bits of an
-uninterrupted search (``tests/test_gpu.py``).
+uninterrupted search (``tests/kernels/test_gpu.py``).
 
 Differences from the CPU search (``kernels.protocol``), which make a GPU packing another
 trajectory than the CPU packing of the same seed (hence its own task id, protocol key

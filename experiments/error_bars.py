@@ -2,9 +2,9 @@
 reducer itself (``campaign.results.reduce.reduce_table`` and the jamming point, default settings),
 many times over (docs/REDUCED.md, "Error bars that hold").
 
-    python experiments/coverage.py --reps 400 --json coverage.json            # every form, the base truth
-    python experiments/coverage.py --forms uniform-12 --truths all --reps 400  # every truth, one form
-    python experiments/coverage.py --reps 40 --forms unequal --truths base    # a quick look
+    python experiments/error_bars.py --reps 400 --json coverage.json            # every form, the base truth
+    python experiments/error_bars.py --forms uniform-12 --truths all --reps 400  # every truth, one form
+    python experiments/error_bars.py --reps 40 --forms unequal --truths base    # a quick look
 
 A campaign is the paper-small grid (N_G 64..1024, E_G 1e-15..1e-3, one energy per decade) whose
 packings are drawn from a truth (``TRUTHS``), with a number of packings per cell set by a form
