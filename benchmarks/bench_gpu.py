@@ -489,7 +489,7 @@ def run_campaign(spec, extra, store, time_limit, margin, grace, poll, backend, r
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         proc.send_signal(signal.SIGTERM)
         try:
-            proc.wait(timeout=grace + 40)
+            proc.wait(timeout=grace + 20)
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
