@@ -93,7 +93,15 @@ class Stopped(Exception):
     """SIGTERM or SIGINT came (``timeout``'s signal): what was measured is already written."""
 
 
+_STOPPING = []
+
+
 def _stop(signum, frame):
+    """The first SIGTERM or SIGINT stops the run; the same signal again (the process group's and
+    the one passed on by gpu_session.sh) changes nothing."""
+    if _STOPPING:
+        return
+    _STOPPING.append(signum)
     raise Stopped(signal.Signals(signum).name)
 
 
@@ -485,8 +493,6 @@ def run_campaign(spec, extra, store, time_limit, margin, grace, poll, backend, r
         interrupted = str(why)
         print(f"  {interrupted}: the campaign is stopped (its running packings collected, the store resumable)",
               flush=True)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
         proc.send_signal(signal.SIGTERM)
         try:
             proc.wait(timeout=grace + 20)

@@ -30,7 +30,7 @@
 #   GPU_SESSION_SPEC        the campaign's spec (default campaigns/paper-8192-gpu.yaml)
 #   GPU_SESSION_TIME_LIMIT  the campaign's `campaign run --time-limit` (default GPU_SESSION_LIMIT - 90,
 #                           at least half of it)
-#   GPU_SESSION_MARGIN      its --margin (default 60)
+#   GPU_SESSION_MARGIN      its --margin (default 60; a fifth of a time limit under 300 s)
 #   GPU_SESSION_GRACE       its --grace (default 20): after a SIGTERM, the seconds its running
 #                           packings get to end before they are abandoned (they start over)
 #   GPU_SESSION_BACKEND     bench_gpu.py --backend (auto, cuda, emulate; default auto)
@@ -71,6 +71,18 @@ with open(path, "a", encoding="utf-8") as fh:
 EOF
 }
 
+child=
+on_signal() {
+    say "signal: stopping the $mode mode (what it measured so far is in $jsonl)"
+    if [ -n "$child" ]; then
+        kill -TERM "$child" 2>/dev/null
+    else
+        note ended exit 143
+        exit 143
+    fi
+}
+trap on_signal TERM INT
+
 # the project: installed in place, or run from the checkout
 how=editable
 if [ "${GPU_SESSION_INSTALL:-1}" = 0 ]; then
@@ -95,22 +107,17 @@ fi
 cat "$out/gpu.txt"
 note session install "$how" gpu "$(tr '\n' ';' <"$out/gpu.txt")" dry "$dry" python "$("$py" -c 'import sys; print(sys.version.split()[0])')"
 
-child=
-on_signal() {
-    say "signal: stopping the $mode mode (what it measured so far is in $jsonl)"
-    [ -n "$child" ] && kill -TERM "$child" 2>/dev/null
-}
-trap on_signal TERM INT
-
 measure() { # measure CMD...: CMD under the time limit, its output on the terminal and in OUT/MODE.log
+    # (--foreground: CMD stays in this script's process group, so that a signal to the group, a
+    # job's end, reaches it; the campaign that bench_gpu.py starts follows it: PR_SET_PDEATHSIG)
     echo "gpu_session: $*" >>"$log"
-    timeout -k 45 "$limit" "$@" > >(tee -a "$log") 2>&1 &
+    timeout --foreground -k 45 "$limit" "$@" > >(tee -a "$log") 2>&1 &
     child=$!
-    wait "$child"
-    rc=$?
-    while kill -0 "$child" 2>/dev/null; do # (a signal the trap took ends the wait, not the command)
+    while :; do # (a signal the trap took ends the wait, not the command: wait again)
         wait "$child"
         rc=$?
+        [ "$rc" -gt 128 ] && kill -0 "$child" 2>/dev/null && continue
+        break
     done
     child=
     return "$rc"
@@ -136,6 +143,10 @@ campaign)
     store=${GPU_SESSION_STORE:-$out/campaign.h5}
     spec=${GPU_SESSION_SPEC:-campaigns/paper-8192-gpu.yaml}
     tl=${GPU_SESSION_TIME_LIMIT:-$((limit - 90 > limit / 2 ? limit - 90 : limit / 2))}
+    margin=${GPU_SESSION_MARGIN:-60}
+    if [ -z "${GPU_SESSION_MARGIN:-}" ] && [[ "$tl" =~ ^[0-9]+$ ]] && [ $((tl / 5)) -lt 60 ]; then
+        margin=$((tl / 5))
+    fi
     poll=30
     if [ "$dry" = 1 ]; then
         poll=2
@@ -156,7 +167,7 @@ EOF
         say "the store $store exists: this run goes on from it"
     fi
     measure "$py" benchmarks/bench_gpu.py "${backend[@]}" --sizes --campaign "$spec" --campaign-store "$store" \
-        --time-limit "$tl" --margin "${GPU_SESSION_MARGIN:-60}" --grace "${GPU_SESSION_GRACE:-20}" --campaign-poll "$poll" \
+        --time-limit "$tl" --margin "$margin" --grace "${GPU_SESSION_GRACE:-20}" --campaign-poll "$poll" \
         --json "$out/campaign.json" --jsonl "$jsonl"
     rc=$?
     ;;
