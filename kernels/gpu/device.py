@@ -156,28 +156,40 @@ if not config.ENABLE_CUDASIM:
         return float64(_globaltimer_u64())
 
 
-#: registers a thread may use by default: 64 lets 2048 threads share an SM (half its warps: 4
-#: blocks of 256 threads, 2 of 512, 1 of 1024). ptxas then keeps the forces' pair loop free of
-#: spills (the per-disk sums and the cold phases spill a few words to local memory, which the
-#: L1 cache holds: benchmarks/gpu_ptx.py and docs/GPU.md). An SM has 65536.
+#: registers a thread may use by default: 64 lets 1024 threads share an SM (its 65536 registers
+#: / 64: 32 warps, half of the 64 it can hold; 4 blocks of 256 threads, 2 of 512, 1 of 1024).
+#: ptxas then keeps the forces' pair loop free of spills (the per-disk sums and the cold phases
+#: spill a few words to local memory, which the L1 cache holds: benchmarks/gpu_ptx.py and
+#: docs/GPU.md).
 DEFAULT_REGISTERS = 64
-REGISTER_FILE = 65536
+REGISTER_FILE = 65536  # registers an SM holds (sm_90)
 
 
-@lru_cache(maxsize=None)
+def register_bound(nt, max_registers=None) -> int:
+    """The bound on registers per thread a kernel of ``nt`` threads per block is compiled with:
+    ``max_registers`` (default ``DEFAULT_REGISTERS``), at most 255 and at most what lets one
+    block fit an SM (``REGISTER_FILE / nt``, a multiple of 8: 128 at 512 threads, 64 at 1024).
+    Two requests with the same bound are one kernel, compiled once."""
+    return min(max_registers or DEFAULT_REGISTERS, 255, REGISTER_FILE // nt // 8 * 8)
+
+
 def kernel(nt, exponent=2.0, max_registers=None):
     """The batch kernel for blocks of ``nt`` threads and the potential's ``exponent`` (2.0,
     2.5 or None: ``kernels.gpu.batch.exponent_kind``): block ``k`` runs the O'Hern search of
     packing ``which[k]`` from its state (arguments: ``which`` and ``kernels.gpu.block``'s
-    arrays with a leading batch axis). ``max_registers`` per thread (default
-    ``DEFAULT_REGISTERS``, at most what lets one block fit an SM). Registers never change the
-    results."""
+    arrays with a leading batch axis). ``max_registers`` per thread: ``register_bound``'s
+    (default ``DEFAULT_REGISTERS``). Registers never change the results. One kernel per
+    (``nt``, ``exponent``, bound), made once per process."""
+    return _kernel(nt, exponent, register_bound(nt, max_registers))
+
+
+@lru_cache(maxsize=None)
+def _kernel(nt, exponent, regs):
     device = cuda.jit(device=True)
     put_sum, put_max, total = device(_put_sum), device(_put_max), device(_total)
     now = device(_now_simulated if config.ENABLE_CUDASIM else _now)
     search = make_block(device, device(_sync), device(_slot_add), put_sum, put_max, total, now,
                         exponent).search
-    regs = min(max_registers or DEFAULT_REGISTERS, 255, REGISTER_FILE // nt // 8 * 8)
 
     def run(which, xy, fl, nbr, ninv, iv, cells, prm, st):
         b = which[cuda.blockIdx.x]

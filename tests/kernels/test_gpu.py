@@ -340,8 +340,8 @@ print(len(loop), wide["registers"], wide["spill_store_bytes"], wide["spill_load_
 @pytest.mark.slow
 def test_the_kernel_fits_its_register_budgets(request):
     """The block's budget, assembled by ptxas for sm_90 (benchmarks/gpu_ptx.py): a 512-thread
-    block fits an SM at 128 registers a thread without a byte of spills, 64 registers (2048
-    threads an SM, the default) spill at most a few hundred bytes of stack, and the forces' pair
+    block fits an SM at 128 registers a thread without a byte of spills, 64 registers (1024
+    threads an SM, two such blocks; the default) spill at most a few hundred bytes of stack, and the forces' pair
     loop stays under 80 PTX instructions. Without the cuda extra it skips; with it, under --full,
     a compiler or a ptxas that cannot be found fails it (``require_cuda``)."""
     require_cuda(request.config, cuda_missing(compiler=True))
