@@ -26,7 +26,7 @@ import pytest
 
 from helpers import cuda_missing, require_cuda
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "benchmarks" / "gpu_session.sh"
 
 pytestmark = pytest.mark.slow
