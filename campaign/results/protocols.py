@@ -9,7 +9,8 @@ proportional to the overlap near jamming (O'Hern et al., PRE 68, 011306 (2003)),
 The cells are weighted by their packing counts over the size's pooled within-cell variance. Errors:
 a bootstrap over seeds, each replica drawing whole seeds of the size (a seed's packings at every
 energy together), which keeps the correlations of an energy ladder, whose packings of one seed
-share a history, and holds for independent packings too. ``phi_J`` and the rattler fraction are
+share a history, and holds for independent packings too (``bootstrap.seed_cell_means``: a replica
+that draws no seed of some cell is dropped). ``phi_J`` and the rattler fraction are
 then extrapolated linearly in 1/N_G (``fits.fit_inverse_n``), the convention of the rest of the
 ``N_G -> inf`` row.
 
@@ -30,7 +31,7 @@ import math
 import numpy as np
 
 from campaign.plan.targets import typical_overlap
-from campaign.results import fits
+from campaign.results import bootstrap, fits
 
 #: the N_G -> inf entries compared across protocols: the table's, then the jamming point's
 QUANTITIES = ("A_G_star_E", "beta_E", "A_G_star_Z", "beta_Z", "psi_O_star", "phi_J", "rattler_fraction")
@@ -104,13 +105,9 @@ def size_fit(E, seed, values, alpha, n_boot, rng):
         out["chi2"] = float(np.sum(w * (mean - a[0] - b[0] * x) ** 2))
     out["dof"] = C - 2
     if n_boot > 1 and S >= 2:
-        K = rng.multinomial(S, np.full(S, 1.0 / S), size=n_boot).astype(float)  # seed weights per replica
-        nb = K @ M
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mb = (K @ V) / nb
-        good = np.all(nb > 0, axis=1)
-        if good.sum() >= 2:
-            ab, _ = _line_fits(x, mb[good], nb[good])
+        nb, mb = bootstrap.seed_cell_means(M, V, n_boot, rng)
+        if len(nb) >= 2:
+            ab, _ = _line_fits(x, mb, nb)
             out["err"] = float(np.std(ab, ddof=1))
     if not np.isfinite(out["err"]):
         out["note"] = "no bootstrap error (fewer than 2 seeds)"
@@ -137,7 +134,7 @@ def jamming_point(fin, g, s, exponents) -> tuple[list, dict]:
             pick = in_range[cell] & (g.cN[cell] == n)
             rec = {"variant": v, "N_G": n}
             for k, val in cols.items():
-                rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([s.boot_seed, 11, vi, n])))
+                rng = bootstrap.generator([s.boot_seed, 11, vi, n])
                 f = size_fit(E_pack[pick], fin.seed[pick], np.asarray(val, float)[pick], alpha, s.n_boot, rng)
                 rec[k], rec[f"{k}_err"], rec[f"{k}_slope"] = f["value"], f["err"], f["slope"]
                 rec[f"{k}_chi2_dof"] = f["chi2"] / f["dof"] if f["dof"] > 0 else np.nan

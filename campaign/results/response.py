@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from campaign.results import fits
+from campaign.results import bootstrap, fits
 
 #: Gap window of the exponent fit: from 10 typical overlaps (or where the cumulative count of
 #: a cell reaches ``MIN_COUNT`` pairs, whichever is larger) up to ``h = 1e-2``.
@@ -121,14 +121,9 @@ def cumulative_exponent(edges, counts, lo, hi, per_packing=None, n_boot=200, see
     slope = _slope(e[sel], F[sel])
     err = np.nan
     if per_packing is not None and len(per_packing) > 1 and n_boot > 1:
-        rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed)))
-        n = len(per_packing)
         cum = np.cumsum(per_packing, axis=1)[:, sel].astype(float)
-        reps = []
-        for _ in range(n_boot):
-            Fb = cum[rng.integers(0, n, n)].sum(axis=0)
-            if np.all(Fb > 0):
-                reps.append(_slope(e[sel], Fb))
+        # a replica with an empty bin in the window has no slope on log axes: dropped
+        reps = [_slope(e[sel], Fb) for Fb in bootstrap.resampled_sums(cum, n_boot, seed) if np.all(Fb > 0)]
         if len(reps) > 1:
             err = float(np.std(reps, ddof=1))
     return slope, err, lo, hi, int(sel.sum()), ""

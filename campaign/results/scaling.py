@@ -16,7 +16,7 @@ from campaign.errors import UserError
 # The four laws fitted per (variant, N) with their table keys, the row's keys and the default fit range
 # (docs/REDUCED.md, "The fit range"): defined with the spec, whose precision targets name them.
 from campaign.plan.targets import DEFAULT_FIT_OVERLAP, FITS, TABLE_KEYS, typical_overlap  # noqa: F401
-from campaign.results import fits
+from campaign.results import bootstrap, fits
 from campaign.results.cells import Grid
 
 
@@ -109,9 +109,9 @@ def scaling_fits(fin, g: Grid, s, cells, notes, exponents=None, per_size=True, c
             data = [d[k] for d, k in zip(data, keep)]
             if all(len(d) >= 2 for d in data) and v in chains:
                 seeds = [fin.seed[g.packings(i)][k] for i, k in zip(usable, keep)]
-                boot = fits.bootstrap_seed_means(data, seeds, s.n_boot, seed=[s.boot_seed, gi])
+                boot = bootstrap.seed_means(data, seeds, s.n_boot, seed=[s.boot_seed, gi])
             elif all(len(d) >= 2 for d in data):
-                boot = fits.bootstrap_cell_means(data, s.n_boot, seed=[s.boot_seed, gi])
+                boot = bootstrap.cell_means(data, s.n_boot, seed=[s.boot_seed, gi])
         not_determined = []
         for quantity, absc, key, bkey in FITS:
             res = np.full(C, np.nan)

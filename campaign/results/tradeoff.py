@@ -31,6 +31,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from campaign.results import bootstrap
+
 #: per-packing quantities compared with the reference
 QUANTITIES = ("A_G", "delta_Z", "psi_O", "iso_excess")
 #: finite-size table entries compared with the reference
@@ -94,7 +96,7 @@ def compare(fin, extrapolated, reference="default", n_boot=1000, seed=20240917, 
                 ss += float(np.sum((v - v.mean()) ** 2))
                 dof += v.size - 1
         spread[q] = np.sqrt(ss / dof) if dof else np.nan
-    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([seed, 7])))
+    rng = bootstrap.generator([seed, 7])
     out = []
     for v in [reference] + [x for x in variants if x != reference]:
         rows = np.flatnonzero(var == v)
@@ -112,18 +114,8 @@ def compare(fin, extrapolated, reference="default", n_boot=1000, seed=20240917, 
         b = np.array([p[1] for p in pairs])
         # clusters for the bootstrap: (N, seed) chains
         chain = {}
-        cl = np.array([chain.setdefault((fin.N[i], fin.seed[i]), len(chain)) for i in a])
-        K = len(chain)
-        boot = [np.flatnonzero(cl == k) for k in range(K)]
-        draws = rng.integers(0, K, size=(n_boot, K)) if n_boot > 1 and K > 1 else None
-
-        def stat(fn):
-            value = fn(np.arange(len(a)))
-            if draws is None or not np.isfinite(value):
-                return value, np.nan
-            vals = [fn(np.concatenate([boot[k] for k in d])) for d in draws]
-            return value, float(np.nanstd(vals, ddof=1))
-
+        stat = bootstrap.clusters(np.array([chain.setdefault((fin.N[i], fin.seed[i]), len(chain)) for i in a]),
+                                  n_boot, rng)
         for name, c in (("fe", fe), ("seconds", secs)):
             ca, cb = c[a], c[b]
             if np.all(np.isfinite(ca)) and np.all(np.isfinite(cb)) and cb.sum() > 0:

@@ -12,7 +12,7 @@ from synthetic_store import SyntheticCampaign, Truth, write_store
 
 from campaign import cli
 
-from campaign.results import fits
+from campaign.results import bootstrap, fits
 from campaign.results import reduce as R
 from campaign.results.scaling import DEFAULT_FIT_OVERLAP, typical_overlap
 from campaign.errors import UserError
@@ -49,7 +49,7 @@ def _fit(groups, keep, seed):
     x = np.array([c[:, 0].mean() for c in g])
     y = np.array([c[:, 1].mean() for c in g])
     ye = np.array([c[:, 1].std(ddof=1) / np.sqrt(len(c)) for c in g])
-    boot = fits.bootstrap_cell_means(g, 100, seed=seed)
+    boot = bootstrap.cell_means(g, 100, seed=seed)
     return fits.fit_power_law(x, y, ye, boot_x=boot[..., 0], boot_y=boot[..., 1])
 
 

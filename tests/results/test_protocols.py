@@ -281,23 +281,23 @@ def test_the_seed_bootstrap_moves_a_seeds_packings_together():
     """Cells whose packings are one per-seed value (a ladder's extreme): the replicas of every cell
     are the same. Otherwise two cells' replicas correlate as their packings do across the seeds
     (the sample's correlation, what the bootstrap estimates), each with the variance of a mean."""
-    from campaign.results import fits
+    from campaign.results import bootstrap
 
     rng = np.random.default_rng(2)
     seeds = [np.arange(10), np.arange(10), np.arange(10)[::-1]]
     per_seed = rng.normal(0, 1, 10)
     shared = [np.column_stack([per_seed[sd], 2 * per_seed[sd]]) for sd in seeds]
-    b = fits.bootstrap_seed_means(shared, seeds, 400, seed=1)
+    b = bootstrap.seed_means(shared, seeds, 400, seed=1)
     assert b.shape == (400, 3, 2)
     assert np.allclose(b[:, 0], b[:, 1]) and np.allclose(b[:, 0], b[:, 2]) and np.allclose(b[:, 0, 1], 2 * b[:, 0, 0])
     indep = [rng.normal(0, 1, (10, 1)) for _ in seeds]
-    b = fits.bootstrap_seed_means(indep, seeds, 4000, seed=1)
+    b = bootstrap.seed_means(indep, seeds, 4000, seed=1)
     sample = np.corrcoef(indep[0][:, 0], indep[1][:, 0])[0, 1]
     assert np.corrcoef(b[:, 0, 0], b[:, 1, 0])[0, 1] == pytest.approx(sample, abs=0.05)
     for k, g in enumerate(indep):
         assert np.var(b[:, k, 0]) == pytest.approx(np.var(g) / 10, rel=0.1)
     # a cell missing most seeds: a replica drawing none of them keeps the cell's mean
-    few = fits.bootstrap_seed_means([np.ones((1, 1)) * 3.0, np.zeros((10, 1))], [np.array([4]), np.arange(10)], 300)
+    few = bootstrap.seed_means([np.ones((1, 1)) * 3.0, np.zeros((10, 1))], [np.array([4]), np.arange(10)], 300)
     assert np.all(few[:, 0, 0] == 3.0)
 
 
