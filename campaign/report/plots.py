@@ -488,7 +488,7 @@ def fig_protocols(red, plt):
     with their standard errors; (b) the same near jamming (the fit range's cells, where the
     N_G -> inf values come from); (c) each variant's difference from the reference in its errors
     (z), per N_G -> inf quantity, filled where it is significant at the family-wise rate (Holm)."""
-    from campaign.plan.targets import typical_overlap
+    from campaign.plan.targets import in_fit_range
     from campaign.results.protocols import LABELS, QUANTITIES
 
     prot = red.protocols
@@ -502,7 +502,7 @@ def fig_protocols(red, plt):
         i = np.flatnonzero((c["variant"] == v) & (c["N"] == N) & (c["n_packings"] > 0))
         x, y = c["mean_delta_Z"][i], c["mean_A_G"][i]
         ok = np.isfinite(x) & np.isfinite(y) & (x > 0)
-        near = typical_overlap(c["E"][i], prot["values"][k].get("exponent", 2.0)) <= dmax * (1 + 1e-9)
+        near = in_fit_range(c["E"][i], prot["values"][k].get("exponent", 2.0), dmax)
         for ax, m in ((a1, ok), (a1z, ok & near)):
             ax.errorbar(x[m], y[m], xerr=c["sem_delta_Z"][i][m], yerr=c["sem_A_G"][i][m],
                         fmt=_MARKERS[k % 9] + "-", ms=3, lw=0.7, capsize=1.5, color=cols[v], label=v)

@@ -30,7 +30,7 @@ import math
 
 import numpy as np
 
-from campaign.plan.targets import typical_overlap
+from campaign.plan.targets import in_fit_range, typical_overlap
 from campaign.results import bootstrap, fits
 
 #: the N_G -> inf entries compared across protocols: the table's, then the jamming point's
@@ -121,14 +121,11 @@ def jamming_point(fin, g, s, exponents) -> tuple[list, dict]:
     cols = _columns(fin)
     cell = g.cell
     E_pack = g.cE[cell]
-    lo, hi = s.fit_energies
     rows, out = [], {}
     for vi, v in enumerate(sorted(set(g.cv))):
         alpha = (exponents or {}).get(v, 2.0)
         # the fit range's cells of this variant, with enough packings
-        in_range = (g.cv == v) & (g.n_done >= s.min_packings) & (g.cE >= lo * (1 - 1e-9)) & (g.cE <= hi * (1 + 1e-9))
-        if math.isfinite(s.fit_overlap):
-            in_range &= typical_overlap(g.cE, alpha) <= s.fit_overlap * (1 + 1e-9)
+        in_range = (g.cv == v) & (g.n_done >= s.min_packings) & in_fit_range(g.cE, alpha, s.fit_overlap, s.fit_energies)
         per = {k: [] for k in cols}
         for n in sorted({int(x) for x in g.cN[g.cv == v]}):
             pick = in_range[cell] & (g.cN[cell] == n)
