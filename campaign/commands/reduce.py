@@ -100,24 +100,10 @@ def main(args) -> int:
           + f"; {len(red.rows)} (variant, N_G) rows; bootstrap {m['n_boot']}", file=text)
     print("", file=text)
     print(writing.table_markdown(red), file=text)
-    if red.systems:
-        from campaign.results import systems
-
-        print(f"Systems (beta_E against the prediction beta_Z/(2 alpha); beta_Z against "
-              f"{red.systems[0]['reference']!r}'s; tensions in standard deviations)\n", file=text)
-        print(systems.table_markdown(red.systems), file=text)
-    if red.variants:
-        from campaign.results import tradeoff
-
-        print(f"\nVariants against {args.reference!r} (cost: ratio of summed force evaluations / seconds over the "
-              "same packings; deviations: mean paired difference; bias in units of the reference's "
-              "packing-to-packing spread)\n", file=text)
-        print(tradeoff.table_markdown(red.variants), file=text)
-    if red.protocols.get("pairs"):
-        from campaign.results import protocols
-
-        print("\n" + protocols.markdown(red.jamming, red.protocols["jamming"], red.protocols).split("\n", 2)[2],
-              file=text)
+    for sec in R.in_order("console"):  # the sections' tables (campaign.results.sections)
+        said = sec.console(red.sections[sec.name])
+        if said:
+            print(said, file=text)
     for n in red.notes:
         print(n, file=sys.stderr)
     if args.in_place:

@@ -443,7 +443,7 @@ def fig_pareto(red, plt):
     from campaign.results.tradeoff import QUANTITIES
 
     floor = 1e-12
-    recs = [r for r in red.variants if np.isfinite(r.get("cost_ratio_fe", np.nan))]
+    recs = [r for r in red.tradeoff if np.isfinite(r.get("cost_ratio_fe", np.nan))]
     labels = {"A_G": r"$|\Delta A_G|$", "delta_Z": r"$|\Delta\,\Delta Z|$", "psi_O": r"$|\Delta \Psi_O|$",
               "iso_excess": r"$|\Delta(N_C/2 - 2N_G + 1)|$"}
     fig = plt.figure(figsize=(10.0, 6.2))
@@ -491,7 +491,7 @@ def fig_protocols(red, plt):
     from campaign.plan.targets import in_fit_range
     from campaign.results.protocols import LABELS, QUANTITIES
 
-    prot = red.protocols
+    prot = red.protocols.comparison
     variants = [r["variant"] for r in prot["values"]]
     cols = dict(zip(variants, _colors(len(variants), "tab10")))
     c = red.cells
@@ -860,13 +860,13 @@ def make_figures(red, out_dir, *, dpi=90):
             fig.savefig(p, dpi=dpi)
             plt.close(fig)
             written.append(p)
-    if red.variants:
+    if red.tradeoff:
         fig = fig_pareto(red, plt)
         p = out / "pareto.png"
         fig.savefig(p, dpi=dpi)
         plt.close(fig)
         written.append(p)
-    if red.protocols.get("pairs"):
+    if red.protocols.comparison.get("pairs"):
         fig = fig_protocols(red, plt)
         p = out / "protocols.png"
         fig.savefig(p, dpi=dpi)

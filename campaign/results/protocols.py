@@ -22,16 +22,21 @@ homogeneity test per quantity over all the variants (chi^2 of the values about t
 K - 1 degrees of freedom). Multiple comparisons: Holm's step-down adjustment, over the pairwise tests
 together and over the homogeneity tests together; a difference is called significant when its
 adjusted p-value is below ``ALPHA`` (the family-wise error rate).
+
+A section of the reducer (``SECTION``, ``campaign.results.sections``), present in every reduction.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from campaign.plan.targets import in_fit_range, typical_overlap
 from campaign.results import bootstrap, fits
+from campaign.results.sections import Group, Section
+from campaign.results.tables import fmt_err, records_csv
 
 #: the N_G -> inf entries compared across protocols: the table's, then the jamming point's
 QUANTITIES = ("A_G_star_E", "beta_E", "A_G_star_Z", "beta_Z", "psi_O_star", "phi_J", "rattler_fraction")
@@ -246,8 +251,6 @@ def compare(extrapolated, jamming, reference, variants, fin=None, usable=None) -
 
 
 def _fmt(x, e=None):
-    from campaign.results.tables import fmt_err
-
     if e is not None:
         return fmt_err(x, e)
     return "--" if x is None or not np.isfinite(x) else f"{x:.3g}"
@@ -303,3 +306,62 @@ def markdown(jamming_rows, jamming, comparison) -> str:
         lines.append(f"| {v} | {_fmt(ps[0]['pair_correlation_A_G'])} | " + " | ".join(cells) + " |")
     lines += ["", "** significant at the family-wise rate (Holm-adjusted p below it)."]
     return "\n".join(lines) + "\n"
+
+
+@dataclass
+class Protocols:
+    """The section's result: the jamming point per size and ``N_G -> inf``, and the protocols
+    compared (summary.json's ``"jamming"`` is ``jamming_sizes``, its ``"protocols"`` the comparison
+    with ``"jamming"``: ``jamming_limits``)."""
+
+    jamming_sizes: list = field(default_factory=list)   # per (variant, N_G): phi_J, N_R/N, their fits
+    jamming_limits: dict = field(default_factory=dict)  # per variant: their N_G -> inf values
+    comparison: dict = field(default_factory=dict)      # compare's: "reference", "alpha", "values", ...
+
+
+def compute(table, s, distributions) -> Protocols:
+    """The reducer's step: the jamming point of every variant, then the variants of the reference's
+    system compared (in the order of the cells), each value with its variant's potential exponent."""
+    vsys, g = table.systems, table.grid
+    sizes, limits = jamming_point(table.fin, g, s, {v: d["exponent"] for v, d in vsys.items()})
+    ref_sys = vsys.get(s.reference)
+    same_sys = [v for v in sorted(set(g.cv), key=list(g.cv).index) if ref_sys is None or vsys.get(v) == ref_sys]
+    comparison = compare(table.extrapolated, limits, s.reference, same_sys, fin=table.everything, usable=table.good)
+    for rec in comparison["values"]:
+        rec["exponent"] = float(vsys[rec["variant"]]["exponent"])  # the potential's alpha
+    return Protocols(sizes, limits, comparison)
+
+
+def _files(p) -> dict:
+    out = {"protocols.md": markdown(p.jamming_sizes, p.jamming_limits, p.comparison)} if p.jamming_sizes else {}
+    if p.comparison.get("pairs"):
+        out.update({"protocols.csv": records_csv(p.comparison["pairs"]),
+                    "protocol_tests.csv": records_csv(p.comparison["homogeneity"])})
+    return out
+
+
+def _reduced(p) -> dict:
+    out = {"jamming": Group(p.jamming_sizes)} if p.jamming_sizes else {}
+    c = p.comparison
+    if c.get("pairs"):
+        out["protocols"] = Group(attrs={"reference": c["reference"], "alpha": c["alpha"]})
+        out.update({f"protocols/{k}": Group(c[k]) for k in ("values", "pairs", "homogeneity")})
+    return out
+
+
+def _console(p) -> str:
+    """protocols.md without its title, with two variants of one system or more."""
+    if not p.comparison.get("pairs"):
+        return ""
+    return "\n" + markdown(p.jamming_sizes, p.jamming_limits, p.comparison).split("\n", 2)[2]
+
+
+#: The jamming point and the protocols compared as a section of the reducer
+#: (campaign.results.sections): jamming.csv in every output, protocols.md (and protocols.csv,
+#: protocol_tests.csv with a comparison), /reduced/jamming and /reduced/protocols, summary.json's
+#: "jamming" and "protocols", the console's comparison.
+SECTION = Section(
+    name="protocols", compute=compute, empty=Protocols,
+    tables=lambda p: {"jamming.csv": records_csv(p.jamming_sizes)},
+    files=_files, reduced=_reduced, console=_console,
+    json=lambda p: {"jamming": p.jamming_sizes, "protocols": {**p.comparison, "jamming": p.jamming_limits}})

@@ -23,6 +23,9 @@ Per (variant, N) (``fits``): ``G s^2 = c (p s^2)^beta``, ``G s^2 = c Delta_Z^bet
 ``MIN_EXCESS`` contacts beyond isostaticity on average (``Delta Z N_G / 2``): below that the
 finite-size crossover (Goodrich, Liu and Nagel 2012) bends every curve. Errors from the
 weighted fit, scaled by ``sqrt(chi^2/dof)`` when that exceeds 1.
+
+A section of the reducer (``SECTION``, ``campaign.results.sections``), present when the store holds
+the linear response.
 """
 
 from __future__ import annotations
@@ -30,6 +33,8 @@ from __future__ import annotations
 import numpy as np
 
 from campaign.results import bootstrap, fits
+from campaign.results.sections import Group, Section
+from campaign.results.tables import records_csv
 
 #: Gap window of the exponent fit: from 10 typical overlaps (or where the cumulative count of
 #: a cell reaches ``MIN_COUNT`` pairs, whichever is larger) up to ``h = 1e-2``.
@@ -268,5 +273,31 @@ def reduce_response(fin, g, s, dists, exponents, notes):
     return {"cells": records, "fits": fit_records, "exponents": pooled, "alpha": alphas}
 
 
+def compute(table, s, distributions) -> dict:
+    """The reducer's step: ``reduce_response`` on its usable packings, cells and summed histograms."""
+    return reduce_response(table.fin, table.grid, s, distributions,
+                           {v: d["exponent"] for v, d in table.systems.items()}, table.notes)
+
+
+#: The tables of the response's files and groups of /reduced, each written when it has records.
+PARTS = ("cells", "fits", "exponents")
+
+
+def _reduced(resp) -> dict:
+    if not resp:
+        return {}
+    return {"response": Group(), **{f"response/{k}": Group(resp[k]) for k in PARTS if resp.get(k)}}
+
+
+#: The linear response as a section of the reducer (campaign.results.sections), when the store holds
+#: it: response_cells.csv, response_fits.csv, response_exponents.csv, /reduced/response, summary.json's
+#: "response".
+SECTION = Section(
+    name="response", compute=compute, present=lambda table: present(table.fin), empty=dict,
+    files=lambda resp: {f"response_{k}.csv": records_csv(resp.get(k, [])) for k in PARTS} if resp else {},
+    reduced=_reduced,
+    json=lambda resp: {"response": resp} if resp else {})
+
+
 __all__ = ["reduce_response", "present", "cumulative_exponent", "power_fit", "GAP_WINDOW",
-           "FORCE_WINDOW", "MIN_EXCESS", "MIN_COUNT"]
+           "FORCE_WINDOW", "MIN_EXCESS", "MIN_COUNT", "SECTION"]

@@ -51,6 +51,14 @@ def fit_rule_text(s) -> str:
     return "Fits over every energy" if not window else f"Fits over the cells with {window}"
 
 
+def with_fit_rule(records, s) -> list:
+    """``records`` of values drawn from the scaling fits, each with the fit range they come from
+    (``fit_rule``, the last key)."""
+    for rec in records:
+        rec["fit_rule"] = fit_rule_name(s)
+    return records
+
+
 def _min_positive(x):
     x = x[x > 0]
     return float(x.min()) if len(x) else np.nan
