@@ -5,6 +5,7 @@ import json
 
 import pytest
 
+from campaign.report.sectionplots import SECTION_FIGURES
 from campaign.report.writing import write_outputs
 from campaign.results import reduce as R
 from campaign.results.sections import Group, Section
@@ -20,6 +21,7 @@ def test_the_registry_names_each_section_once_and_every_order_holds_them_all():
         assert set(R.ORDER.get(output, ())) <= set(names)
     assert [s.name for s in R.in_order("console")] == ["systems", "tradeoff", "response", "protocols"]
     assert [s.name for s in R.in_order("json")] == names
+    assert set(SECTION_FIGURES) <= set(names)
 
 
 def test_every_section_says_nothing_of_an_empty_result():
