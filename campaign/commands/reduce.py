@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import fcntl
 import json
+import os
 import sys
 from pathlib import Path
 
 from campaign.errors import UserError
+from campaign.report import writing
+from campaign.results import reduce as R
 
 HELP = "Reduce a campaign file: distributions, scaling fits, the finite-size table"
 
@@ -74,9 +78,6 @@ def fit_range(args, settings):
 
 
 def main(args) -> int:
-    from campaign.results import reduce as R
-    from campaign.report import writing
-
     if args.boot < 0 or args.boot == 1:
         raise UserError(f"--boot must be 0 (no errors) or at least 2, got {args.boot}")
     if args.min_packings < 2:
@@ -123,11 +124,6 @@ def _write_in_place(red, path):
     the same lock (without waiting) keeps a run from starting meanwhile and refuses
     while one is going on.
     """
-    import fcntl
-    import os
-
-    from campaign.report.writing import write_reduced
-
     if red.meta["pending"]:
         raise UserError(f"{path}: {red.meta['pending']} tasks are still pending (a run may be "
                         "writing the file); not writing into it. The reduced group is in the "
@@ -143,7 +139,7 @@ def _write_in_place(red, path):
                 raise UserError(f"{path}: a run is writing it ({journal} is locked); the reduced "
                                 "group is in the output directory's reduced.h5") from None
         try:
-            write_reduced(red, path, mode="r+")
+            writing.write_reduced(red, path, mode="r+")
         except OSError as exc:  # read-only, locked by HDF5, ...
             raise UserError(f"{path}: could not open for writing ({exc}); the reduced group is "
                             "in the output directory's reduced.h5") from None

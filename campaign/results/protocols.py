@@ -28,7 +28,6 @@ A section of the reducer (``SECTION``, ``campaign.results.sections``), present i
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -203,8 +202,6 @@ def compare(extrapolated, jamming, reference, variants, fin=None, usable=None) -
     """The protocols compared (see the module docstring): ``{"values": [per variant], "pairs": [per
     (variant, quantity)], "homogeneity": [per quantity], "reference", "alpha"}``; empty lists with
     fewer than two variants. ``variants``: the variants of the reference's system, in order."""
-    from scipy.special import chdtrc, erfc
-
     vals = []
     for v in variants:
         rec = {"variant": v}
@@ -226,7 +223,7 @@ def compare(extrapolated, jamming, reference, variants, fin=None, usable=None) -
             e = float(np.hypot(rec[f"{q}_err"], ref[f"{q}_err"]))
             z = d / e if e > 0 else np.nan
             pairs.append({"variant": rec["variant"], "reference": reference, "quantity": q, "difference": d,
-                          "error": e, "z": z, "p": float(erfc(abs(z) / math.sqrt(2))) if np.isfinite(z) else np.nan,
+                          "error": e, "z": z, "p": fits.normal_p_value(z),
                           "pair_correlation_A_G": corr})
     for r, a in zip(pairs, holm([r["p"] for r in pairs])):
         r["p_holm"] = float(a)
@@ -241,7 +238,7 @@ def compare(extrapolated, jamming, reference, variants, fin=None, usable=None) -
             w = 1.0 / e[ok] ** 2
             m = float(np.sum(w * x[ok]) / w.sum())
             chi2 = float(np.sum(w * (x[ok] - m) ** 2))
-            rec.update(mean=m, chi2=chi2, dof=int(ok.sum() - 1), p=float(chdtrc(ok.sum() - 1, chi2)))
+            rec.update(mean=m, chi2=chi2, dof=int(ok.sum() - 1), p=fits.chi2_p_value(chi2, int(ok.sum() - 1)))
         hom.append(rec)
     for r, a in zip(hom, holm([r["p"] for r in hom])):
         r["p_holm"] = float(a)
