@@ -88,13 +88,13 @@ class Truth:
     c_phi: float = 1.7
     s_phi: float = 0.056
 
-    def values(self) -> dict:
+    def values(self, sizes=SIZES) -> dict:
         """The true N_G -> inf row, and per size its intercepts; exponents are the same at every size."""
         bE, pE = self.beta_Z / (2 * self.alpha), self.psi_beta_Z / (2 * self.alpha)
         row = {"A_G_star_E": self.A_star, "beta_E": bE, "A_G_star_Z": self.A_star, "beta_Z": self.beta_Z,
                "psi_O_star": self.P_star, "psi_beta_E": pE, "psi_O_star_Z": self.P_star,
                "psi_beta_Z": self.psi_beta_Z, "phi_J": self.phi_J}
-        for n in SIZES:
+        for n in sizes:
             a = self.A_star + self.a_1 / n + self.a_2 / n ** 2
             p = self.P_star + self.p_1 / n + self.p_2 / n ** 2
             row.update({f"{n}:A_G_star_E": a, f"{n}:A_G_star_Z": a, f"{n}:psi_O_star": p, f"{n}:psi_O_star_Z": p,
@@ -122,6 +122,10 @@ def _counts_unequal(rng, C):
     return rng.integers(3, 25, C)
 
 
+def _counts_small(rng, C):
+    return rng.integers(3, 13, C)
+
+
 def _counts_few_full(rng, C):
     c = np.full(C, 5)
     c[rng.choice(C, max(1, C // 10), replace=False)] = 40
@@ -147,14 +151,15 @@ FORMS = {
     "precision": (_counts_precision, 0.0, False),
     "ladder": (_counts_uniform(12), 0.0, True),
     "failures": (_counts_uniform(12), 0.15, False),
+    "small": (_counts_small, 0.0, False),     # the quick suite's (tests/results/test_error_bars.py)
 }
 
 
-def _spec(truth: Truth, ladder: bool) -> str:
+def _spec(truth: Truth, ladder: bool, sizes=SIZES) -> str:
     variant = "protocol: {start: ladder}\n" if ladder else ""
     return ("name: coverage\nseed: 1\n"
             f"system: {{potential: {{exponent: {truth.alpha}}}}}\n"
-            f"grid: {{N_G: {list(SIZES)}, E_G: {{log_range: [1.0e-15, 1.0e-3], per_decade: 1}}, seeds: 1}}\n"
+            f"grid: {{N_G: {list(sizes)}, E_G: {{log_range: [1.0e-15, 1.0e-3], per_decade: 1}}, seeds: 1}}\n"
             + variant)
 
 
@@ -164,25 +169,26 @@ def _noise(rng, shape, tails):
     return rng.standard_t(3, size=shape) / math.sqrt(3.0)
 
 
-def campaign(truth: Truth, form: str, rep: int):
-    """The packings of one synthetic campaign: ``finished_from_arrays`` of its task table."""
+def campaign(truth: Truth, form: str, rep: int, sizes=SIZES, energies=ENERGIES):
+    """The packings of one synthetic campaign: ``finished_from_arrays`` of its task table (the grid
+    ``sizes`` x ``energies``, by default paper-small's)."""
     counts_of, fail, ladder = FORMS[form]
     key = [20261128, rep, list(TRUTHS.values()).index(truth) if truth in TRUTHS.values() else 99,
            list(FORMS).index(form)]
     rng = np.random.default_rng(key)
-    C = len(SIZES) * len(ENERGIES)
+    C = len(sizes) * len(energies)
     counts = counts_of(rng, C)
     # the fit range's energies (typical overlap <= 1e-3) span log10 E in [lo, hi]: the spread's trend
-    logE = np.log10(ENERGIES)
-    fit = (truth.alpha * np.asarray(ENERGIES) / 2) ** (1 / truth.alpha) <= 1e-3 * (1 + 1e-9)
+    logE = np.log10(energies)
+    fit = (truth.alpha * np.asarray(energies) / 2) ** (1 / truth.alpha) <= 1e-3 * (1 + 1e-9)
     lo, hi = logE[fit].min(), logE[fit].max()
     cols = {k: [] for k in ("variant", "N", "E", "seed", "status")}
     sc = {k: [] for k in ("E_G", "delta_Z", "A_G", "psi_O", "phi", "N", "N_R", "jam_status", "identities_ok")}
-    for i, n in enumerate(SIZES):
-        S = int(counts[i * len(ENERGIES):(i + 1) * len(ENERGIES)].max())
+    for i, n in enumerate(sizes):
+        S = int(counts[i * len(energies):(i + 1) * len(energies)].max())
         shared = _noise(rng, (S, 3), truth.tails)  # a ladder seed's shared part of xi (A_G, Psi_O, phi)
-        for j, E in enumerate(ENERGIES):
-            m_c = int(counts[i * len(ENERGIES) + j])
+        for j, E in enumerate(energies):
+            m_c = int(counts[i * len(energies) + j])
             E_G = E * (1 + 0.1 * rng.random(m_c))
             delta = (truth.alpha * E_G / 2) ** (1 / truth.alpha)
             zt = Z0 * delta ** 0.5
@@ -214,7 +220,7 @@ def campaign(truth: Truth, form: str, rep: int):
             sc["jam_status"] += [0] * m_c
             sc["identities_ok"] += [1] * m_c
     T = len(cols["N"])
-    return finished_from_arrays(attrs={"schema": "jamming-campaign/1", "spec_yaml": _spec(truth, ladder)},
+    return finished_from_arrays(attrs={"schema": "jamming-campaign/1", "spec_yaml": _spec(truth, ladder, sizes)},
                                 variant=cols["variant"], N=np.array(cols["N"]), E=np.array(cols["E"]),
                                 ids=[str(k) for k in range(T)], seed=np.array(cols["seed"]),
                                 status=np.array(cols["status"]), scalars={k: np.array(v, float) for k, v in sc.items()})
@@ -233,7 +239,7 @@ def entries(fin, settings: Settings) -> dict:
         for _, _, key, bkey in LAWS:
             for k in (key, bkey):
                 out[f"{r['N_G']}:{k}"] = (r.get(k, np.nan), r.get(f"{k}_err", np.nan))
-    jam_rows, jam = jamming_point(tab.fin, tab.grid, settings, {v: d["exponent"] for v, d in tab.systems.items()})
+    jam_rows, jam, _ = jamming_point(tab, settings)
     j = jam.get("default", {})
     out["phi_J"] = (j.get("phi_J", np.nan), j.get("phi_J_err", np.nan))
     for r in jam_rows:
@@ -250,16 +256,16 @@ def one(job):
             "entries": {k: [float(v[0]), float(v[1])] for k, v in e.items()}}
 
 
-def summarise(results, truth: Truth, keys=None) -> list:
+def summarise(results, truth: Truth, keys=None, sizes=SIZES) -> list:
     """Per entry: the statistics of ``z = (value - truth) / error`` over the campaigns."""
-    values = truth.values()
+    values = truth.values(sizes)
     keys = keys or sorted({k for r in results for k in r["entries"]}, key=_order)
     out = []
     for k in keys:
         ve = np.array([r["entries"].get(k, [np.nan, np.nan]) for r in results], float)
         ok = np.all(np.isfinite(ve), axis=1) & (ve[:, 1] > 0)
         v, e = ve[ok, 0], ve[ok, 1]
-        d = v - values[k]
+        d = v - values[k.partition("~")[0]]
         z = d / e
         out.append({"key": k, "n": int(ok.sum()), "missing": int((~ok).sum()),
                     "median_z": float(np.median(z)) if len(z) else np.nan, "spread_z": _trimmed_sd(z),
@@ -280,7 +286,7 @@ def _trimmed_sd(z):
 
 
 def _order(k):
-    size, _, name = k.rpartition(":")
+    size, _, name = k.partition("~")[0].rpartition(":")
     keys = ROW + ("phi_J",)
     return (int(size) if size else 10 ** 9, keys.index(name) if name in keys else 99, name)
 
@@ -325,7 +331,8 @@ def main(argv=None):
     for t in truths:
         for f in a.forms:
             res = [r for r in results if r["truth"] == t and r["form"] == f]
-            keys = None if a.entries == "all" else list(ROW) + ["phi_J"]
+            keys = None if a.entries == "all" else [k for k in sorted({k for r in res for k in r["entries"]}, key=_order)
+                                                    if ":" not in k]
             summ = summarise(res, TRUTHS[t], keys)
             summaries.append({"truth": t, "form": f, "reps": len(res), "entries": summ})
             old = {}

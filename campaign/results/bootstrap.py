@@ -50,75 +50,66 @@ def generator(key) -> np.random.Generator:
     return np.random.Generator(np.random.PCG64(np.random.SeedSequence(key)))
 
 
-def cell_means(groups, n_boot, seed=0):
-    """Resample packings within each cell and return the replicas' cell means.
-
-    ``groups``: list of K arrays of shape (n_k, q) (n_k packings, q quantities).
-    Returns an array (n_boot, K, q). Deterministic for a given ``seed`` (the generator's key).
-    """
-    rng = generator(seed)
-    K = len(groups)
-    q = groups[0].shape[1] if K else 0
-    out = np.empty((n_boot, K, q))
-    for k, g in enumerate(groups):
-        g = np.asarray(g, float)
-        n = g.shape[0]
-        step = max(1, min(n_boot, (4_000_000 // max(n, 1))))
-        for s in range(0, n_boot, step):
-            b = min(step, n_boot - s)
-            idx = rng.integers(0, n, size=(b, n))
-            # how often each packing is drawn in each replica, then one matrix product
-            flat = (idx + n * np.arange(b)[:, None]).ravel()
-            counts = np.bincount(flat, minlength=b * n).reshape(b, n)
-            out[s:s + b, k] = (counts @ g) / n
-    return out
-
-
 def seed_weights(rng, n_seeds, n_boot) -> np.ndarray:
     """How often each of ``n_seeds`` seeds is drawn in each of ``n_boot`` replicas (a multinomial
     draw of ``n_seeds`` seeds with replacement): (n_boot, n_seeds) floats."""
     return rng.multinomial(n_seeds, np.full(n_seeds, 1.0 / n_seeds), size=n_boot).astype(float)
 
 
-def seed_means(groups, seeds, n_boot, seed=0):
-    """Resample whole seeds and return the replicas' cell means, (n_boot, K, q): each replica draws
-    the size's seeds with replacement and every cell takes the packings of the seeds drawn, so a
-    seed's packings at every energy go together. For packings that share a history along a seed (an
-    energy ladder), where resampling within cells (``cell_means``) would count correlated cells as
-    independent. ``seeds``: per group, the (n_k,) seed of each packing. A replica that draws none of
-    a cell's seeds (a cell missing packings of most seeds) takes the cell's mean (the module
-    docstring: ``seed_cell_means`` drops such a replica instead)."""
-    rng = generator(seed)
-    every = np.unique(np.concatenate([np.asarray(x) for x in seeds])) if len(seeds) else np.zeros(0)
-    S = len(every)
-    W = seed_weights(rng, S, n_boot) if S else np.zeros((n_boot, 0))
-    K = len(groups)
-    q = groups[0].shape[1] if K else 0
-    out = np.empty((n_boot, K, q))
-    for k, (g, sd) in enumerate(zip(groups, seeds)):
-        g = np.asarray(g, float)
-        M = np.zeros((S, len(g)))
-        M[np.searchsorted(every, sd), np.arange(len(g))] = 1.0
-        w = W @ M                                   # (n_boot, n_k): how often each packing is drawn
-        tot = w.sum(1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            out[:, k] = (w @ g) / tot[:, None]
-        out[tot == 0, k] = g.mean(0)
+def _energy_word(E) -> int:
+    """A cell's energy as a stream key word: its float64 bits (the same energy, the same word)."""
+    return int(np.float64(E).view(np.int64)) & 0x7FFFFFFFFFFFFFFF
+
+
+def replica_weights(grid, seed_of, cells, ladders, n_boot, boot_seed) -> dict:
+    """The one resampling of the finite-size table and the jamming point: per cell of ``cells``
+    (indices into ``grid``, a ``campaign.results.cells.Grid``), an (n_boot, n_c) array of how often
+    each of its packings (in ``grid.packings`` order) is drawn in each replica.
+
+    The unit drawn is a seed: packings of one seed are resampled together wherever they depend on
+    each other, and every variant of a cell draws the same seeds, so that variants made from the
+    same random starts are compared packing by packing (a paired bootstrap;
+    ``campaign.results.protocols``). A cell (N_G, E_G) of independent packings draws its seeds
+    (the union over its variants) with replacement; the variants in ``ladders`` (an energy ladder:
+    a seed's packings at every energy share one history) draw whole seeds of their size, every
+    energy together. Streams: ``[boot_seed, 23, N_G, E_G's bits]`` per cell, ``[boot_seed, 29,
+    N_G]`` per ladder size. A variant holding only some of the seeds drawn takes those it holds
+    (a replica holding none of its seeds of a cell takes the cell's packings once each)."""
+    groups = {}
+    for i in cells:
+        key = (29, int(grid.cN[i])) if str(grid.cv[i]) in ladders else (23, int(grid.cN[i]), _energy_word(grid.cE[i]))
+        groups.setdefault(key, []).append(i)
+    out = {}
+    for key, members in sorted(groups.items()):
+        seeds = np.unique(np.concatenate([seed_of[grid.packings(i)] for i in members]))
+        W = seed_weights(generator([boot_seed, *key]), len(seeds), n_boot)
+        for i in members:
+            w = W[:, np.searchsorted(seeds, seed_of[grid.packings(i)])]
+            w[w.sum(1) == 0] = 1.0
+            out[i] = w
     return out
 
 
-def seed_cell_means(counts, sums, n_boot, rng):
-    """Resample whole seeds of one size from its packings summed per (seed, cell): ``counts``,
-    ``sums`` (S, C) (packings and the sum of one quantity over them). Returns the replicas' packing
-    counts and cell means, (B, C) each, of the replicas that hold a packing in every cell: a
-    replica that draws none of a cell's seeds is dropped (the module docstring: ``seed_means`` keeps
-    it with the cell's mean), so B <= ``n_boot``."""
-    K = seed_weights(rng, len(counts), n_boot)  # seed weights per replica
-    nb = K @ counts
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mb = (K @ sums) / nb
-    good = np.all(nb > 0, axis=1)
-    return nb[good], mb[good]
+def cell_moments(values, weights):
+    """A cell's means and covariance in the data and in every replica: ``values`` (n, q) its packings,
+    ``weights`` (n_boot, n) from ``replica_weights`` (or None). Returns ``means`` (1 + n_boot, q) and
+    ``cov`` (1 + n_boot, q, q) (the sample covariance, n - 1 in the denominator), row 0 the data's.
+
+    A replica's mean is moved from the data's by ``sqrt(n / (n - 1))`` times its deviation: a
+    resample's mean scatters by ``(n - 1) / n`` of the variance a cell mean has (13% short in standard
+    deviation at 4 packings), which this undoes, so that cells of few packings are not under-weighted
+    in the spread of what is fitted to them."""
+    n = len(values)
+    mean = values.mean(0)
+    d = values - mean
+    W = np.ones((1, n)) if weights is None else np.vstack([np.ones((1, n)), weights])
+    sw = W.sum(1)
+    m = (W @ d) / sw[:, None]
+    m2 = np.einsum("rn,ni,nj->rij", W, d, d) / sw[:, None, None]
+    cov = (m2 - m[:, :, None] * m[:, None, :]) * (sw / np.maximum(sw - 1.0, 1.0))[:, None, None]
+    means = mean + (np.sqrt(n / (n - 1.0)) if n > 1 else 1.0) * m
+    means[0] = mean
+    return means, cov
 
 
 def clusters(cluster, n_boot, rng):
