@@ -259,7 +259,7 @@ def summarise(results, truth: Truth, keys=None) -> list:
         ve = np.array([r["entries"].get(k, [np.nan, np.nan]) for r in results], float)
         ok = np.all(np.isfinite(ve), axis=1) & (ve[:, 1] > 0)
         v, e = ve[ok, 0], ve[ok, 1]
-        d = v - values[k]
+        d = v - values[k.partition("~")[0]]
         z = d / e
         out.append({"key": k, "n": int(ok.sum()), "missing": int((~ok).sum()),
                     "median_z": float(np.median(z)) if len(z) else np.nan, "spread_z": _trimmed_sd(z),
@@ -280,7 +280,7 @@ def _trimmed_sd(z):
 
 
 def _order(k):
-    size, _, name = k.rpartition(":")
+    size, _, name = k.partition("~")[0].rpartition(":")
     keys = ROW + ("phi_J",)
     return (int(size) if size else 10 ** 9, keys.index(name) if name in keys else 99, name)
 
@@ -325,7 +325,8 @@ def main(argv=None):
     for t in truths:
         for f in a.forms:
             res = [r for r in results if r["truth"] == t and r["form"] == f]
-            keys = None if a.entries == "all" else list(ROW) + ["phi_J"]
+            keys = None if a.entries == "all" else [k for k in sorted({k for r in res for k in r["entries"]}, key=_order)
+                                                    if ":" not in k]
             summ = summarise(res, TRUTHS[t], keys)
             summaries.append({"truth": t, "form": f, "reps": len(res), "entries": summ})
             old = {}
