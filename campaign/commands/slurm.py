@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from campaign.errors import UserError
+from campaign.storage.layout import DONE, PENDING
 
 HELP = "write a SLURM batch script for a campaign (and print or submit a chain of resuming jobs)"
 
@@ -61,7 +62,6 @@ def _estimate(spec, results, cal, options):
     from campaign.plan.tasks import expand
     from campaign.run.slurm import job_work
     from campaign.storage.readers import read_summary
-    from campaign.storage.store import DONE
 
     tasks = expand(spec)
     if spec.precision is not None:
@@ -109,7 +109,7 @@ def _precision_estimate(spec, tasks, results, cal, options):
             status, last = None, None
     if last is not None:
         given = cells.tasks_of(last["early"])
-        left = [t for t in tasks if given[t.index] and status[t.index] == 0]
+        left = [t for t in tasks if given[t.index] and status[t.index] == PENDING]
     else:
         left = [t for t in tasks if t.seed < spec.precision.pilot]
     if last is None or last["action"] == "pilot":  # before the first decision: the prior's plan

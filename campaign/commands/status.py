@@ -122,7 +122,7 @@ def _scan(path):
     import numpy as np
 
     from campaign.storage.readers import read_retrying
-    from campaign.storage.store import DONE, FAILED, PENDING
+    from campaign.storage.layout import DONE, FAILED, PENDING
 
     return read_retrying(path, lambda f: _scan_open(f, np, DONE, FAILED, PENDING))
 
@@ -388,9 +388,10 @@ def _journal_only(path, status):
     import numpy as np
 
     from campaign.storage.journal import task_indices
+    from campaign.storage.layout import PENDING
 
     idx = np.fromiter((i for i in task_indices(str(path) + ".journal") if 0 <= i < len(status)), np.int64)
-    return int(np.count_nonzero(status[idx] == 0)) if len(idx) else 0
+    return int(np.count_nonzero(status[idx] == PENDING)) if len(idx) else 0
 
 
 def _remaining_core_hours(attrs, s):

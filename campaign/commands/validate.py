@@ -284,7 +284,7 @@ def _learnt_remaining(spec, tasks):
 
     from campaign.errors import UserError
     from campaign.storage.readers import read_summary
-    from campaign.storage.store import DONE
+    from campaign.storage.layout import DONE
     from campaign.run.walltime import remaining_seconds
 
     if not spec.output or not Path(spec.output).exists():

@@ -27,6 +27,7 @@ import os
 import numpy as np
 
 from campaign.errors import UserError, require
+from campaign.storage.layout import DONE
 
 #: The task table's columns, in this order, before the scalars.
 TASK_COLUMNS = ("id", "variant", "N", "E", "seed", "status")
@@ -167,7 +168,7 @@ class Packings:
             for lo in range(0, self.n_tasks, self.block):
                 hi = min(lo + self.block, self.n_tasks)
                 st = status[lo:hi]
-                if not np.any(st == 1):
+                if not np.any(st == DONE):
                     continue
                 ids = _strings(t["id"][lo:hi])
                 keep = first_done(ids, st, seen)

@@ -17,8 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import UserError
-
-STATUS_PENDING, STATUS_DONE, STATUS_FAILED = 0, 1, 2
+from campaign.storage.layout import DONE, FAILED
 
 
 def _decode(a):
@@ -64,7 +63,7 @@ def first_done(ids, status, seen):
     such row of a task id not in ``seen`` (a set, updated), so that a packing done in several
     rows or files is used once."""
     keep = np.zeros(len(status), bool)
-    for r in np.flatnonzero(np.asarray(status) == STATUS_DONE):
+    for r in np.flatnonzero(np.asarray(status) == DONE):
         if ids[r] not in seen:
             seen.add(ids[r])
             keep[r] = True
@@ -139,7 +138,7 @@ def _failed_errors(f, status, block=65536):
     """The error column (decoded) with the failed rows' messages, read block by block
     (the column is 512 bytes a row; only failed rows have one)."""
     err = np.full(len(status), "", dtype=object)
-    failed = np.flatnonzero(status == STATUS_FAILED)
+    failed = np.flatnonzero(status == FAILED)
     if not failed.size or "error" not in _column_names(f):
         return err
     t = f["tasks"]
@@ -264,7 +263,7 @@ def load_finished(paths) -> Finished:
     tasks = {k: np.concatenate(v) for k, v in all_rows.items()}
     # a task done in one file but pending/failed in another counts as done; a task
     # pending or failed in several files counts once
-    counted = tasks["status"] == STATUS_DONE
+    counted = tasks["status"] == DONE
     # a seed a precision campaign's rounds did not give out is no task of the campaign (yet)
     for i in np.flatnonzero(~counted & tasks.pop("given")):
         if tasks["id"][i] not in seen:
@@ -287,7 +286,7 @@ def finished_from_arrays(*, attrs, variant, N, E, ids, seed, status, scalars, er
     counts (a task table has each id once)."""
     status = np.asarray(status).astype(np.int64)
     T = len(status)
-    done = np.flatnonzero(status == STATUS_DONE)
+    done = np.flatnonzero(status == DONE)
     variant = np.asarray(variant, dtype=object)
     N, E, ids, seed = (np.asarray(a) for a in (N, E, ids, seed))
     err = np.full(T, "", dtype=object) if error is None else np.asarray(error, dtype=object)

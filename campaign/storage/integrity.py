@@ -44,6 +44,7 @@ from campaign.storage.checksums import (BLOCK_FILTERS, CHECKSUM_ATTR, CONFIG_KEY
 from campaign.storage.checksums import (BLOCK_MISMATCH, SUMS_GROUP, SUMS_ROWS, has_sums, mismatched_blocks,
                                         sums_name)
 from campaign.storage.damage import Damage, Report
+from campaign.storage.layout import DONE, FAILED, PENDING, status_counts
 from campaign.storage.unprotected import expected_identities, identities, identity_blocks, journal_rows
 
 
@@ -87,7 +88,7 @@ class Scan:
         st = self.report.status
         if st is None or len(st) < hi:
             return np.arange(lo, hi, dtype=np.int64)
-        return np.flatnonzero(st[lo:hi] != 0).astype(np.int64) + lo
+        return np.flatnonzero(st[lo:hi] != PENDING).astype(np.int64) + lo
 
     def tick(self, units, what):
         self.done_units += units
@@ -248,9 +249,9 @@ class Scan:
                 self.add(Damage(f"/{m}", "is not part of the layout (a damaged name?)", repair="remove",
                                 note="left out"))
         required = {"tasks": every, "scalars": every, "histograms": every, "failures":
-                    np.flatnonzero(r.status == 2) if r.status is not None else every}
+                    np.flatnonzero(r.status == FAILED) if r.status is not None else every}
         if spec is not None and spec.configurations:
-            required["configurations"] = np.flatnonzero(r.status == 1) if r.status is not None else every
+            required["configurations"] = np.flatnonzero(r.status == DONE) if r.status is not None else every
         for g, rows in required.items():
             if g not in members:
                 self.add(Damage(g, "is missing (its link in the root group is damaged?)", rows=rows.astype(np.int64)))
@@ -342,8 +343,7 @@ class Scan:
                                 span=(a, b)))
         self.attempts = np.zeros(r.T, np.int32)
         self.error_set = np.zeros(r.T, bool)
-        r.counts = {"done": int(np.count_nonzero(st == 1)), "failed": int(np.count_nonzero(st == 2)),
-                    "pending": int(np.count_nonzero(st == 0))}
+        r.counts = status_counts(st)
         try:
             r.B = int(f["tasks/attempts"].chunks[0])
         except Exception:  # noqa: BLE001
@@ -568,7 +568,7 @@ class Scan:
                 b = min(a + chunk, self.report.T)
                 if a in have or (a, b) in bad:
                     continue
-                rows = np.flatnonzero(st[a:b] != 0).astype(np.int64) + a
+                rows = np.flatnonzero(st[a:b] != PENDING).astype(np.int64) + a
                 if len(rows) or repair == "rewrite":
                     self.add(Damage(name, f"rows {a}-{b - 1} have no chunk in its index, though the block holds "
                                           "finished tasks (the index is damaged: HDF5 returns the rows as never "
@@ -678,7 +678,7 @@ class Scan:
                 self.add(Damage(name, "is named after no task of this store (its name is damaged)", repair="remove",
                                 note="left out"))
                 continue
-            held = (np.array([row], np.int64) if row >= 0 and (r.status is None or r.status[row] != 0)
+            held = (np.array([row], np.int64) if row >= 0 and (r.status is None or r.status[row] != PENDING)
                     else np.zeros(0, np.int64))
             try:
                 c = g[key]
@@ -709,7 +709,7 @@ class Scan:
             names = list(f["failures"].keys()) if "failures" in f else []
         except Exception as exc:  # noqa: BLE001
             self.add(Damage("failures", f"its index cannot be read ({reason(exc)})",
-                            rows=np.flatnonzero(r.status == 2) if r.status is not None else np.zeros(0, np.int64)))
+                            rows=np.flatnonzero(r.status == FAILED) if r.status is not None else np.zeros(0, np.int64)))
             return
         rows = self._rows_of(names)
         for key, row in zip(names, rows.tolist()):
@@ -722,7 +722,7 @@ class Scan:
                     self.add(Damage(name, "is named after no task of this store (its name is damaged)",
                                     repair="remove", note="left out"))
                 continue
-            held = np.array([row], np.int64) if r.status is None or r.status[row] != 0 else np.zeros(0, np.int64)
+            held = np.array([row], np.int64) if r.status is None or r.status[row] != PENDING else np.zeros(0, np.int64)
             self.failure_ids.add(row)
             try:
                 obj = f["failures"][key]
@@ -758,20 +758,20 @@ class Scan:
         failed_rec = np.zeros(r.T, bool)
         failed_rec[list(self.failure_ids)] = True
         problems = [
-            (~np.isin(st, (0, 1, 2)), "is not 0, 1 or 2"),
-            (np.isin(st, (1, 2)) & (self.attempts < 1), "says finished, but its row holds no finished task"),
-            ((st == 0) & (self.attempts >= 1) & ~journal,
+            (~np.isin(st, (PENDING, DONE, FAILED)), "is not 0, 1 or 2"),
+            (np.isin(st, (DONE, FAILED)) & (self.attempts < 1), "says finished, but its row holds no finished task"),
+            ((st == PENDING) & (self.attempts >= 1) & ~journal,
              "says pending, but its row holds a finished task and the journal has no record of it (a flipped "
              "byte, or a run killed between the two writes whose journal was lost since)"),
-            ((st == 1) & self.error_set, "says done, but its row holds a failure message"),
-            ((st == 1) & failed_rec, "says done, but the task has a failure record"),
-            ((st == 2) & ~failed_rec & ~journal, "says failed, but the task has no failure record"),
+            ((st == DONE) & self.error_set, "says done, but its row holds a failure message"),
+            ((st == DONE) & failed_rec, "says done, but the task has a failure record"),
+            ((st == FAILED) & ~failed_rec & ~journal, "says failed, but the task has no failure record"),
         ]
         spec = r.spec
         if spec is not None and spec.configurations:
             have = np.zeros(r.T, bool)
             have[[i for i in self.config_rows if i >= 0]] = True
-            problems.append(((st == 1) & ~have & ~journal,
+            problems.append(((st == DONE) & ~have & ~journal,
                              "says done, but the configuration the spec keeps is missing"))
         flagged = np.zeros(r.T, bool)
         for mask, _ in problems:

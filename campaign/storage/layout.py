@@ -34,6 +34,7 @@ SCHEMA = "jamming-campaign/1"
 #: half-plane rule. 2: chunked compressed rows, checkpointed journal, A_G and A_V as
 #: fractions of the box area, a grain whose contacts lie in a closed half-plane is a rattler.
 FORMAT_VERSION = 2
+#: A task row's status (``tasks/status``, the commit marker), defined here once for every wing.
 PENDING, DONE, FAILED = 0, 1, 2
 HOST_LEN, ERROR_LEN, VARIANT_LEN = 64, 512, 64
 TASK_FIELDS = ("id", "variant", "N", "E", "seed", "status", "attempts", "wall", "rank", "host", "error")
@@ -44,6 +45,13 @@ CHUNK_CACHE = 1 << 20  # HDF5 chunk cache per open dataset (whole blocks are wri
 #: chunk indices and symbol tables that grow or move while it writes; the store adds more
 #: per dataset and for large files).
 SLACK = 32 << 10
+
+
+def status_counts(status) -> dict:
+    """How many rows of a status column say done, failed and pending (in that order)."""
+    st = np.asarray(status)
+    return {"done": int(np.count_nonzero(st == DONE)), "failed": int(np.count_nonzero(st == FAILED)),
+            "pending": int(np.count_nonzero(st == PENDING))}
 
 
 def fill_value(name):

@@ -16,6 +16,7 @@ import numpy as np
 
 from campaign.errors import UserError
 from campaign.storage.damage import Report
+from campaign.storage.layout import status_counts
 
 
 @contextlib.contextmanager
@@ -85,7 +86,6 @@ def repair(report: Report) -> dict:
     with run_lock(report.path):
         salvage(report.path, spec, tasks, edges, B, state, drop=drop, renames=report.renames, checked=True)
     st = state[0]
-    after = {"done": int(np.count_nonzero(st == 1)), "failed": int(np.count_nonzero(st == 2)),
-             "pending": int(np.count_nonzero(st == 0))}
+    after = status_counts(st)
     return {"pending_again": before["done"] + before["failed"] - after["done"] - after["failed"],
             "rows_before": before, "rows_after": after}
