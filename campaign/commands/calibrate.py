@@ -99,15 +99,14 @@ def _store_records(path, seeds):
     """The store's finished packings as fit records, and what was skipped (their protocols are not
     in the model)."""
     from campaign.plan.calibration import _fixed_factor
-    from campaign.plan.parse import parse_spec
     from campaign.report.frames import Packings
+    from campaign.storage.layout import stored_spec
 
     with Packings(path, good=False) as pk:
         cols = pk.read_all()
-        spec_yaml = pk.attrs.get("spec_yaml")
-    if spec_yaml is None:
+        spec = stored_spec(pk.attrs, strict=True, name=f"{path} (its spec)")
+    if spec is None:
         raise UserError(f"{path}: the store holds no spec (spec_yaml); cannot tell its packings' protocols")
-    spec = parse_spec(str(spec_yaml), f"{path} (its spec)")
     variants = {v.name: v for v in spec.variants}
     if "jam_seconds" not in cols:
         raise UserError(f"{path}: no jam_seconds scalar: the store's packings were not timed")

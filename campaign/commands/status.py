@@ -129,6 +129,8 @@ def _scan(path):
 
 def _scan_open(f, np, DONE, FAILED, PENDING):
     from campaign.results.finished import given_rows
+    from campaign.run.slurm import has_gpu_tasks
+    from campaign.storage.layout import stored_spec
     from campaign.storage.checksums import read_rounds
 
     t = f["tasks"]
@@ -153,14 +155,15 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
     done_seen = 0
     # GPU packings record what ran them beside the host ("node12 cuda:NVIDIA H100 ..."): counted per
     # device, read only for a spec that asks for them
-    devices = {} if "gpu" in str(f.attrs.get("spec_yaml", "")) else None
+    written = stored_spec(f)
+    devices = {} if written is not None and has_gpu_tasks(written) else None
     clock = None  # the device clock's scalars, when the store has them
     if devices is not None and all(f"device_{k}" in f["scalars"] for k in ("start", "end", "seconds", "slots")):
         clock = {k: f["scalars"][f"device_{k}"] for k in ("start", "end", "seconds", "slots")}
     busy = GpuBusy(run_spans(f.attrs.get("runs", "[]")))
-    from campaign.storage.checksums import check_identities, stored_spec
+    from campaign.storage.checksums import check_identities
 
-    spec = stored_spec(f.attrs)
+    spec = stored_spec(f, verified=True)
     for lo in range(0, T, BLOCK):
         hi = min(lo + BLOCK, T)
         st = np.where(given[lo:hi] | (status_all[lo:hi] != PENDING), status_all[lo:hi], -1)  # -1: not given out
@@ -399,12 +402,10 @@ def _remaining_core_hours(attrs, s):
     FIT_ROWS of) the finished ones. Per cell: the tasks of a (variant, N, E) cell cost the
     same, so the sum over the unfinished tasks is the count per cell times the cell's estimate."""
     from campaign.plan.costmodel import CostModel
-    from campaign.errors import UserError
-    from campaign.plan.parse import parse_spec
+    from campaign.storage.layout import stored_spec
 
-    try:
-        spec = parse_spec(str(attrs["spec_yaml"]), "the file's spec")
-    except (KeyError, UserError, TypeError, ValueError):  # no estimate from a spec that does not read
+    spec = stored_spec(attrs)
+    if spec is None:  # no estimate from a spec that does not read
         return None, 0
     if spec.n_tasks != s["totals"]["rows"]:
         return None, 0

@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import UserError
+from campaign.results.finished import variant_systems
 from campaign.storage.configio import describe_box, tilt
 
 LAYERS = ("disks", "contacts", "network", "grains", "voids", "fictitious", "forces")
@@ -485,16 +486,6 @@ def _is_store(path):
         return False
 
 
-def _store_exponent(attrs):
-    try:
-        import yaml
-
-        spec = yaml.safe_load(attrs.get("spec_yaml", "")) or {}
-        return float(spec["system"]["potential"]["exponent"])
-    except Exception:  # noqa: BLE001 - no potential in the spec: its default
-        return 2.0
-
-
 def _store_ids_with_configurations(path):
     import h5py
 
@@ -565,7 +556,10 @@ def read_source(path, *, task=None, index=None, fmt="auto", group="/", exponent=
         variant = table["variant"][row]
         variant = variant.decode() if isinstance(variant, bytes) else str(variant)
         N, E, seed = int(table["N"][row]), float(table["E"][row]), int(table["seed"][row])
-        alpha = _store_exponent(table["attrs"]) if exponent is None else exponent
+        if exponent is None:  # the potential of the packing's own variant, which may override the spec's
+            alpha = variant_systems(table["attrs"], [variant])[variant]["exponent"]
+        else:
+            alpha = exponent
         label = f"{Path(path).name}: row {row}, {variant}, N = {N}, E = {E:.3g}, seed {seed}"
         return Source(conf.positions, conf.radii, conf.box, conf.species, alpha, label,
                       f"{Path(path).stem}_{ids[row][:8]}")

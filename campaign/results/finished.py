@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import UserError
-from campaign.storage.layout import DONE, FAILED
+from campaign.storage.layout import DONE, FAILED, stored_spec
 
 
 def _decode(a):
@@ -237,9 +237,9 @@ def load_finished(paths) -> Finished:
                 if err is None:
                     raise
                 raise err from None
-        from campaign.storage.checksums import check_identities, stored_spec
+        from campaign.storage.checksums import check_identities
 
-        check_identities(path, stored_spec(file_attrs), variant, cols["N"], cols["E"])
+        check_identities(path, stored_spec(file_attrs, verified=True), variant, cols["N"], cols["E"])
         attrs = attrs or file_attrs
         if edges is None:
             edges = hedges
@@ -309,12 +309,11 @@ def variant_systems(attrs, variants=()) -> dict:
     1.4:1 mixture).
     """
     from campaign.plan.spec import System
-    from campaign.plan.parse import parse_spec
 
-    try:
-        spec = parse_spec(str(attrs.get("spec_yaml", "")), "the stored spec")
+    spec = stored_spec(attrs)
+    if spec is not None:
         out = {v.name: _describe_system(v.system) for v in spec.variants}
-    except UserError:  # an old or foreign spec
+    else:  # an old or foreign spec
         out = {"default": _describe_system(System())}
     for v in variants:
         out.setdefault(str(v), dict(out["default"]))
@@ -325,11 +324,8 @@ def ladder_variants(attrs) -> set:
     """The variants of the stored spec whose packings of one seed share a history (``start:
     ladder``: each energy from the seed's packing one energy up); empty for a spec this version
     cannot read."""
-    from campaign.plan.parse import parse_spec
-
-    try:
-        spec = parse_spec(str(attrs.get("spec_yaml", "")), "the stored spec")
-    except UserError:
+    spec = stored_spec(attrs)
+    if spec is None:
         return set()
     return {v.name for v in spec.variants if dict(v.protocol).get("start") == "ladder"}
 

@@ -377,21 +377,9 @@ def _text(v):
     return v if isinstance(v, str) else None
 
 
-def stored_spec(attrs):
-    """The spec that wrote a store (its ``spec_yaml``, which must hash to its ``spec_hash``), or None:
-    unreadable, or a file made otherwise (by hand, by another program) whose spec does not describe it."""
-    from campaign.plan.parse import parse_spec
-
-    try:
-        spec = parse_spec(str(_text(attrs.get("spec_yaml")) or ""), "the stored spec")
-    except UserError:
-        return None
-    return spec if spec.hash == _text(attrs.get("spec_hash")) else None
-
-
 def check_identities(path, spec, variant, N, E, lo=0):
     """StoreDamaged unless every row (from row ``lo``) of the store ``path`` is a task of its own
-    ``spec`` (``stored_spec``: its variant, N and E; nothing is checked without): a block of the task table read
+    ``spec`` (``campaign.storage.layout.stored_spec``, verified: its variant, N and E; nothing is checked without): a block of the task table read
     from another place (a damaged chunk index, in a store without block checksums) can read as rows
     of no task, and must not become a cell of a table."""
     if spec is None:

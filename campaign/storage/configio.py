@@ -28,6 +28,7 @@ import numpy as np
 
 from campaign.errors import UserError
 from campaign.plan.spec import CELLS
+from campaign.storage.layout import stored_spec
 from kernels.names import MAX_TILT  # a larger tilt is reduced on reading
 
 FORMATS = ("auto", "text", "npz", "hdf5", "gsd", "xyz")
@@ -319,13 +320,12 @@ def _store_cell(fh, group):
     """The cell of a campaign store's packing read in place (``/configurations/<task id>``): its
     variant's, from the spec stored in the file; None for any other HDF5 group."""
     parts = [p for p in group.split("/") if p]
-    if len(parts) != 2 or parts[0] != "configurations" or "spec_yaml" not in fh.attrs:
+    if len(parts) != 2 or parts[0] != "configurations":
         return None
     try:
-        from campaign.plan.parse import parse_spec
-
-        text = fh.attrs["spec_yaml"]
-        spec = parse_spec(text.decode() if isinstance(text, bytes) else str(text), "the stored spec")
+        spec = stored_spec(fh)
+        if spec is None:
+            return None
         cells = {v.name: dict(v.protocol).get("cell", "fixed") for v in spec.variants}
         if set(cells.values()) == {"fixed"}:
             return "fixed"

@@ -44,7 +44,7 @@ from campaign.storage.checksums import (BLOCK_FILTERS, CHECKSUM_ATTR, CONFIG_KEY
 from campaign.storage.checksums import (BLOCK_MISMATCH, SUMS_GROUP, SUMS_ROWS, has_sums, mismatched_blocks,
                                         sums_name)
 from campaign.storage.damage import Damage, Report
-from campaign.storage.layout import DONE, FAILED, PENDING, status_counts
+from campaign.storage.layout import DONE, FAILED, PENDING, status_counts, stored_spec
 from campaign.storage.unprotected import expected_identities, identities, identity_blocks, journal_rows
 
 
@@ -206,10 +206,8 @@ class Scan:
             if "spec_yaml" in attrs:
                 self.add(Damage("/@spec_yaml", "is not text", repair="none"))
             return
-        from campaign.plan.parse import parse_spec
-
         try:
-            spec = parse_spec(text, "the stored spec")
+            spec = stored_spec(attrs, strict=True)
         except UserError as exc:
             self.add(Damage("/@spec_yaml", f"no longer reads as the spec that wrote the store ({reason(exc)})",
                             repair="none"))

@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import UserError
+from campaign.plan.parse import parse_spec
+from campaign.storage.checksums import _text
 from campaign.storage.faults import GuardedFile, release, reserve, write_fault
 
 BLOCK_ROWS = 256        # rows per chunk of every per-task dataset
@@ -192,6 +194,31 @@ def format_problem(attrs, path) -> str | None:
                 + OLD_FORMAT_HELP.format(new=FORMAT_VERSION))
     return (f"{str(path)!r} was written in store format {version} by a newer version of this program "
             f"(this one reads format {FORMAT_VERSION}); upgrade jamming-campaign to read it")
+
+
+def stored_spec(source, *, verified=False, strict=False, name="the stored spec"):
+    """The spec that wrote a store: its root attribute ``spec_yaml`` parsed (``campaign.plan.parse.parse_spec``),
+    the one place that reads it. ``source``: the store's root attributes (a mapping), or an open h5py
+    file (its ``attrs``).
+
+    None when the store holds no spec text, or one that does not parse (a spec of another version or
+    program, a damaged attribute): each caller says what it does without (the paper's system, no
+    check). ``verified``: None also when the spec does not hash to the store's ``spec_hash`` (a file
+    made otherwise, by hand or by another program, whose spec does not describe it). ``strict``: a
+    text that does not parse raises its UserError, ``name`` saying whose spec it is."""
+    attrs = getattr(source, "attrs", source)
+    text = _text(attrs.get("spec_yaml"))
+    if text is None:
+        return None
+    try:
+        spec = parse_spec(text, name)
+    except UserError:
+        if strict:
+            raise
+        return None
+    if verified and spec.hash != _text(attrs.get("spec_hash")):
+        return None
+    return spec
 
 
 def check_format(attrs, path):
