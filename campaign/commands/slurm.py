@@ -61,7 +61,7 @@ def _estimate(spec, results, cal, options):
     from campaign.errors import UserError
     from campaign.plan.tasks import expand
     from campaign.run.slurm import job_work
-    from campaign.storage.readers import read_summary
+    from campaign.storage.reader import read_summary
 
     tasks = expand(spec)
     if spec.precision is not None:
@@ -97,15 +97,15 @@ def _precision_estimate(spec, tasks, results, cal, options):
     cells = campaign_cells(spec, tasks)
     status, last = None, None
     if results.exists():
-        try:
-            import h5py
+        from campaign.storage.reader import open_store
 
-            with h5py.File(results, "r", locking=False) as f:
+        try:
+            with open_store(results) as f:
                 if f.attrs.get("spec_hash") == spec.hash:
                     status = f["tasks/status"][:]
                     got, _ = read_rounds(f)
                     last = got[max(got)] if got else None
-        except (OSError, KeyError, ValueError):
+        except (UserError, OSError, KeyError, ValueError):  # no estimate from a store that does not read
             status, last = None, None
     if last is not None:
         given = cells.tasks_of(last["early"])

@@ -121,7 +121,7 @@ def _scan(path):
     space the sample."""
     import numpy as np
 
-    from campaign.storage.readers import read_retrying
+    from campaign.storage.reader import read_retrying
     from campaign.storage.layout import DONE, FAILED, PENDING
 
     return read_retrying(path, lambda f: _scan_open(f, np, DONE, FAILED, PENDING))

@@ -146,16 +146,16 @@ def _last_decision(spec):
 
     if not spec.output or not Path(spec.output).exists():
         return None
+    from campaign.errors import UserError
+    from campaign.storage.checksums import read_rounds
+    from campaign.storage.reader import open_store
+
     try:
-        import h5py
-
-        from campaign.storage.checksums import read_rounds
-
-        with h5py.File(spec.output, "r", locking=False) as f:
+        with open_store(spec.output) as f:
             if f.attrs.get("spec_hash") != spec.hash:
                 return None
             got, _ = read_rounds(f)
-    except (OSError, KeyError, ValueError):
+    except (UserError, OSError, KeyError, ValueError):  # nothing to say of a store that does not read
         return None
     if not got:
         return None
@@ -283,7 +283,7 @@ def _learnt_remaining(spec, tasks):
     from pathlib import Path
 
     from campaign.errors import UserError
-    from campaign.storage.readers import read_summary
+    from campaign.storage.reader import read_summary
     from campaign.storage.layout import DONE
     from campaign.run.walltime import remaining_seconds
 

@@ -75,8 +75,9 @@ class _Progress:
 
 def main(args) -> int:
     from campaign.errors import UserError
-    from campaign.storage.checksums import checksums_on, run_is_writing
+    from campaign.storage.checksums import checksums_on
     from campaign.storage.integrity import scan
+    from campaign.storage.reader import run_is_writing
     from campaign.storage.repair import repair
 
     if run_is_writing(args.file):

@@ -41,7 +41,9 @@ import numpy as np
 
 from campaign.errors import UserError
 from campaign.results.finished import variant_systems
-from campaign.storage.configio import describe_box, tilt
+from campaign.storage.configio import describe_box, detect_format, read_configuration, tilt
+from campaign.storage.layout import SCHEMA
+from campaign.storage.reader import open_store, read_summary
 
 LAYERS = ("disks", "contacts", "network", "grains", "voids", "fictitious", "forces")
 DEFAULT_LAYERS = ("disks", "contacts", "network", "grains", "voids", "fictitious")
@@ -475,38 +477,17 @@ class Source:
 
 
 def _is_store(path):
-    import h5py
-
-    from campaign.storage.store import SCHEMA
-
     try:
-        with h5py.File(path, "r", locking=False) as f:
+        with open_store(path, accept="hdf5") as f:
             return f.attrs.get("schema") == SCHEMA and "tasks" in f
-    except OSError:
+    except UserError:  # not one: read_configuration says what it is
         return False
-
-
-def _store_ids_with_configurations(path):
-    import h5py
-
-    from campaign.storage.readerror import read_failure
-
-    with h5py.File(path, "r", locking=False) as f:
-        try:
-            return set(f["configurations"].keys()) if "configurations" in f else set()
-        except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
-            err = read_failure(path, exc, f, ["configurations"])
-            if err is None:
-                raise
-            raise err from None
 
 
 def store_packings(path):
     """Rows of a campaign store that hold a configuration: (task table, rows, attrs)."""
-    from campaign.storage.readers import read_summary
-
-    table = read_summary(path)
-    have = _store_ids_with_configurations(path)
+    table = read_summary(path, configurations=True)
+    have = table["configurations"]
     ids = np.array([i.decode() if isinstance(i, bytes) else str(i) for i in table["id"]])
     rows = np.flatnonzero([i in have for i in ids])
     return table, ids, rows
@@ -515,8 +496,6 @@ def store_packings(path):
 def read_source(path, *, task=None, index=None, fmt="auto", group="/", exponent=None, frame=None) -> Source:
     """The configuration to draw: a configuration file (``frame`` K of a GSD or extended XYZ
     file), or one packing of a campaign store."""
-    from campaign.storage.configio import detect_format, read_configuration
-
     path = str(path)
     if not os.path.exists(path):
         raise UserError(f"{path}: no such file (expected a configuration: text, .npz, HDF5, .gsd or extended XYZ, "

@@ -18,6 +18,7 @@ import numpy as np
 
 from campaign.errors import UserError
 from campaign.storage.layout import DONE, FAILED, stored_spec
+from campaign.storage.reader import open_store, read_failure
 
 
 def _decode(a):
@@ -108,12 +109,10 @@ class Finished:
 
     def histogram_blocks(self, name, block=8192):
         """Yield ``(positions, counts)``: finished-row positions and their int64 counts."""
-        import h5py
-
         for path, (rows, pos) in zip(self.paths, self._rows):
             if len(rows) == 0:
                 continue
-            with _open(path, h5py) as f:
+            with open_store(path, accept="layout") as f:
                 try:
                     ds = f[f"histograms/{name}/counts"]
                     lo = int(rows.min())
@@ -126,8 +125,6 @@ class Finished:
                         data = ds[s:e]
                         yield pos[m], np.asarray(data[rows[m] - s], dtype=np.int64)
                 except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
-                    from campaign.storage.readerror import read_failure
-
                     err = read_failure(path, exc, f, [f"histograms/{name}/counts"], what=f"histogram {name!r}")
                     if err is None:
                         raise
@@ -172,27 +169,12 @@ def _column_names(f):
     return set(t.keys()) if hasattr(t, "keys") else set(t.dtype.names or ())
 
 
-def _open(path, h5py):
-    from campaign.storage.checksums import open_checked
-
-    try:
-        return open_checked(path)  # every block of rows read is checked against its checksum
-    except FileNotFoundError:
-        raise UserError(f"{path}: no such file") from None
-    except OSError as exc:
-        from campaign.storage.checksums import open_failure
-
-        raise open_failure(path, exc, f"{path}: not a readable HDF5 file ({exc})") from None
-
-
 def load_finished(paths) -> Finished:
     """Read the task tables, scalars and histogram edges of the campaign file(s).
 
     This is the only function that knows the store layout. A packing that appears
     done in several files (same task id) is used once.
     """
-    import h5py
-
     if isinstance(paths, (str, Path)):
         paths = [paths]
     paths = [str(p) for p in paths]
@@ -202,15 +184,11 @@ def load_finished(paths) -> Finished:
     scal_parts, per_file, edges, attrs = [], [], None, None
     offset = 0
     for path in paths:
-        with _open(path, h5py) as f:
+        with open_store(path, accept="layout") as f:  # a file of the layout without a schema is read too
             try:
                 if "tasks" not in f:
                     raise UserError(f"{path}: not a campaign file (no /tasks table); "
                                     "expected the layout of docs/CONTRACTS.md")
-                if "schema" in f.attrs:
-                    from campaign.storage.store import check_format
-
-                    check_format(f.attrs, path)
                 # status first: a row's data is complete before its status says done
                 cols = _columns(f, ("status", "id", "variant", "N", "E", "seed"))
                 for need in ("status", "id", "N", "E"):
@@ -231,8 +209,6 @@ def load_finished(paths) -> Finished:
                     for n in f["histograms"]:
                         hedges[n] = np.asarray(f[f"histograms/{n}/edges"][...], dtype=float)
             except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
-                from campaign.storage.readerror import read_failure
-
                 err = read_failure(path, exc, f, ["tasks", "scalars", "histograms/*/edges"])
                 if err is None:
                     raise

@@ -330,16 +330,6 @@ def damaged_message(path, what, how, held="") -> str:
             f"tasks pending, for `campaign run` of the same spec to recompute them ({DOCS})")
 
 
-def run_is_writing(path) -> bool:
-    """Whether a live run writes the store (its progress file, judged as ``campaign status`` does)."""
-    try:
-        from campaign.storage.progress import read_sidecar, writer_state
-
-        return writer_state(read_sidecar(path))["state"] == "running"
-    except Exception:  # noqa: BLE001 - no progress file, or an unreadable one: no run known
-        return False
-
-
 def looks_like_store(path) -> bool:
     """Whether ``path`` is an HDF5 file by its signature (at 0, 512, 1024, ...: where HDF5 looks for
     it), or has a campaign journal beside it."""
@@ -356,17 +346,6 @@ def looks_like_store(path) -> bool:
             return fh.read(4) == JOURNAL_MAGIC
     except OSError:
         return False
-
-
-def open_failure(path, exc, otherwise: str) -> UserError:
-    """The error for a file h5py cannot open: damaged when it looks like an HDF5 file (or has a
-    campaign journal), else ``otherwise`` (not an HDF5 file)."""
-    if looks_like_store(path):
-        return StoreDamaged(
-            f"{path} is damaged: it cannot be opened as HDF5 ({reason(exc)}), though it is an HDF5 file (or has "
-            f"a campaign journal beside it): its superblock or root group is damaged, or the file was cut short. "
-            f"`campaign verify {path}` says what can be recovered ({DOCS})")
-    return UserError(otherwise)
 
 
 def _text(v):

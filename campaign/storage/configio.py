@@ -28,6 +28,7 @@ import numpy as np
 
 from campaign.errors import UserError
 from campaign.plan.spec import CELLS
+from campaign.storage.checksums import check_configuration
 from campaign.storage.layout import stored_spec
 from kernels.names import MAX_TILT  # a larger tilt is reduced on reading
 
@@ -276,20 +277,10 @@ def _as_float(path, pos, rad, box):
 
 
 def _read_hdf5(path, group):
-    try:
-        import h5py
-    except ImportError:  # pragma: no cover - h5py is a dependency
-        raise UserError(f"{path}: reading HDF5 needs h5py") from None
-    from campaign.storage.checksums import check_configuration, open_failure
-    from campaign.storage.readerror import read_failure
+    # imported here: reading text, npz, GSD or XYZ (campaign analyze, draw) needs no HDF5
+    from campaign.storage.reader import open_store, read_failure
 
-    try:
-        from campaign.storage.checksums import open_checked
-
-        fh = open_checked(path)  # a store's task table is checked against its block checksums
-    except OSError as exc:
-        raise open_failure(path, exc, f"{path}: not a readable HDF5 file ({exc})") from None
-    with fh:
+    with open_store(path, accept="hdf5") as fh:  # any HDF5 file; a store's blocks are checked
         try:
             if group not in fh:
                 raise UserError(f"{path}: no group {group!r} (expected datasets positions, radii, box there)")

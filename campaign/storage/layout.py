@@ -175,6 +175,12 @@ OLD_FORMAT_HELP = (
     "replace this file); the spec is stored in the file's 'spec_yaml' attribute")
 
 
+class ForeignStore(UserError):
+    """A file no run or reader of this program may use as the store it was given: another program's
+    file, a store of another format, or (for a run) a store of another spec or other bins. Exit status
+    2; the message says what it is and what to do."""
+
+
 def format_problem(attrs, path) -> str | None:
     """Why a campaign file of another store format cannot be used (None if it can)."""
     schema = attrs.get("schema")
@@ -222,10 +228,10 @@ def stored_spec(source, *, verified=False, strict=False, name="the stored spec")
 
 
 def check_format(attrs, path):
-    """Raise UserError (exit 2) for a file of another schema or store format."""
+    """Raise ForeignStore (exit 2) for a file of another schema or store format."""
     problem = format_problem(attrs, path)
     if problem is not None:
-        raise UserError(problem)
+        raise ForeignStore(problem)
 
 
 # --------------------------------------------------------------------------- checking

@@ -170,7 +170,7 @@ class Store:
                 try:
                     load_state(self.path, self.status, self.attempts, self.wall)
                 except (OSError, KeyError, ValueError, RuntimeError) as exc:
-                    from campaign.storage.readerror import read_failure
+                    from campaign.storage.reader import read_failure
 
                     raise read_failure(self.path, exc, None, ["tasks/attempts", "tasks/wall"],
                                        what="its task table") from None
