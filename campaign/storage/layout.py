@@ -19,6 +19,7 @@ temporary file. Salvaging creates its file the same way (``create_file``'s ``fil
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -98,6 +99,50 @@ def row_values(meta, arrays, edges, columns=None):
                 res[c] = None
         return res
     return out
+
+
+def task_record(index, tid, summary, attempts, edges, run_id):
+    """The journal record ``(meta, arrays)`` of the final outcome of task ``tid`` (row ``index``), from
+    its worker's ``summary`` (docs/CONTRACTS.md): done if ``summary['ok']``, else failed; ``row_values``
+    reads it back."""
+    status = DONE if summary["ok"] else FAILED
+    err = summary.get("error") or {}
+    meta = {"type": "task", "index": index, "id": tid, "status": status, "attempts": int(attempts),
+            "wall": float(summary.get("wall", float("nan"))), "rank": int(summary.get("rank", -1)),
+            "host": str(summary.get("host", "")), "message": err.get("message", ""),
+            "traceback": err.get("traceback", ""), "run_id": run_id}
+    arrays = {}
+    if status == DONE:
+        sc = summary.get("scalars", {})
+        meta["scalar_names"] = ",".join(sc)
+        arrays["s"] = np.fromiter(sc.values(), np.float64, len(sc))
+        for h in edges:
+            arrays["h/" + h] = np.asarray(summary["histograms"][h], np.int64)
+        cfg = summary.get("configuration")
+        if cfg is not None:  # asked for by the spec, or a ladder parent's
+            for k in ("positions", "radii", "box", "species"):
+                arrays["c/" + k] = np.asarray(cfg[k])
+    return meta, arrays
+
+
+def row_record(index, tid, status, row, scalars, histograms, failure=None, configuration=None):
+    """The journal record ``(meta, arrays)`` of the committed row ``index`` of task ``tid``, rebuilt
+    from the store: ``row`` its ``ROW_FIELDS`` values, ``scalars`` and ``histograms`` its values by
+    name, ``failure`` the attributes of its failure record (a failed row's), ``configuration`` its
+    arrays (None: none kept)."""
+    meta = {"type": "task", "index": index, "id": tid, "status": status,
+            "attempts": int(row["attempts"]), "wall": float(row["wall"]),
+            "rank": int(row["rank"]), "host": row["host"].decode(errors="replace"),
+            "message": row["error"].decode(errors="replace"), "traceback": "", "run_id": None}
+    arrays = {}
+    if status == DONE:
+        meta["scalars"] = {n: float(v) for n, v in scalars.items() if not np.isnan(v)}
+        arrays = {"h/" + h: c for h, c in histograms.items()}
+    elif failure is not None:
+        meta["message"], meta["traceback"] = str(failure.get("message", "")), str(failure.get("traceback", ""))
+    if configuration is not None:
+        arrays.update(("c/" + k, a) for k, a in configuration.items())
+    return meta, arrays
 
 
 def column_layout(name, edges):
@@ -236,25 +281,43 @@ def check_format(attrs, path):
 
 # --------------------------------------------------------------------------- checking
 
-def check_file(path, spec_hash, tasks, edges, B, touched=()):
-    """None if the file is a valid store of this spec; 'refuse:...' if it belongs to another;
-    else what is wrong with it (it is then salvaged).
+@dataclass(frozen=True)
+class Verdict:
+    """What a run's start does with the file at its store's path (``inspect``): ``"keep"`` it,
+    ``"salvage"`` its readable rows into a new file (``problem``: what is wrong with it), or
+    ``"create"`` one."""
+
+    action: str
+    problem: str | None = None
+
+
+def inspect(path, spec_hash, tasks, edges, B, touched=()) -> Verdict:
+    """One read-only look at the file a run of the spec ``spec_hash`` starts from: kept when it is a
+    sound store of the spec, salvaged when it is damaged, created when there is none. ForeignStore
+    when it belongs to another program, store format or spec, or has other bin edges.
 
     ``touched``: the blocks the journal's records go to, the only ones a killed run can
     have been writing; each of their chunks must decompress.
     """
+    if not Path(path).exists():
+        return Verdict("create")
+    problem = _problem(path, spec_hash, tasks, edges, B, touched)
+    return Verdict("keep") if problem is None else Verdict("salvage", problem)
+
+
+def _problem(path, spec_hash, tasks, edges, B, touched):
+    """What is wrong with the store at ``path`` (None: nothing); ForeignStore when it is not this
+    spec's store at all."""
     import h5py
 
     T = len(tasks)
     try:
         with h5py.File(path, "r", locking=False) as f:
-            problem = format_problem(f.attrs, path)
-            if problem is not None:
-                return "refuse:" + problem
+            check_format(f.attrs, path)
             if f.attrs.get("spec_hash") != spec_hash:
-                return (f"refuse:{str(path)!r} was written by a different spec (name "
-                        f"{f.attrs.get('name')!r}, spec hash {f.attrs.get('spec_hash')}; this spec's hash is "
-                        f"{spec_hash}); rerun with --new to overwrite it, or choose another --out")
+                raise ForeignStore(f"{str(path)!r} was written by a different spec (name "
+                                   f"{f.attrs.get('name')!r}, spec hash {f.attrs.get('spec_hash')}; this spec's hash "
+                                   f"is {spec_hash}); rerun with --new to overwrite it, or choose another --out")
             for name in TASK_FIELDS:
                 if f[f"tasks/{name}"].shape != (T,):
                     return f"tasks/{name} has the wrong shape"
@@ -268,9 +331,9 @@ def check_file(path, spec_hash, tasks, edges, B, touched=()):
                 if f[f"histograms/{h}/counts"].shape != (T, len(e) - 1):
                     return f"histograms/{h}/counts has the wrong shape"
                 if not np.array_equal(f[f"histograms/{h}/edges"][:], e):
-                    return (f"refuse:the bin edges of histogram {h!r} in {str(path)!r} differ from "
-                            "the ones this installation would use (the default bins changed?); pin them "
-                            "in the spec's 'bins', or rerun with --new")
+                    raise ForeignStore(f"the bin edges of histogram {h!r} in {str(path)!r} differ from the ones this "
+                                       "installation would use (the default bins changed?); pin them in the spec's "
+                                       "'bins', or rerun with --new")
             for name in f["scalars"]:
                 if f[f"scalars/{name}"].shape != (T,):
                     return f"scalars/{name} has the wrong shape"
@@ -289,19 +352,36 @@ def check_file(path, spec_hash, tasks, edges, B, touched=()):
                 for b in sorted(touched):
                     ds[b * B:(b + 1) * B]
             f["tasks/status"][:]
+    except ForeignStore:
+        raise
     except Exception as exc:  # noqa: BLE001 - whatever a damaged file makes h5py raise: salvage it
         return f"{type(exc).__name__}: {exc}"
     return None
 
 
-def load_state(path, status, attempts, wall):
-    """The scheduler's columns of a valid store, read into the given arrays."""
-    import h5py
+@dataclass
+class State:
+    """The scheduler's columns of a store, one value a task: ``status`` (int8), ``attempts`` (int32)
+    and ``wall`` (float64, seconds). The master keeps them in memory; everything else is read from
+    the file when asked."""
 
-    with h5py.File(path, "r", locking=False) as f:
-        status[:] = f["tasks/status"][:]
-        attempts[:] = f["tasks/attempts"][:]
-        wall[:] = f["tasks/wall"][:]
+    status: np.ndarray
+    attempts: np.ndarray
+    wall: np.ndarray
+
+    @classmethod
+    def fresh(cls, T) -> "State":
+        """Every task pending: the fill values of a new store."""
+        return cls(np.zeros(T, np.int8), np.zeros(T, np.int32), np.full(T, np.nan))
+
+    @classmethod
+    def read(cls, f) -> "State":
+        """The columns of the open store ``f``."""
+        return cls(f["tasks/status"][:], f["tasks/attempts"][:], f["tasks/wall"][:])
+
+    def counts(self) -> list:
+        """``[pending, done, failed]``: rows of each status (a list indexed by the codes)."""
+        return [int(np.count_nonzero(self.status == k)) for k in (PENDING, DONE, FAILED)]
 
 
 # --------------------------------------------------------------------------- creating

@@ -78,14 +78,11 @@ def repair(report: Report) -> dict:
 
         edges.update(histogram_edges(missing, {h: list(e) for h, e in spec.bins}))
     edges = {h: np.asarray(edges[h], np.float64) for h in sorted(spec.histograms)}
-    T = len(tasks)
     B = report.B or 1
     drop = set(report.drop_rows().tolist())
     before = report.counts
-    state = (np.zeros(T, np.int8), np.zeros(T, np.int32), np.full(T, np.nan))
     with run_lock(report.path):
-        salvage(report.path, spec, tasks, edges, B, state, drop=drop, renames=report.renames, checked=True)
-    st = state[0]
-    after = status_counts(st)
+        state = salvage(report.path, spec, tasks, edges, B, drop=drop, renames=report.renames, checked=True)
+    after = status_counts(state.status)
     return {"pending_again": before["done"] + before["failed"] - after["done"] - after["failed"],
             "rows_before": before, "rows_after": after}
