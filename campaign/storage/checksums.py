@@ -20,7 +20,7 @@ import zlib
 
 import numpy as np
 
-from campaign.errors import StoreDamaged, UserError
+from campaign.errors import StoreDamaged
 
 CONFIG_KEYS = ("positions", "radii", "box", "species")
 CHECKSUM_ATTR = "crc32"

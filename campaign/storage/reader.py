@@ -22,7 +22,7 @@ import h5py
 from campaign.errors import StoreDamaged, UserError
 from campaign.storage.checksums import (READ_ERRORS, damaged_message, is_filter_failure, looks_like_store,
                                         open_checked, reason, DOCS)
-from campaign.storage.integrity import Scan, _Found
+from campaign.storage.integrity import first_damage
 from campaign.storage.layout import TASK_FIELDS, check_format
 from campaign.storage.progress import read_sidecar, writer_state
 
@@ -171,16 +171,7 @@ def locate(path, f=None, patterns=("tasks", "scalars")):
     if f is None or not f.id.valid:
         own = f = h5py.File(path, "r", locking=False)
     try:
-        s = Scan(f, str(path), stop_first=True)
-        try:
-            s.run(patterns=patterns)
-        except _Found:
-            pass
-        if not s.report.damage:
-            return None
-        d = s.report.damage[0]
-        d.labels = s._labels(d.rows[:5])
-        return d
+        return first_damage(f, path, patterns)
     finally:
         if own is not None:
             own.close()
