@@ -31,7 +31,7 @@ import numpy as np
 
 from campaign.errors import UserError
 from campaign.storage.faults import write_fault
-from campaign.storage.layout import FORMAT_VERSION, OLD_FORMAT_HELP, SCHEMA, ForeignStore
+from campaign.storage.layout import DONE, FAILED, FORMAT_VERSION, OLD_FORMAT_HELP, SCHEMA, ForeignStore
 
 _HEAD = struct.Struct("<4sII")  # magic, payload length, crc32(payload)
 _MAGIC = b"JCJ1"
@@ -66,6 +66,30 @@ def decode_payload(payload: bytes):
         pos += count * dt.itemsize
     if pos != len(payload):
         raise ValueError("record length does not match its arrays")
+    return meta, arrays
+
+
+def task_record(index, tid, summary, attempts, edges, run_id):
+    """The journal record ``(meta, arrays)`` of the final outcome of task ``tid`` (row ``index``), from
+    its worker's ``summary`` (docs/CONTRACTS.md): done if ``summary['ok']``, else failed; ``row_values``
+    (``campaign.storage.layout``) reads it back."""
+    status = DONE if summary["ok"] else FAILED
+    err = summary.get("error") or {}
+    meta = {"type": "task", "index": index, "id": tid, "status": status, "attempts": int(attempts),
+            "wall": float(summary.get("wall", float("nan"))), "rank": int(summary.get("rank", -1)),
+            "host": str(summary.get("host", "")), "message": err.get("message", ""),
+            "traceback": err.get("traceback", ""), "run_id": run_id}
+    arrays = {}
+    if status == DONE:
+        sc = summary.get("scalars", {})
+        meta["scalar_names"] = ",".join(sc)
+        arrays["s"] = np.fromiter(sc.values(), np.float64, len(sc))
+        for h in edges:
+            arrays["h/" + h] = np.asarray(summary["histograms"][h], np.int64)
+        cfg = summary.get("configuration")
+        if cfg is not None:  # asked for by the spec, or a ladder parent's
+            for k in ("positions", "radii", "box", "species"):
+                arrays["c/" + k] = np.asarray(cfg[k])
     return meta, arrays
 
 
@@ -185,10 +209,10 @@ class Replay:
                 last = meta
         return int(last.get("committed", 0))
 
-    def blocks(self, B) -> set:
-        """The blocks of ``B`` rows its task records go to: the only ones a killed run can have been
-        writing (their rows and checksums may be out of step until the replay rewrites them)."""
-        return {int(m["index"]) // B for m, _ in self.records if m.get("type") == "task"}
+    def rows(self) -> set:
+        """The task rows its records go to: the only ones a killed run can have been writing (their
+        blocks' rows and checksums may be out of step until the replay rewrites them)."""
+        return {int(m["index"]) for m, _ in self.records if m.get("type") == "task"}
 
     def notes(self) -> list:
         """What reading it found, as the lines a run prints: damaged stretches skipped (their tasks run
@@ -263,11 +287,11 @@ class Journal:
             raise ForeignStore(f"{str(self.path)!r} belongs to a different spec (or a different program); rerun "
                                f"with --new to start {self.store!r} afresh, or choose another --out")
         if header.get("format_version", 1) != FORMAT_VERSION:
-            raise ForeignStore(f"{str(self.path)!r} was written by a store of format {header.get('format_version', 1)}; "
-                               + OLD_FORMAT_HELP.format(new=FORMAT_VERSION))
+            raise ForeignStore(f"{str(self.path)!r} was written by a store of format "
+                               f"{header.get('format_version', 1)}; " + OLD_FORMAT_HELP.format(new=FORMAT_VERSION))
         return replay
 
-    def checkpoint(self, spec_hash, T, runs, committed, when):
+    def cut_back(self, spec_hash, T, runs, committed, when):
         """Cut the journal back to what a store that holds every finished task needs of it: its header
         (the spec ``spec_hash`` of ``T`` tasks), the ``runs`` so far and a checkpoint record (``committed``
         tasks in the store, at ``when``)."""

@@ -26,7 +26,8 @@ import numpy as np
 
 from campaign.errors import UserError
 from campaign.plan.parse import parse_spec
-from campaign.storage.checksums import _text
+from campaign.storage.checksums import (PROTECTION_ATTR, _text, block_sums, checksums_on, create_fill_sums,
+                                        create_sums, protection_text, write_sums)
 from campaign.storage.faults import GuardedFile, release, reserve, write_fault
 
 BLOCK_ROWS = 256        # rows per chunk of every per-task dataset
@@ -101,50 +102,6 @@ def row_values(meta, arrays, edges, columns=None):
     return out
 
 
-def task_record(index, tid, summary, attempts, edges, run_id):
-    """The journal record ``(meta, arrays)`` of the final outcome of task ``tid`` (row ``index``), from
-    its worker's ``summary`` (docs/CONTRACTS.md): done if ``summary['ok']``, else failed; ``row_values``
-    reads it back."""
-    status = DONE if summary["ok"] else FAILED
-    err = summary.get("error") or {}
-    meta = {"type": "task", "index": index, "id": tid, "status": status, "attempts": int(attempts),
-            "wall": float(summary.get("wall", float("nan"))), "rank": int(summary.get("rank", -1)),
-            "host": str(summary.get("host", "")), "message": err.get("message", ""),
-            "traceback": err.get("traceback", ""), "run_id": run_id}
-    arrays = {}
-    if status == DONE:
-        sc = summary.get("scalars", {})
-        meta["scalar_names"] = ",".join(sc)
-        arrays["s"] = np.fromiter(sc.values(), np.float64, len(sc))
-        for h in edges:
-            arrays["h/" + h] = np.asarray(summary["histograms"][h], np.int64)
-        cfg = summary.get("configuration")
-        if cfg is not None:  # asked for by the spec, or a ladder parent's
-            for k in ("positions", "radii", "box", "species"):
-                arrays["c/" + k] = np.asarray(cfg[k])
-    return meta, arrays
-
-
-def row_record(index, tid, status, row, scalars, histograms, failure=None, configuration=None):
-    """The journal record ``(meta, arrays)`` of the committed row ``index`` of task ``tid``, rebuilt
-    from the store: ``row`` its ``ROW_FIELDS`` values, ``scalars`` and ``histograms`` its values by
-    name, ``failure`` the attributes of its failure record (a failed row's), ``configuration`` its
-    arrays (None: none kept)."""
-    meta = {"type": "task", "index": index, "id": tid, "status": status,
-            "attempts": int(row["attempts"]), "wall": float(row["wall"]),
-            "rank": int(row["rank"]), "host": row["host"].decode(errors="replace"),
-            "message": row["error"].decode(errors="replace"), "traceback": "", "run_id": None}
-    arrays = {}
-    if status == DONE:
-        meta["scalars"] = {n: float(v) for n, v in scalars.items() if not np.isnan(v)}
-        arrays = {"h/" + h: c for h, c in histograms.items()}
-    elif failure is not None:
-        meta["message"], meta["traceback"] = str(failure.get("message", "")), str(failure.get("traceback", ""))
-    if configuration is not None:
-        arrays.update(("c/" + k, a) for k, a in configuration.items())
-    return meta, arrays
-
-
 def column_layout(name, edges):
     """(dtype, fill value, row shape) of the per-task column ``name`` a task's row goes to
     (``tasks/<field>``, ``scalars/<name>``, ``histograms/<h>/counts``)."""
@@ -192,16 +149,12 @@ def fsync_path(path):
 def dataset_kwargs(B, shape, fill):
     """A per-task block dataset: chunks of ``B`` rows, shuffled, deflated, and HDF5's fletcher32
     checksum on each chunk (written last, checked first on every read; ``campaign.storage.checksums``)."""
-    from campaign.storage.checksums import checksums_on
-
     chunks = (B,) + tuple(shape[1:])
     return dict(shape=shape, chunks=chunks, fillvalue=fill, fletcher32=checksums_on(), **COMPRESSION)
 
 
 def edges_kwargs(e):
     """A histogram's bin edges: one chunk with its checksum (contiguous without checksums)."""
-    from campaign.storage.checksums import checksums_on
-
     e = np.asarray(e, np.float64)
     if checksums_on():
         return dict(data=e, chunks=e.shape, fletcher32=True)
@@ -283,75 +236,84 @@ def check_format(attrs, path):
 
 @dataclass(frozen=True)
 class Verdict:
-    """What a run's start does with the file at its store's path (``inspect``): ``"keep"`` it,
-    ``"salvage"`` its readable rows into a new file (``problem``: what is wrong with it), or
-    ``"create"`` one."""
+    """What a run's start does with the file at its store's path (``inspect``): ``"keep"`` it (its
+    ``state`` read), ``"salvage"`` its readable rows into a new file (``problem``: what is wrong with
+    it), or ``"create"`` one."""
 
     action: str
     problem: str | None = None
+    state: State | None = None
 
 
 def inspect(path, spec_hash, tasks, edges, B, touched=()) -> Verdict:
-    """One read-only look at the file a run of the spec ``spec_hash`` starts from: kept when it is a
-    sound store of the spec, salvaged when it is damaged, created when there is none. ForeignStore
-    when it belongs to another program, store format or spec, or has other bin edges.
+    """One read-only look at the file a run of the spec ``spec_hash`` starts from: kept (with the
+    scheduler's ``State`` read) when it is a sound store of the spec, salvaged when it is damaged,
+    created when there is none. ForeignStore when it belongs to another program, store format or
+    spec, or has other bin edges; a sound store whose state cannot be read raises what h5py raised
+    (the caller names the damage).
 
     ``touched``: the blocks the journal's records go to, the only ones a killed run can
     have been writing; each of their chunks must decompress.
     """
+    import h5py  # here, not with the module: the layout's names serve readers of no HDF5 (see create_file)
+
     if not Path(path).exists():
         return Verdict("create")
-    problem = _problem(path, spec_hash, tasks, edges, B, touched)
-    return Verdict("keep") if problem is None else Verdict("salvage", problem)
+    try:
+        f = h5py.File(path, "r", locking=False)
+    except Exception as exc:  # noqa: BLE001 - a file HDF5 cannot open: salvage it
+        return Verdict("salvage", f"{type(exc).__name__}: {exc}")
+    with f:
+        problem = _problem(f, path, spec_hash, tasks, edges, B, touched)
+        if problem is not None:
+            return Verdict("salvage", problem)
+        return Verdict("keep", state=State.read(f))
 
 
-def _problem(path, spec_hash, tasks, edges, B, touched):
-    """What is wrong with the store at ``path`` (None: nothing); ForeignStore when it is not this
-    spec's store at all."""
-    import h5py
-
+def _problem(f, path, spec_hash, tasks, edges, B, touched):
+    """What is wrong with the store ``f`` at ``path`` (None: nothing); ForeignStore when it is not
+    this spec's store at all."""
     T = len(tasks)
     try:
-        with h5py.File(path, "r", locking=False) as f:
-            check_format(f.attrs, path)
-            if f.attrs.get("spec_hash") != spec_hash:
-                raise ForeignStore(f"{str(path)!r} was written by a different spec (name "
-                                   f"{f.attrs.get('name')!r}, spec hash {f.attrs.get('spec_hash')}; this spec's hash "
-                                   f"is {spec_hash}); rerun with --new to overwrite it, or choose another --out")
-            for name in TASK_FIELDS:
-                if f[f"tasks/{name}"].shape != (T,):
-                    return f"tasks/{name} has the wrong shape"
-            ids = f["tasks/id"]
-            for lo in range(0, T, 65536):
-                hi = min(lo + 65536, T)
-                want = np.array([t.id.encode() for t in tasks[lo:hi]], "S32")
-                if not np.array_equal(ids[lo:hi], want):
-                    return "its task ids differ from the spec's"
-            for h, e in edges.items():
-                if f[f"histograms/{h}/counts"].shape != (T, len(e) - 1):
-                    return f"histograms/{h}/counts has the wrong shape"
-                if not np.array_equal(f[f"histograms/{h}/edges"][:], e):
-                    raise ForeignStore(f"the bin edges of histogram {h!r} in {str(path)!r} differ from the ones this "
-                                       "installation would use (the default bins changed?); pin them in the spec's "
-                                       "'bins', or rerun with --new")
-            for name in f["scalars"]:
-                if f[f"scalars/{name}"].shape != (T,):
-                    return f"scalars/{name} has the wrong shape"
-            # groups written under a SIGKILL can be torn (unreadable, or missing a dataset)
-            for tid, g in (f["configurations"].items() if "configurations" in f else ()):
-                for k in ("positions", "radii", "box", "species"):
-                    if k not in g:
-                        return f"configurations/{tid} lacks {k}"
-                    g[k].shape
-            for g in (f["failures"].values() if "failures" in f else ()):
-                dict(g.attrs)  # an object that is not a group (a damaged header) fails here too
-            names = [f"tasks/{n}" for n in ROW_FIELDS] + [f"scalars/{n}" for n in f["scalars"]]
-            names += [f"histograms/{h}/counts" for h in edges]
-            for name in names:
-                ds = f[name]
-                for b in sorted(touched):
-                    ds[b * B:(b + 1) * B]
-            f["tasks/status"][:]
+        check_format(f.attrs, path)
+        if f.attrs.get("spec_hash") != spec_hash:
+            raise ForeignStore(f"{str(path)!r} was written by a different spec (name "
+                               f"{f.attrs.get('name')!r}, spec hash {f.attrs.get('spec_hash')}; this spec's hash "
+                               f"is {spec_hash}); rerun with --new to overwrite it, or choose another --out")
+        for name in TASK_FIELDS:
+            if f[f"tasks/{name}"].shape != (T,):
+                return f"tasks/{name} has the wrong shape"
+        ids = f["tasks/id"]
+        for lo in range(0, T, 65536):
+            hi = min(lo + 65536, T)
+            want = np.array([t.id.encode() for t in tasks[lo:hi]], "S32")
+            if not np.array_equal(ids[lo:hi], want):
+                return "its task ids differ from the spec's"
+        for h, e in edges.items():
+            if f[f"histograms/{h}/counts"].shape != (T, len(e) - 1):
+                return f"histograms/{h}/counts has the wrong shape"
+            if not np.array_equal(f[f"histograms/{h}/edges"][:], e):
+                raise ForeignStore(f"the bin edges of histogram {h!r} in {str(path)!r} differ from the ones this "
+                                   "installation would use (the default bins changed?); pin them in the spec's "
+                                   "'bins', or rerun with --new")
+        for name in f["scalars"]:
+            if f[f"scalars/{name}"].shape != (T,):
+                return f"scalars/{name} has the wrong shape"
+        # groups written under a SIGKILL can be torn (unreadable, or missing a dataset)
+        for tid, g in (f["configurations"].items() if "configurations" in f else ()):
+            for k in ("positions", "radii", "box", "species"):
+                if k not in g:
+                    return f"configurations/{tid} lacks {k}"
+                g[k].shape
+        for g in (f["failures"].values() if "failures" in f else ()):
+            dict(g.attrs)  # an object that is not a group (a damaged header) fails here too
+        names = [f"tasks/{n}" for n in ROW_FIELDS] + [f"scalars/{n}" for n in f["scalars"]]
+        names += [f"histograms/{h}/counts" for h in edges]
+        for name in names:
+            ds = f[name]
+            for b in sorted(touched):
+                ds[b * B:(b + 1) * B]
+        f["tasks/status"][:]
     except ForeignStore:
         raise
     except Exception as exc:  # noqa: BLE001 - whatever a damaged file makes h5py raise: salvage it
@@ -405,6 +367,8 @@ def create_file(path, spec, tasks, edges, B, *, fill=None, extra=0, what="creati
     the step in a fault's message. The space it needs is reserved first; a full disk (OutOfSpace)
     or any other fault removes the temporary file and leaves ``path`` as it was.
     """
+    # imported here, not with the module: its names and the stored spec serve commands that read no
+    # HDF5 (the command line's closing note, campaign analyze of a text configuration, validate)
     import h5py
 
     path = Path(path)
@@ -452,15 +416,10 @@ def create_file(path, spec, tasks, edges, B, *, fill=None, extra=0, what="creati
 
 def block_sums_of(e):
     """The checksum of a dataset read whole (a histogram's bin edges: one block)."""
-    from campaign.storage.checksums import block_sums
-
     return block_sums(e, max(1, len(e)))
 
 
 def _write_layout(f, spec, tasks, edges, B):
-    from campaign.storage.checksums import (PROTECTION_ATTR, checksums_on, create_fill_sums, create_sums,
-                                            protection_text, write_sums)
-
     T = len(tasks)
     g = f.create_group("tasks")
     cols = {"id": "S32", "variant": f"S{VARIANT_LEN}", "N": np.int64, "E": np.float64, "seed": np.int64}

@@ -6,36 +6,33 @@ per-task datasets chunked by blocks of rows, ``tasks/status`` the commit marker)
 journal (``OUT.journal``, ``campaign.storage.journal``: one record per finished task, written before
 anything touches the HDF5 file, cut back at a *checkpoint* once the store holds everything).
 
-A run's start (``Store._open``): the journal is read, the file looked at once
-(``layout.inspect``): kept, salvaged from its readable rows when it is damaged
-(``campaign.storage.salvage``), or created; a store of another spec or program is refused
-(``layout.ForeignStore``). Then it is opened for writing, the scheduler's ``layout.State`` loaded,
-the journal replayed into it (idempotent: a row is a pure function of its last record; rows lost
-with damage are counted and run again, packings being pure functions of the spec) and checkpointed.
+A run's start (``Store._open``): the journal is read and the file looked at once (``layout.inspect``):
+kept, salvaged from its readable rows when it is damaged (``campaign.storage.salvage``) or created,
+each giving the scheduler's ``layout.State``; a store of another spec or program is refused
+(``layout.ForeignStore``). Then it is opened for writing, the journal replayed into it (idempotent: a
+row is a pure function of its last record; rows lost with damage are counted and run again, packings
+being pure functions of the spec) and both are checkpointed.
 
-The master keeps O(1) per task in memory: status, attempts and wall time (the
-scheduler and the wall-time model need them). A finished task's scalars and
-histograms wait in a staging buffer only until the block of rows they belong to is
-complete (or ``HOLD_SECONDS`` have passed, or the buffer passes ``BUFFER_BYTES``),
-then go to disk: data first, ``flush``, then the status column, ``flush`` again.
-Writing whole blocks keeps each compressed chunk written about once. A chunk rewritten
-whole could lose its committed rows to a write cut by SIGKILL, so before a block is
-written again, its committed rows that are no longer in the journal are appended to it
-again (from the store).
+The master keeps O(1) per task in memory: status, attempts and wall time (the scheduler and the
+wall-time model need them). A finished task's scalars and histograms wait in a staging buffer only
+until the block of rows they belong to is complete (or ``HOLD_SECONDS`` have passed, or the buffer
+passes ``BUFFER_BYTES``), then go to disk: data first, ``flush``, then the status column, ``flush``
+again. Writing whole blocks keeps each compressed chunk written about once. A chunk rewritten whole
+could lose its committed rows to a write cut by SIGKILL, so before a block is written again, its
+committed rows that are no longer in the journal are appended to it again (from the store).
 
-A full disk (or quota, or a file system that fails) never leaves the two files disagreeing:
-every HDF5 write step first reserves the space it may need (``campaign.storage.space``, told the
-blocks the file holds once, at the start; it never calls back) and raises ``OutOfSpace`` before
-writing anything; a journal append that fails is cut back. Should HDF5 itself meet a failed write,
-its handle is *poisoned* (``campaign.storage.faults.GuardedFile.poisoned``) and never flushed or
-closed normally again; the journal holds every finished task and the next start salvages the
-store. Either way the run stops with a ``WriteFault`` (exit status 3).
+A full disk (or quota, or a failing file system) never leaves the two files disagreeing: every HDF5
+write step first reserves the space it may need (``campaign.storage.space``) and raises
+``OutOfSpace`` before writing anything; should HDF5 itself meet a failed write, its handle is
+*poisoned* (``campaign.storage.faults.GuardedFile.poisoned``) and never flushed or closed normally
+again, and the next start salvages the store from the journal. Either way the run stops with a
+``WriteFault`` (exit status 3).
 
-Suspended GPU packings (stop and go, docs/GPU.md) take the same path: a ``suspended`` record
-in the journal first (``Store.suspend``), then the group ``/checkpoints/<id>`` (the packing's
-state and counters, with a checksum) at the next flush; the task stays pending, and the group is
-removed in the write step that commits the task's row. A checkpoint that cannot be read or does
-not match its checksum is ignored (``Store.suspended``): its task starts over.
+Suspended GPU packings (stop and go, docs/GPU.md) take the same path: a ``suspended`` record in the
+journal first (``Store.suspend``), then the group ``/checkpoints/<id>`` (the packing's state and
+counters, with a checksum) at the next flush; the task stays pending, and the group is removed in the
+write step that commits the task's row. A checkpoint that cannot be read or does not match its
+checksum is ignored (``Store.suspended``): its task starts over.
 
 Calls go one way: here -> ``space``, ``salvage``, ``layout``, ``checksums``, ``journal``,
 ``faults`` and ``reader`` (the readers' error, should the task table not read); none of them
@@ -46,6 +43,7 @@ from __future__ import annotations
 
 import json
 import os
+import resource
 import sys
 import time
 from pathlib import Path
@@ -61,13 +59,13 @@ from campaign.storage.checksums import (CHECKPOINT_ATTRS, CHECKPOINT_KEYS, CONFI
                                         create_fill_sums, has_sums, read_rounds, sums_name, unprotected_note,
                                         write_checkpoint, write_configuration, write_failure, write_round,
                                         write_scalar_names, write_sums)
+from campaign.storage.journal import Journal, task_record
 from campaign.storage.journal import (  # noqa: F401 - part of this module's interface
-    MAX_RECORD, Journal, decode_payload, encode_record, read_journal, scan_journal)
+    MAX_RECORD, decode_payload, encode_record, read_journal, scan_journal)
 from campaign.storage.layout import (  # noqa: F401 - part of this module's interface
     CHUNK_CACHE, COMPRESSION, DONE, ERROR_LEN, FAILED, FORMAT_VERSION, HOST_LEN, OLD_FORMAT_HELP, PENDING,
     ROW_FIELDS, SCHEMA, SLACK, TASK_FIELDS, VARIANT_LEN, State, block_values, check_format, column_block,
-    create_file, dataset_kwargs, fill_value, fixed, format_problem, fsync_path, inspect, row_dtype, row_record,
-    row_values, task_record)
+    create_file, dataset_kwargs, fill_value, fixed, format_problem, fsync_path, inspect, row_dtype, row_values)
 from campaign.storage.reader import read_failure
 from campaign.storage.salvage import salvage
 from campaign.storage.space import StoreSpace
@@ -82,10 +80,8 @@ def peak_rss_mb() -> float:
     """This process's peak resident memory so far (MB), as the kernel counts it: the master's,
     recorded in the run's record when the store closes."""
     try:
-        import resource
-
         return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)  # kB on Linux
-    except (ImportError, OSError):
+    except OSError:
         return float("nan")
 
 
@@ -104,9 +100,8 @@ class Store:
         self.B = max(1, min(BLOCK_ROWS, self.T))
         self.edges = {k: np.asarray(v, np.float64) for k, v in sorted(edges.items())}
         self.log = log or (lambda msg: print(msg, file=sys.stderr))
-        self.f = self.io = self.space = None
+        self.f = self.io = self.space = self.journal = None
         _make_directory(self.path)
-        self.journal = Journal(Path(str(self.path) + ".journal"))
         try:
             self._open(new, provenance or {})
         except BaseException:
@@ -115,17 +110,25 @@ class Store:
 
     # ---- opening, refusing, salvaging, replaying
     def _open(self, new, provenance):
-        """The journal, then one look at the file with a verdict (ForeignStore: another spec's or
-        program's), then the file kept, salvaged or created, then opened for writing and loaded; the
-        journal is replayed on top and both are checkpointed."""
+        """The journal (locked: one writer), then one look at the file with a verdict (ForeignStore:
+        another spec's or program's), then the file kept, salvaged or created, each giving the
+        scheduler's ``State``; then one open for writing loads what the run keeps, the journal is
+        replayed on top and both are checkpointed."""
+        self.journal = Journal(Path(str(self.path) + ".journal"))  # locked: one writer per store
         if new:
             self.journal.clear()
             self.path.unlink(missing_ok=True)
         replay = self.journal.replay(self.spec.hash)
         # blocks a killed run may have left half written (rows and checksums out of step): the journal
         # rewrites them, so reading them back does not check their checksums
-        self.unsure = replay.blocks(self.B)
-        verdict = inspect(self.path, self.spec.hash, self.tasks, self.edges, self.B, self.unsure)
+        self.unsure = {i // self.B for i in replay.rows()}
+        committed, notes = replay.committed, replay.notes()
+        try:
+            verdict = inspect(self.path, self.spec.hash, self.tasks, self.edges, self.B, self.unsure)
+        except (OSError, KeyError, ValueError, RuntimeError) as exc:  # a sound store whose state does not read
+            raise read_failure(self.path, exc, None, ["tasks/attempts", "tasks/wall"],
+                               what="its task table") from None
+        state = verdict.state
         if verdict.action == "salvage" and not replay.found:
             raise UserError(f"{str(self.path)!r} is unreadable ({verdict.problem}) and has no journal to rebuild it "
                             f"from. `campaign verify {self.path}` says what is damaged, and `--repair` rebuilds "
@@ -133,12 +136,16 @@ class Store:
         if verdict.action == "salvage":
             self.log(f"campaign: {self.path} is damaged ({verdict.problem}); salvaging its readable rows into a "
                      "new file and replaying the journal")
-            salvage(self.path, self.spec, self.tasks, self.edges, self.B)
+            state = salvage(self.path, self.spec, self.tasks, self.edges, self.B)
         elif verdict.action == "create":
             create_file(self.path, self.spec, self.tasks, self.edges, self.B)
-        self._load()
+            state = State.fresh(self.T)
+        # the space accounting (what a write step may add, its reservation, what finishing needs),
+        # told once which blocks the file holds
+        self.space = StoreSpace(self.path, self.B, self.T, self.edges,
+                                written=(np.flatnonzero(state.status != PENDING) // self.B).tolist())
+        self._load(state)
         self.run = dict(provenance, start=_now(), end=None, run_id=os.urandom(8).hex())
-        committed, notes = replay.committed, replay.notes()
         self._replay(replay.records)
         del replay  # the records not staged any more need not stay in memory
         lost = committed - self.n_final()
@@ -152,9 +159,10 @@ class Store:
         self._write_root_attrs()
         self.checkpoint()
 
-    def _load(self):
+    def _load(self, state):
         """Open the file for writing (the file system's refusal: a WriteFault) and take what the run
-        keeps in memory: the scheduler's ``State``, the groups it holds, its round decisions and runs."""
+        keeps in memory: the scheduler's ``state``, the groups the file holds, its round decisions and
+        runs."""
         try:
             self.io = GuardedFile(self.path)
         except OSError as exc:
@@ -163,16 +171,7 @@ class Store:
                 raise
             raise fault from None
         self.f = f = h5py.File(self.io, "r+", rdcc_nbytes=CHUNK_CACHE)
-        try:
-            state = State.read(f)
-        except (OSError, KeyError, ValueError, RuntimeError) as exc:
-            raise read_failure(self.path, exc, None, ["tasks/attempts", "tasks/wall"],
-                               what="its task table") from None
         self.status, self.attempts, self.wall = state.status, state.attempts, state.wall
-        # the space accounting (what a write step may add, its reservation, what finishing needs),
-        # told once which blocks the file holds
-        self.space = StoreSpace(self.path, self.B, self.T, self.edges,
-                                written=(np.flatnonzero(self.status != PENDING) // self.B).tolist())
         self._datasets = {}
         self._sums = {} if has_sums(f) else None  # dataset name -> its block checksums
         if self._sums is None and checksums_on():  # a store of 0.2.7 or older: it stays as it is
@@ -528,16 +527,8 @@ class Store:
                         break
                     blocks.append(b)
                     size -= self.block_bytes[b]
-        self._write_staged(blocks)
-        self.last_flush = time.monotonic()
-        if self.journal.size > JOURNAL_BYTES:
-            self.checkpoint()
-
-    def _write_staged(self, blocks):
-        """The staged rows of ``blocks``, then the staged suspended packings and round decisions, into
-        the store; the journal is made durable before the store changes."""
         if blocks:
-            self.journal.sync()
+            self.journal.sync()  # the journal is durable before the store changes
             self._write_blocks(blocks)
         if self.suspended_staged:
             self.journal.sync()
@@ -545,6 +536,9 @@ class Store:
         if self.rounds_staged:
             self.journal.sync()
             self._write_rounds()
+        self.last_flush = time.monotonic()
+        if self.journal.size > JOURNAL_BYTES:
+            self.checkpoint()
 
     def _dataset(self, name):
         """The dataset ``name``, looked up once (h5py lookups are slow)."""
@@ -661,9 +655,18 @@ class Store:
             k, tid, status = i - lo, self.tasks[i].id, int(self.status[i])
             failure = f[f"failures/{tid}"].attrs if status != DONE and tid in self.have_failures else None
             conf = self._stored_configuration(tid) if tid in self.have_configs else None
-            meta, arrays = row_record(i, tid, status, {n: c[k] for n, c in cols.items()},
-                                      {n: v[k] for n, v in scal.items()}, {h: c[k] for h, c in hist.items()},
-                                      failure, conf)
+            meta = {"type": "task", "index": i, "id": tid, "status": status,
+                    "attempts": int(cols["attempts"][k]), "wall": float(cols["wall"][k]),
+                    "rank": int(cols["rank"][k]), "host": cols["host"][k].decode(errors="replace"),
+                    "message": cols["error"][k].decode(errors="replace"), "traceback": "", "run_id": None}
+            arrays = {}
+            if status == DONE:
+                meta["scalars"] = {n: float(v[k]) for n, v in scal.items() if not np.isnan(v[k])}
+                arrays = {"h/" + h: c[k] for h, c in hist.items()}
+            elif failure is not None:
+                meta["message"], meta["traceback"] = str(failure.get("message", "")), str(failure.get("traceback", ""))
+            if conf is not None:
+                arrays.update(("c/" + k, a) for k, a in conf.items())
             self.journal.append(meta, arrays)
             self.in_journal.add(i)
         self.journal.sync()
@@ -674,7 +677,15 @@ class Store:
 
         A fault before the journal is cut (a full disk while writing the staged rows, an
         ``fsync`` that fails) leaves the journal whole: it still holds everything."""
-        self._write_staged(list(self.staged))
+        if self.staged:
+            self.journal.sync()
+            self._write_blocks(list(self.staged))
+        if self.suspended_staged:
+            self.journal.sync()
+            self._write_checkpoints()
+        if self.rounds_staged:
+            self.journal.sync()
+            self._write_rounds()
         with self.space.write_step(self.io, 0, "flushing the store at a checkpoint", len(self.scalar_names)):
             self.f.flush()
         try:
@@ -684,7 +695,7 @@ class Store:
             if fault is None:
                 raise
             raise fault from None
-        self.journal.checkpoint(self.spec.hash, self.T, self.runs, self.n_final(), _now())
+        self.journal.cut_back(self.spec.hash, self.T, self.runs, self.n_final(), _now())
         self.in_journal = set()
         self.last_flush = time.monotonic()
 
