@@ -16,11 +16,13 @@ from __future__ import annotations
 import json
 import os
 import re
+import time
 import zlib
 
 import numpy as np
 
 from campaign.errors import StoreDamaged
+from campaign.version import __version__
 
 CONFIG_KEYS = ("positions", "radii", "box", "species")
 CHECKSUM_ATTR = "crc32"
@@ -358,9 +360,9 @@ def _text(v):
 
 def check_identities(path, spec, variant, N, E, lo=0):
     """StoreDamaged unless every row (from row ``lo``) of the store ``path`` is a task of its own
-    ``spec`` (``campaign.storage.layout.stored_spec``, verified: its variant, N and E; nothing is checked without): a block of the task table read
-    from another place (a damaged chunk index, in a store without block checksums) can read as rows
-    of no task, and must not become a cell of a table."""
+    ``spec`` (``campaign.storage.layout.stored_spec``, verified: its variant, N and E; nothing is
+    checked without): a block of the task table read from another place (a damaged chunk index, in a
+    store without block checksums) can read as rows of no task, and must not become a cell of a table."""
     if spec is None:
         return
     variant = np.array([_text(x) if isinstance(x, bytes) else str(x) for x in np.asarray(variant).ravel()])
@@ -500,10 +502,6 @@ def protection_text(upgraded=False) -> str:
     was created, or added (``upgraded``) when a store without them was written anew."""
     if not upgraded:
         return "written with every block since the store was created"
-    import time
-
-    from campaign.version import __version__
-
     return (f"added {time.strftime('%Y-%m-%dT%H:%M:%S%z')} by jamming-campaign {__version__}, which wrote the store "
             "anew from a store without them: damage done before that and not found by the checks of "
             "`campaign verify` then cannot be found")
@@ -591,6 +589,8 @@ def _block_rows(sums_ds, T):
 
 
 def _import_h5py():
+    # imported when a store is opened, not with this module: the command line (its note on stores
+    # without block checksums) and the reading of text or GSD configurations need no HDF5
     import h5py
 
     return h5py

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from campaign.errors import UserError
+from campaign.errors import UserError, require
 from campaign.plan.spec import CELLS
 from campaign.storage.checksums import check_configuration
 from campaign.storage.layout import stored_spec
@@ -367,8 +367,6 @@ def _log_value(value):
 
 
 def _read_gsd(path, frame):
-    from campaign.errors import require
-
     hoomd = require("gsd.hoomd", "export", f"reading {path} (a GSD file)")
     try:
         traj = hoomd.open(path, "r")

@@ -35,8 +35,8 @@ import numpy as np
 
 from campaign.errors import UserError
 from campaign.storage.blockscan import BlockScan, _Found, _matches, identities
-from campaign.storage.checksums import (BLOCK_MISMATCH, CHECKSUM_ATTR, CONFIG_KEYS, CONFIG_WEIGHT, ROOT_ATTRS, ROOT_MEMBERS,
-                                        SUMS_GROUP, _text, checkpoint_damage, configuration_problem,
+from campaign.storage.checksums import (BLOCK_MISMATCH, CHECKSUM_ATTR, CONFIG_KEYS, CONFIG_WEIGHT, ROOT_ATTRS,
+                                        ROOT_MEMBERS, SUMS_GROUP, _text, checkpoint_damage, configuration_problem,
                                         failure_problem, good_scalar_name, looks_like_store, reason,
                                         scalar_names_listed, sums_name)
 from campaign.storage.damage import Damage, Report
