@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import UserError
+from campaign.plan.spec import System
+from campaign.storage.checksums import check_identities, read_rounds
 from campaign.storage.layout import DONE, FAILED, stored_spec
 from campaign.storage.reader import open_store, read_failure
 
@@ -151,8 +153,6 @@ def given_rows(f, T):
     """Which rows of a store are tasks of its campaign: all of them, except in a campaign with precision
     targets, whose rounds give out seeds 0 .. n - 1 of each cell (the last decision's ``early``
     counts; its task table holds every seed up to ``max_seeds``, in cells of equal length)."""
-    from campaign.storage.checksums import read_rounds
-
     got, _ = read_rounds(f)
     if not got:
         return np.ones(T, bool)
@@ -213,8 +213,6 @@ def load_finished(paths) -> Finished:
                 if err is None:
                     raise
                 raise err from None
-        from campaign.storage.checksums import check_identities
-
         check_identities(path, stored_spec(file_attrs, verified=True), variant, cols["N"], cols["E"])
         attrs = attrs or file_attrs
         if edges is None:
@@ -284,8 +282,6 @@ def variant_systems(attrs, variants=()) -> dict:
     A spec this version cannot read gives every variant the paper's system (exponent 2, the
     1.4:1 mixture).
     """
-    from campaign.plan.spec import System
-
     spec = stored_spec(attrs)
     if spec is not None:
         out = {v.name: _describe_system(v.system) for v in spec.variants}

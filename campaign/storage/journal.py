@@ -238,14 +238,13 @@ class Journal:
         self.path = Path(path)
         self.fd = None
         self.store = str(self.path)[:-len(".journal")] if str(self.path).endswith(".journal") else str(self.path)
-        store = self.store
         try:
             self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as exc:
             fault = write_fault(exc, self.path, "creating the journal")
             if fault is not None and fault.out_of_space:
                 raise fault from None
-            raise UserError(f"cannot open {str(self.path)!r} (the journal of {store!r}) for writing: "
+            raise UserError(f"cannot open {str(self.path)!r} (the journal of {self.store!r}) for writing: "
                             f"{exc.strerror}; choose another --out, or make its directory writable") from None
         try:
             fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -253,7 +252,7 @@ class Journal:
             if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                 os.close(self.fd)
                 self.fd = None
-                raise UserError(f"another run is writing {store!r} (its journal {str(self.path)!r} is locked); "
+                raise UserError(f"another run is writing {self.store!r} (its journal {str(self.path)!r} is locked); "
                                 "wait for it to finish or stop it first") from None
             # a file system without flock (some Lustre mounts): carry on, unprotected
             print(f"campaign: warning: cannot lock {self.path} ({exc.strerror}); make sure no other run "
