@@ -48,8 +48,9 @@ GROUPS = [
 ]
 #: variations of ``campaign reduce`` run on every store and group
 REDUCE_OPTIONS = ([], ["--fit-all"], ["--boot", "50", "--json"])
-#: timings and clocks in stdout that legitimately differ from run to run
-VOLATILE = ("wrote ", "seconds", " s)", "rate")
+#: timings and clocks in stdout that legitimately differ from run to run (``failure records in``:
+#: the line of ``campaign verify`` that ends with the time its scan took)
+VOLATILE = ("wrote ", "seconds", " s)", "rate", "failure records in")
 
 
 def run(code: Path, args, cwd: Path, log):
