@@ -52,7 +52,7 @@ import time
 
 import numpy as np
 
-from campaign.results import fits
+from campaign.results import bootstrap, fits
 
 Z0, X0, Z_P = 5.0, 4.3, 0.55
 A_INF, B_N, B_COEFF, SD_A0 = 0.446, -0.4, 0.22, 0.10
@@ -117,7 +117,7 @@ def per_size(data, col, boot, seed):
         if np.count_nonzero(x > 0) < 3 or np.any(ye <= 0):
             got[N] = None
             continue
-        reps = fits.bootstrap_cell_means(cells, boot, seed=[seed, N])
+        reps = bootstrap.cell_means(cells, boot, seed=[seed, N])
         f = fits.fit_power_law(x, y, ye, boot_x=reps[:, :, col], boot_y=reps[:, :, 2])
         got[N] = None if f.undetermined else (f.exponent, f.exponent_err, f.intercept, f.intercept_err)
     ok = [(N, r) for N, r in got.items() if r is not None]
@@ -136,7 +136,7 @@ def shared(data, col, boot, seed):
             groups.append((N, cells, x, y, ye))
     if not groups:
         return None
-    reps = [fits.bootstrap_cell_means(c, boot, seed=[seed, N]) for N, c, *_ in groups]
+    reps = [bootstrap.cell_means(c, boot, seed=[seed, N]) for N, c, *_ in groups]
     f = fits.fit_shared_exponent([g[2] for g in groups], [g[3] for g in groups], [g[4] for g in groups],
                                  boot_xs=[r[:, :, col] for r in reps], boot_ys=[r[:, :, 2] for r in reps])
     if f.undetermined:

@@ -59,7 +59,7 @@ import time
 import numpy as np
 from scipy import stats
 
-from campaign.results import fits
+from campaign.results import bootstrap, fits
 from campaign.results.scaling import typical_overlap
 from campaign.results.tables import fmt_err
 
@@ -192,7 +192,7 @@ def plain_fit(cells, col_x, boot, seed):
         return None
     bx = by = None
     if boot:
-        reps = fits.bootstrap_cell_means(cells, boot, seed=seed)
+        reps = bootstrap.cell_means(cells, boot, seed=seed)
         bx, by = reps[:, :, col_x], reps[:, :, 2]
     f = fits.fit_power_law(x, y, ye, boot_x=bx, boot_y=by)
     if not f.ok:
@@ -211,7 +211,7 @@ def corr_fit(cells, col_x, boot, seed):
     res = dict(beta=b, a=a, omega=om, chi2=chi2, dof=len(cells) - 5, cells=len(cells),
                beta_err=math.nan, a_err=math.nan)
     if boot:
-        reps = fits.bootstrap_cell_means(cells, boot, seed=seed)
+        reps = bootstrap.cell_means(cells, boot, seed=seed)
         ba, bb, _, _ = fit_corrected_batch(reps[:, :, col_x], reps[:, :, 2], ye)
         res["beta_err"] = float(np.std(bb, ddof=1))
         res["a_err"] = float(np.std(ba, ddof=1))

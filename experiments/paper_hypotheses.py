@@ -33,7 +33,8 @@ import sys
 
 import numpy as np
 
-from campaign.results.fits import bootstrap_cell_means, fit_power_law
+from campaign.results.bootstrap import cell_means as bootstrap_cell_means
+from campaign.results.fits import fit_power_law
 from campaign.results.finished import load_finished
 
 

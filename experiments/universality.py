@@ -34,7 +34,8 @@ import numpy as np
 
 from scipy import stats
 
-from campaign.results.fits import bootstrap_cell_means, fit_inverse_n
+from campaign.results.bootstrap import cell_means as bootstrap_cell_means
+from campaign.results.fits import fit_inverse_n
 from campaign.results.reduce import Settings, reduce_campaign
 from campaign.results.scaling import typical_overlap
 from campaign.results.tables import fmt_err

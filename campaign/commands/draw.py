@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
+import argparse
 import math
 import sys
+from pathlib import Path
+
+from campaign.errors import UserError
+from campaign.report import draw
+from campaign.report.plots import _plt
 
 HELP = "draw one packing: disks, contacts, network, grain and void polygons (PNG, SVG or PDF)"
 
@@ -29,8 +35,6 @@ the store, unknown task, region outside the box, unknown layer), 1 internal faul
 
 
 def configure(parser):
-    import argparse
-
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = EPILOG
     parser.add_argument("source", metavar="SOURCE", help="configuration file or campaign store")
@@ -54,11 +58,6 @@ def configure(parser):
 
 
 def main(args) -> int:
-    from pathlib import Path
-
-    from campaign.report import draw
-    from campaign.errors import UserError
-
     layers = draw.check_layers(args.layers) if args.layers else draw.DEFAULT_LAYERS
     if args.exponent is not None and not (math.isfinite(args.exponent) and 2.0 <= args.exponent <= 3.0):
         raise UserError(f"--exponent: expected a number in [2, 3], got {args.exponent}")
@@ -67,8 +66,6 @@ def main(args) -> int:
         raise UserError(f"--out {args.out}: expected a .png, .svg or .pdf file")
     if out is not None and not out.parent.is_dir():
         raise UserError(f"--out {args.out}: no directory {str(out.parent)!r}")
-    from campaign.report.plots import _plt
-
     plt = _plt()  # fail early when matplotlib is missing
     src = draw.read_source(args.source, task=args.task, index=args.index, fmt=args.format,
                            group=args.group, exponent=args.exponent, frame=args.frame)

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
+from pathlib import Path
+
+from campaign.report.export import EXTENSION, FORMATS, export, format_of, require_format
 
 HELP = "export a store's packings: scalars as CSV or Parquet, configurations as GSD or extended XYZ"
 
@@ -35,10 +39,6 @@ a missing extra, no configurations for gsd/xyz), 1 internal fault.
 
 
 def configure(parser):
-    import argparse
-
-    from campaign.report.export import FORMATS
-
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = EPILOG
     parser.add_argument("file", metavar="FILE", help="campaign store (HDF5)")
@@ -55,10 +55,6 @@ def configure(parser):
 
 
 def main(args) -> int:
-    from pathlib import Path
-
-    from campaign.report.export import EXTENSION, export, format_of, require_format
-
     fmt = format_of(args.format, args.out)
     require_format(fmt)  # a missing extra is reported before the store is read
     out = Path(args.out) if args.out else Path(Path(args.file).stem + EXTENSION[fmt])

@@ -7,6 +7,9 @@ from pathlib import Path
 
 from campaign.commands.reduce import add_fit_range, fit_range
 from campaign.errors import UserError
+from campaign.report import draw, plots
+from campaign.report.writing import default_out_dir
+from campaign.results import reduce as R
 
 HELP = "Plot the paper's figures from a campaign file (PNG; needs the plot extra)"
 
@@ -27,10 +30,6 @@ def configure(parser):
 
 
 def main(args) -> int:
-    from campaign.report import plots
-    from campaign.results import reduce as R
-    from campaign.report.writing import default_out_dir
-
     if args.boot < 0 or args.boot == 1:
         raise UserError(f"--boot must be 0 or at least 2, got {args.boot}")
     if args.min_packings < 2:
@@ -52,8 +51,6 @@ def main(args) -> int:
 
 def _gallery(files, out, dpi):
     """packing_gallery.png from the first file that keeps configurations (campaign.report.draw), or None."""
-    from campaign.report import draw
-
     for f in files:
         if draw.store_packings(f)[2].size:
             return draw.gallery(f, out / "packing_gallery.png", dpi=dpi)

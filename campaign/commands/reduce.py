@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import fcntl
 import json
+import os
 import sys
 from pathlib import Path
 
 from campaign.errors import UserError
+from campaign.report import writing
+from campaign.results import reduce as R
 
 HELP = "Reduce a campaign file: distributions, scaling fits, the finite-size table"
 
@@ -74,9 +78,6 @@ def fit_range(args, settings):
 
 
 def main(args) -> int:
-    from campaign.results import reduce as R
-    from campaign.report import writing
-
     if args.boot < 0 or args.boot == 1:
         raise UserError(f"--boot must be 0 (no errors) or at least 2, got {args.boot}")
     if args.min_packings < 2:
@@ -100,24 +101,10 @@ def main(args) -> int:
           + f"; {len(red.rows)} (variant, N_G) rows; bootstrap {m['n_boot']}", file=text)
     print("", file=text)
     print(writing.table_markdown(red), file=text)
-    if red.systems:
-        from campaign.results import systems
-
-        print(f"Systems (beta_E against the prediction beta_Z/(2 alpha); beta_Z against "
-              f"{red.systems[0]['reference']!r}'s; tensions in standard deviations)\n", file=text)
-        print(systems.table_markdown(red.systems), file=text)
-    if red.variants:
-        from campaign.results import tradeoff
-
-        print(f"\nVariants against {args.reference!r} (cost: ratio of summed force evaluations / seconds over the "
-              "same packings; deviations: mean paired difference; bias in units of the reference's "
-              "packing-to-packing spread)\n", file=text)
-        print(tradeoff.table_markdown(red.variants), file=text)
-    if red.protocols.get("pairs"):
-        from campaign.results import protocols
-
-        print("\n" + protocols.markdown(red.jamming, red.protocols["jamming"], red.protocols).split("\n", 2)[2],
-              file=text)
+    for sec in R.in_order("console"):  # the sections' tables (campaign.results.sections)
+        said = sec.console(red.sections[sec.name])
+        if said:
+            print(said, file=text)
     for n in red.notes:
         print(n, file=sys.stderr)
     if args.in_place:
@@ -137,11 +124,6 @@ def _write_in_place(red, path):
     the same lock (without waiting) keeps a run from starting meanwhile and refuses
     while one is going on.
     """
-    import fcntl
-    import os
-
-    from campaign.report.writing import write_reduced
-
     if red.meta["pending"]:
         raise UserError(f"{path}: {red.meta['pending']} tasks are still pending (a run may be "
                         "writing the file); not writing into it. The reduced group is in the "
@@ -157,7 +139,7 @@ def _write_in_place(red, path):
                 raise UserError(f"{path}: a run is writing it ({journal} is locked); the reduced "
                                 "group is in the output directory's reduced.h5") from None
         try:
-            write_reduced(red, path, mode="r+")
+            writing.write_reduced(red, path, mode="r+")
         except OSError as exc:  # read-only, locked by HDF5, ...
             raise UserError(f"{path}: could not open for writing ({exc}); the reduced group is "
                             "in the output directory's reduced.h5") from None

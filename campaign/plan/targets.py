@@ -8,12 +8,15 @@ cells that matter hold ``max_seeds``. Its task table is the grid with seeds ``0 
 in every cell; a round gives a cell its next integers. The allocation is decided by
 ``campaign.precision.allocation`` and recorded in the store; this module only reads the spec.
 
-The reducer's fit range and its table keys are defined here (the plan wing), so that a spec can be
-checked against them before anything runs; ``campaign.results.scaling`` uses them.
+The reducer's fit range (its default and ``in_fit_range``, the one test of which cells a range
+holds) and its table keys are defined here (the plan wing), so that a spec can be checked against
+them before anything runs; the reducer (``campaign.results``) and the precision campaigns' model
+(``campaign.precision``) use them.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -66,9 +69,18 @@ def typical_overlap(E, alpha):
     return (alpha * np.asarray(E, float) / 2.0) ** (1.0 / alpha)
 
 
-def in_fit_range(E, alpha, overlap=DEFAULT_FIT_OVERLAP):
-    """Whether each grid energy lies in the default fit range of a system of exponent ``alpha``."""
-    return typical_overlap(E, alpha) <= overlap * (1 + 1e-9)
+def in_fit_range(E, alpha, overlap=DEFAULT_FIT_OVERLAP, energies=(0.0, math.inf)):
+    """Whether each grid energy ``E`` lies in a fit range of a system of exponent ``alpha``: in
+    ``energies`` = [lo, hi], and of typical overlap at most ``overlap`` (no bound when it is
+    infinite), both to a relative 1e-9 (docs/REDUCED.md, "The fit range"). The defaults: the
+    reducer's default range. The one test of the fit range: the reducer's scaling fits, its jamming
+    point and a precision campaign's model all take their cells with it."""
+    E = np.asarray(E, float)
+    lo, hi = energies
+    inside = (E >= lo * (1 - 1e-9)) & (E <= hi * (1 + 1e-9))
+    if math.isfinite(overlap):
+        inside &= typical_overlap(E, alpha) <= overlap * (1 + 1e-9)
+    return inside
 
 
 @dataclass(frozen=True)

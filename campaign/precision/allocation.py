@@ -46,6 +46,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from campaign.plan import calibration
+from campaign.plan import tasks as plan_tasks
 from campaign.plan.targets import law_of
 from campaign.results import fits
 from campaign.precision.errormodel import (NO_DEPENDENCE_P, Cells, LawModel, inverse, build_law,
@@ -77,8 +79,6 @@ ACTIONS = ("pilot", "continue", "met", "budget", "max_seeds", "unreachable")
 def seconds_per_disk_force_evaluation() -> float:
     """Core-seconds per disk per force evaluation of a packing (the FIRE kernels' cost per step, with
     the search and the analysis around it spread over the steps), from the calibration in force."""
-    from campaign.plan import calibration
-
     return calibration.active().disk_force_evaluation_seconds
 
 
@@ -415,8 +415,6 @@ def fill_costs(cost, cells):
             d = min(same, key=lambda d: (abs(math.log(cells.N[d] / cells.N[c])), abs(math.log(cells.E[d] / cells.E[c]))))
             cost[c] = cost[d] * cells.N[c] / cells.N[d]
         else:
-            from campaign.plan import tasks as plan_tasks
-
             cost[c] = plan_tasks.cost(int(cells.N[c]), float(cells.E[c]), None, float(cells.exponent[c]))
     return cost
 

@@ -6,12 +6,18 @@ validate`` and ``campaign slurm``). The decisions themselves are ``campaign.prec
 
 from __future__ import annotations
 
+import json
 import math
+from importlib import resources
 
 import numpy as np
 
-from campaign.plan.targets import law_of
+from campaign.plan import tasks as plan_tasks
+from campaign.plan.targets import SHARED_FIT_CELLS, law_of
+from campaign.storage.layout import SCHEMA
 from campaign.results import fits
+from campaign.results.finished import finished_from_arrays
+from campaign.results.reduce import Settings, reduce_table
 from campaign.precision.allocation import (MIN_FIT_PACKINGS, State, Target, fill_costs, plan_greedy, smooth_costs, decide, pilot,
                                          seconds_per_disk_force_evaluation)
 from campaign.precision.errormodel import Cells, LawModel, campaign_cells, param_index as _k
@@ -24,9 +30,6 @@ DECISION_SCALARS = ("E_G", "delta_Z", "A_G", "psi_O", "force_evaluations", "jam_
 def reduce_rows(cells: Cells, attrs, rows, status, scalars, ids=None, settings=None):
     """The reducer's table (``reduce_table``, the default settings unless ``settings``) of the task
     rows ``rows`` of a campaign with cells ``cells``: their status and scalars (per row)."""
-    from campaign.results.finished import finished_from_arrays
-    from campaign.results.reduce import Settings, reduce_table
-
     c = (np.asarray(rows) // cells.seeds).astype(np.int64)
     seed = np.asarray(rows) - cells.first[c]
     fin = finished_from_arrays(attrs=attrs, variant=[cells.variant[i] for i in c], N=cells.N[c], E=cells.E[c],
@@ -79,8 +82,6 @@ class Planner:
     reduce`` reduces them (``reduce_table`` with the default settings)."""
 
     def __init__(self, spec, tasks):
-        from campaign.storage.layout import SCHEMA
-
         self.spec, self.tasks = spec, tasks
         self.cells = campaign_cells(spec, tasks)
         self.settings = spec.precision.settings()
@@ -171,9 +172,6 @@ def run_in_memory(cells: Cells, settings, draw, *, attrs=None, reducer=None, dis
 def load_prior():
     """The packaged prior (``campaign/plan/precision_prior.json``, written by experiments/precision_prior.py
     from paper-small): per cell (N_G, E_G) the packings' means and covariances."""
-    import json
-    from importlib import resources
-
     return json.loads(resources.files("campaign").joinpath("plan", "precision_prior.json").read_text())
 
 
@@ -206,8 +204,6 @@ def plan_from_prior(spec, tasks, prior=None) -> dict:
     the calibrated cost model in force (``campaign.plan.tasks.cost``). ``{"ok": False, "why": ...}``
     where the prior does not hold the campaign's system or energies; else the pilot's cost, the
     plan's, the errors projected, and what a uniform campaign would need for the same errors."""
-    from campaign.plan import tasks as plan_tasks
-
     prior = load_prior() if prior is None else prior
     settings = spec.precision.settings()
     cells = campaign_cells(spec, tasks)
@@ -276,8 +272,6 @@ def plan_from_prior(spec, tasks, prior=None) -> dict:
 def _prior_law(cells, stats, names, variant, quantity, absc, pilot_n) -> LawModel:
     """A ``LawModel`` of one variant's law on the prior's cells (``_prior_cell``), the sizes with
     ``SHARED_FIT_CELLS`` cells of a positive mean abscissa in the fit range, fitted to their means."""
-    from campaign.plan.targets import SHARED_FIT_CELLS
-
     iq, ix = names.index(quantity), names.index(absc)
     in_range = cells.relevant({"x": 1})
     by_size = {}

@@ -1,6 +1,8 @@
 """The reducer's outputs: the finite-size table (markdown, LaTeX, CSV), the per-cell and per-fit
-CSVs, ``summary.json`` and the ``/reduced`` HDF5 group (docs/REDUCED.md, "Output files" and
-"The ``/reduced`` group"), all from a ``Reduction`` of ``campaign.results.reduce``.
+CSVs, the sections' files, ``summary.json`` and the ``/reduced`` HDF5 group (docs/REDUCED.md,
+"Output files" and "The ``/reduced`` group"), all from a ``Reduction`` of
+``campaign.results.reduce``; what a section writes is its own (``campaign.results.sections``), the
+writing is here.
 """
 
 from __future__ import annotations
@@ -12,11 +14,13 @@ import math
 import time
 from pathlib import Path
 
+import h5py
 import numpy as np
 
-from campaign.results.reduce import Reduction
+from campaign.results.reduce import SECTIONS, Reduction, in_order
 from campaign.results.scaling import FITS, TABLE_KEYS
 from campaign.results.tables import _csv_val, fmt_err, records_csv
+from campaign.version import __version__
 
 # =========================================================================== tables
 TABLE_HEADER = ("N_G", "A_G*(E_G=0)", "beta_E", "A_G*(Delta Z=0)", "beta_Z", "Psi_O*", "E_G fitted")
@@ -153,8 +157,6 @@ def cells_records(red: Reduction):
 
 # =========================================================================== writing
 def _write_columns(group, records_or_columns):
-    import h5py
-
     cols = records_or_columns
     if isinstance(cols, list):
         keys = list(cols[0].keys()) if cols else []
@@ -172,10 +174,6 @@ def _write_columns(group, records_or_columns):
 
 def write_reduced(red: Reduction, h5path, *, mode="w"):
     """Write the ``/reduced`` group (replacing an older one) into ``h5path``."""
-    import h5py
-
-    from campaign.version import __version__
-
     with h5py.File(h5path, mode) as f:
         if "reduced" in f:
             del f["reduced"]
@@ -214,52 +212,29 @@ def write_reduced(red: Reduction, h5path, *, mode="w"):
         pk = g.create_group("peaks")
         for v, d in red.peaks.items():
             _write_columns(pk.create_group(str(v)), d)
-        if red.variants:
-            _write_columns(g.create_group("variants"), red.variants)
-        if red.systems:
-            _write_columns(g.create_group("systems"), red.systems)
-        if red.jamming:
-            _write_columns(g.create_group("jamming"), red.jamming)
-        if red.protocols.get("pairs"):
-            pg = g.create_group("protocols")
-            pg.attrs.update(reference=red.protocols["reference"], alpha=red.protocols["alpha"])
-            for key in ("values", "pairs", "homogeneity"):
-                _write_columns(pg.create_group(key), red.protocols[key])
-        if red.response:
-            rg = g.create_group("response")
-            for key in ("cells", "fits", "exponents"):
-                if red.response.get(key):
-                    _write_columns(rg.create_group(key), red.response[key])
+        for sec in in_order("reduced"):
+            for path, group in sec.reduced(red.sections[sec.name]).items():
+                sg = g.create_group(path)
+                sg.attrs.update(group.attrs)
+                if group.columns is not None:
+                    _write_columns(sg, group.columns)
 
 
 def write_outputs(red: Reduction, out_dir, *, write_h5=True):
-    """Tables (md, csv, tex), per-cell and per-fit CSVs, and the reduced HDF5 file."""
+    """Tables (md, csv, tex), per-cell and per-fit CSVs, the sections' files, ``summary.json`` and
+    the reduced HDF5 file."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files = {
         "table.md": table_markdown(red), "table.csv": table_csv(red), "table.tex": table_latex(red),
         "cells.csv": records_csv(cells_records(red)), "fits.csv": records_csv(red.fits),
         "width_scaling.csv": records_csv(red.width_scaling),
-        "variants.csv": records_csv(red.variants),
-        "jamming.csv": records_csv(red.jamming),
-        "summary.json": json.dumps(red.to_json(), indent=1) + "\n",
     }
-    if red.response:
-        files["response_cells.csv"] = records_csv(red.response.get("cells", []))
-        files["response_fits.csv"] = records_csv(red.response.get("fits", []))
-        files["response_exponents.csv"] = records_csv(red.response.get("exponents", []))
-    if red.jamming:
-        from campaign.results import protocols
-
-        files["protocols.md"] = protocols.markdown(red.jamming, red.protocols.get("jamming", {}), red.protocols)
-    if red.protocols.get("pairs"):
-        files["protocols.csv"] = records_csv(red.protocols["pairs"])
-        files["protocol_tests.csv"] = records_csv(red.protocols["homogeneity"])
-    if red.systems:
-        from campaign.results import systems
-
-        files["systems.csv"] = systems.table_csv(red.systems)
-        files["systems.md"] = systems.table_markdown(red.systems)
+    for sec in SECTIONS:
+        files.update(sec.tables(red.sections[sec.name]))
+    files["summary.json"] = json.dumps(red.to_json(), indent=1) + "\n"
+    for sec in in_order("files"):
+        files.update(sec.files(red.sections[sec.name]))
     for name, text in files.items():
         (out / name).write_text(text)
     written = [out / n for n in files]

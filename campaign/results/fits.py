@@ -1,13 +1,12 @@
-"""Fitting maths of the reducer: pure numpy, no I/O.
+"""Fitting maths of the reducer: pure functions of arrays, no I/O.
 
 * ``fit_power_law``: ``y = a + c x**beta`` by weighted least squares. For a fixed
   exponent the model is linear in ``(a, c)``, so the exponent is found by
   profiling chi^2 over beta (a grid, then a golden-section refinement) and the
   intercept and prefactor follow in closed form. The same code fits many data
-  sets at once (``fit_power_law_batch``), which is what makes the bootstrap cheap.
-* ``bootstrap_cell_means``: resampling of packings within each cell, with a fixed
-  seed, returning the resampled cell means of several quantities at once.
-* ``chi2_p_value``: the goodness of a fit as a p-value.
+  sets at once (``fit_power_law_batch``), which is what makes the bootstrap cheap (its
+  replicas: ``campaign.results.bootstrap``).
+* ``chi2_p_value``: the goodness of a fit as a p-value; ``normal_p_value``: a z's two-sided one.
 * ``fit_inverse_n``: ``y = y_inf + b / N`` (finite-size extrapolation).
 * ``gaussian_mle`` and ``fit_width_scaling``: the best Gaussian of P(A_G) and the
   law ``sigma ~ N**-gamma``.
@@ -18,6 +17,7 @@
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -289,60 +289,16 @@ MIN_CELLS = 4
 def chi2_p_value(chi2, dof):
     """P(chi^2_dof >= chi2): the probability of a worse fit if the model and the errors hold
     (``scipy.special.chdtrc``, what ``scipy.stats.chi2.sf`` computes, without importing scipy.stats)."""
-    from scipy.special import chdtrc
+    from scipy.special import chdtrc  # half a second to import: paid by a reduction, not by `campaign --help`
 
     return float(chdtrc(dof, chi2)) if dof > 0 and np.isfinite(chi2) else np.nan
 
 
-# --------------------------------------------------------------------------- bootstrap
-def bootstrap_cell_means(groups, n_boot, seed=0, chunk=256):
-    """Resample packings within each cell and return the replicas' cell means.
+def normal_p_value(z):
+    """P(|Z| >= |z|) for a standard normal Z: the two-sided p-value of ``z`` (NaN for NaN)."""
+    from scipy.special import erfc  # as in chi2_p_value
 
-    ``groups``: list of K arrays of shape (n_k, q) (n_k packings, q quantities).
-    Returns an array (n_boot, K, q). Deterministic for a given ``seed``.
-    """
-    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed)))
-    K = len(groups)
-    q = groups[0].shape[1] if K else 0
-    out = np.empty((n_boot, K, q))
-    for k, g in enumerate(groups):
-        g = np.asarray(g, float)
-        n = g.shape[0]
-        step = max(1, min(n_boot, (4_000_000 // max(n, 1))))
-        for s in range(0, n_boot, step):
-            b = min(step, n_boot - s)
-            idx = rng.integers(0, n, size=(b, n))
-            # how often each packing is drawn in each replica, then one matrix product
-            flat = (idx + n * np.arange(b)[:, None]).ravel()
-            counts = np.bincount(flat, minlength=b * n).reshape(b, n)
-            out[s:s + b, k] = (counts @ g) / n
-    return out
-
-
-def bootstrap_seed_means(groups, seeds, n_boot, seed=0):
-    """Resample whole seeds and return the replicas' cell means, (n_boot, K, q): each replica draws
-    the size's seeds with replacement and every cell takes the packings of the seeds drawn, so a
-    seed's packings at every energy go together. For packings that share a history along a seed (an
-    energy ladder), where resampling within cells (``bootstrap_cell_means``) would count correlated
-    cells as independent. ``seeds``: per group, the (n_k,) seed of each packing. A replica that
-    draws none of a cell's seeds (a cell missing packings of most seeds) takes the cell's mean."""
-    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed)))
-    every = np.unique(np.concatenate([np.asarray(x) for x in seeds])) if len(seeds) else np.zeros(0)
-    S = len(every)
-    W = rng.multinomial(S, np.full(S, 1.0 / S), size=n_boot).astype(float) if S else np.zeros((n_boot, 0))
-    K = len(groups)
-    q = groups[0].shape[1] if K else 0
-    out = np.empty((n_boot, K, q))
-    for k, (g, sd) in enumerate(zip(groups, seeds)):
-        g = np.asarray(g, float)
-        M = np.zeros((S, len(g)))
-        M[np.searchsorted(every, sd), np.arange(len(g))] = 1.0
-        w = W @ M                                   # (n_boot, n_k): how often each packing is drawn
-        tot = w.sum(1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            out[:, k] = (w @ g) / tot[:, None]
-        out[tot == 0, k] = g.mean(0)
-    return out
+    return float(erfc(abs(z) / math.sqrt(2))) if np.isfinite(z) else np.nan
 
 
 # --------------------------------------------------------------------------- linear fits

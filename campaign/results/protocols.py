@@ -9,7 +9,8 @@ proportional to the overlap near jamming (O'Hern et al., PRE 68, 011306 (2003)),
 The cells are weighted by their packing counts over the size's pooled within-cell variance. Errors:
 a bootstrap over seeds, each replica drawing whole seeds of the size (a seed's packings at every
 energy together), which keeps the correlations of an energy ladder, whose packings of one seed
-share a history, and holds for independent packings too. ``phi_J`` and the rattler fraction are
+share a history, and holds for independent packings too (``bootstrap.seed_cell_means``: a replica
+that draws no seed of some cell is dropped). ``phi_J`` and the rattler fraction are
 then extrapolated linearly in 1/N_G (``fits.fit_inverse_n``), the convention of the rest of the
 ``N_G -> inf`` row.
 
@@ -21,16 +22,20 @@ homogeneity test per quantity over all the variants (chi^2 of the values about t
 K - 1 degrees of freedom). Multiple comparisons: Holm's step-down adjustment, over the pairwise tests
 together and over the homogeneity tests together; a difference is called significant when its
 adjusted p-value is below ``ALPHA`` (the family-wise error rate).
+
+A section of the reducer (``SECTION``, ``campaign.results.sections``), present in every reduction.
 """
 
 from __future__ import annotations
 
-import math
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from campaign.plan.targets import typical_overlap
-from campaign.results import fits
+from campaign.plan.targets import in_fit_range, typical_overlap
+from campaign.results import bootstrap, fits
+from campaign.results.sections import Group, Section
+from campaign.results.tables import fmt_err, records_csv
 
 #: the N_G -> inf entries compared across protocols: the table's, then the jamming point's
 QUANTITIES = ("A_G_star_E", "beta_E", "A_G_star_Z", "beta_Z", "psi_O_star", "phi_J", "rattler_fraction")
@@ -104,13 +109,9 @@ def size_fit(E, seed, values, alpha, n_boot, rng):
         out["chi2"] = float(np.sum(w * (mean - a[0] - b[0] * x) ** 2))
     out["dof"] = C - 2
     if n_boot > 1 and S >= 2:
-        K = rng.multinomial(S, np.full(S, 1.0 / S), size=n_boot).astype(float)  # seed weights per replica
-        nb = K @ M
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mb = (K @ V) / nb
-        good = np.all(nb > 0, axis=1)
-        if good.sum() >= 2:
-            ab, _ = _line_fits(x, mb[good], nb[good])
+        nb, mb = bootstrap.seed_cell_means(M, V, n_boot, rng)
+        if len(nb) >= 2:
+            ab, _ = _line_fits(x, mb, nb)
             out["err"] = float(np.std(ab, ddof=1))
     if not np.isfinite(out["err"]):
         out["note"] = "no bootstrap error (fewer than 2 seeds)"
@@ -124,20 +125,17 @@ def jamming_point(fin, g, s, exponents) -> tuple[list, dict]:
     cols = _columns(fin)
     cell = g.cell
     E_pack = g.cE[cell]
-    lo, hi = s.fit_energies
     rows, out = [], {}
     for vi, v in enumerate(sorted(set(g.cv))):
         alpha = (exponents or {}).get(v, 2.0)
         # the fit range's cells of this variant, with enough packings
-        in_range = (g.cv == v) & (g.n_done >= s.min_packings) & (g.cE >= lo * (1 - 1e-9)) & (g.cE <= hi * (1 + 1e-9))
-        if math.isfinite(s.fit_overlap):
-            in_range &= typical_overlap(g.cE, alpha) <= s.fit_overlap * (1 + 1e-9)
+        in_range = (g.cv == v) & (g.n_done >= s.min_packings) & in_fit_range(g.cE, alpha, s.fit_overlap, s.fit_energies)
         per = {k: [] for k in cols}
         for n in sorted({int(x) for x in g.cN[g.cv == v]}):
             pick = in_range[cell] & (g.cN[cell] == n)
             rec = {"variant": v, "N_G": n}
             for k, val in cols.items():
-                rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([s.boot_seed, 11, vi, n])))
+                rng = bootstrap.generator([s.boot_seed, 11, vi, n])
                 f = size_fit(E_pack[pick], fin.seed[pick], np.asarray(val, float)[pick], alpha, s.n_boot, rng)
                 rec[k], rec[f"{k}_err"], rec[f"{k}_slope"] = f["value"], f["err"], f["slope"]
                 rec[f"{k}_chi2_dof"] = f["chi2"] / f["dof"] if f["dof"] > 0 else np.nan
@@ -204,8 +202,6 @@ def compare(extrapolated, jamming, reference, variants, fin=None, usable=None) -
     """The protocols compared (see the module docstring): ``{"values": [per variant], "pairs": [per
     (variant, quantity)], "homogeneity": [per quantity], "reference", "alpha"}``; empty lists with
     fewer than two variants. ``variants``: the variants of the reference's system, in order."""
-    from scipy.special import chdtrc, erfc
-
     vals = []
     for v in variants:
         rec = {"variant": v}
@@ -227,7 +223,7 @@ def compare(extrapolated, jamming, reference, variants, fin=None, usable=None) -
             e = float(np.hypot(rec[f"{q}_err"], ref[f"{q}_err"]))
             z = d / e if e > 0 else np.nan
             pairs.append({"variant": rec["variant"], "reference": reference, "quantity": q, "difference": d,
-                          "error": e, "z": z, "p": float(erfc(abs(z) / math.sqrt(2))) if np.isfinite(z) else np.nan,
+                          "error": e, "z": z, "p": fits.normal_p_value(z),
                           "pair_correlation_A_G": corr})
     for r, a in zip(pairs, holm([r["p"] for r in pairs])):
         r["p_holm"] = float(a)
@@ -242,7 +238,7 @@ def compare(extrapolated, jamming, reference, variants, fin=None, usable=None) -
             w = 1.0 / e[ok] ** 2
             m = float(np.sum(w * x[ok]) / w.sum())
             chi2 = float(np.sum(w * (x[ok] - m) ** 2))
-            rec.update(mean=m, chi2=chi2, dof=int(ok.sum() - 1), p=float(chdtrc(ok.sum() - 1, chi2)))
+            rec.update(mean=m, chi2=chi2, dof=int(ok.sum() - 1), p=fits.chi2_p_value(chi2, int(ok.sum() - 1)))
         hom.append(rec)
     for r, a in zip(hom, holm([r["p"] for r in hom])):
         r["p_holm"] = float(a)
@@ -252,8 +248,6 @@ def compare(extrapolated, jamming, reference, variants, fin=None, usable=None) -
 
 
 def _fmt(x, e=None):
-    from campaign.results.tables import fmt_err
-
     if e is not None:
         return fmt_err(x, e)
     return "--" if x is None or not np.isfinite(x) else f"{x:.3g}"
@@ -309,3 +303,62 @@ def markdown(jamming_rows, jamming, comparison) -> str:
         lines.append(f"| {v} | {_fmt(ps[0]['pair_correlation_A_G'])} | " + " | ".join(cells) + " |")
     lines += ["", "** significant at the family-wise rate (Holm-adjusted p below it)."]
     return "\n".join(lines) + "\n"
+
+
+@dataclass
+class Protocols:
+    """The section's result: the jamming point per size and ``N_G -> inf``, and the protocols
+    compared (summary.json's ``"jamming"`` is ``jamming_sizes``, its ``"protocols"`` the comparison
+    with ``"jamming"``: ``jamming_limits``)."""
+
+    jamming_sizes: list = field(default_factory=list)   # per (variant, N_G): phi_J, N_R/N, their fits
+    jamming_limits: dict = field(default_factory=dict)  # per variant: their N_G -> inf values
+    comparison: dict = field(default_factory=dict)      # compare's: "reference", "alpha", "values", ...
+
+
+def compute(table, s, distributions) -> Protocols:
+    """The reducer's step: the jamming point of every variant, then the variants of the reference's
+    system compared (in the order of the cells), each value with its variant's potential exponent."""
+    vsys, g = table.systems, table.grid
+    sizes, limits = jamming_point(table.fin, g, s, {v: d["exponent"] for v, d in vsys.items()})
+    ref_sys = vsys.get(s.reference)
+    same_sys = [v for v in sorted(set(g.cv), key=list(g.cv).index) if ref_sys is None or vsys.get(v) == ref_sys]
+    comparison = compare(table.extrapolated, limits, s.reference, same_sys, fin=table.everything, usable=table.good)
+    for rec in comparison["values"]:
+        rec["exponent"] = float(vsys[rec["variant"]]["exponent"])  # the potential's alpha
+    return Protocols(sizes, limits, comparison)
+
+
+def _files(p) -> dict:
+    out = {"protocols.md": markdown(p.jamming_sizes, p.jamming_limits, p.comparison)} if p.jamming_sizes else {}
+    if p.comparison.get("pairs"):
+        out.update({"protocols.csv": records_csv(p.comparison["pairs"]),
+                    "protocol_tests.csv": records_csv(p.comparison["homogeneity"])})
+    return out
+
+
+def _reduced(p) -> dict:
+    out = {"jamming": Group(p.jamming_sizes)} if p.jamming_sizes else {}
+    c = p.comparison
+    if c.get("pairs"):
+        out["protocols"] = Group(attrs={"reference": c["reference"], "alpha": c["alpha"]})
+        out.update({f"protocols/{k}": Group(c[k]) for k in ("values", "pairs", "homogeneity")})
+    return out
+
+
+def _console(p) -> str:
+    """protocols.md without its title, with two variants of one system or more."""
+    if not p.comparison.get("pairs"):
+        return ""
+    return "\n" + markdown(p.jamming_sizes, p.jamming_limits, p.comparison).split("\n", 2)[2]
+
+
+#: The jamming point and the protocols compared as a section of the reducer
+#: (campaign.results.sections): jamming.csv in every output, protocols.md (and protocols.csv,
+#: protocol_tests.csv with a comparison), /reduced/jamming and /reduced/protocols, summary.json's
+#: "jamming" and "protocols", the console's comparison.
+SECTION = Section(
+    name="protocols", compute=compute, empty=Protocols,
+    tables=lambda p: {"jamming.csv": records_csv(p.jamming_sizes)},
+    files=_files, reduced=_reduced, console=_console,
+    json=lambda p: {"jamming": p.jamming_sizes, "protocols": {**p.comparison, "jamming": p.jamming_limits}})

@@ -1,4 +1,6 @@
-"""The reducer: a campaign's HDF5 file(s) -> distributions, scaling fits, the finite-size table.
+"""The reducer: campaign file(s) -> a ``Reduction`` (the finite-size table, its fits, the sections).
+
+Distributions, scaling fits, the finite-size table and the optional sections of ``SECTIONS``.
 
 ``reduce_campaign`` takes its steps in this order, each one's machinery in the module named:
 
@@ -10,7 +12,9 @@
 4. the scaling fits per size over the fit range (``campaign.results.scaling``);
 5. the N_G -> inf row (``campaign.results.finitesize``);
 6. the histograms summed per cell (``campaign.results.cells``);
-7. the variants and systems compared (``tradeoff``, ``systems``), the linear response (``response``).
+7. the sections of ``SECTIONS``, in that order (``campaign.results.sections``): the variants compared
+   (``tradeoff``), the physical systems (``systems``), the linear response (``response``), the
+   jamming point and the protocols compared (``protocols``).
 
 Its result, a ``Reduction``, is written by ``campaign.report.writing`` and drawn by
 ``campaign.report.plots``. The output layout (``/reduced`` group and the tables) is documented
@@ -26,12 +30,30 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from campaign.errors import UserError
-from campaign.results import fits
+from campaign.results import fits, protocols, response, systems, tradeoff
 from campaign.results.cells import area_distributions, cell_table, count_notes, grid, histograms
 from campaign.results.finitesize import extrapolate
 from campaign.results.finished import ladder_variants, load_finished, variant_systems
 from campaign.results.scaling import (DEFAULT_FIT_OVERLAP, fit_rule_name, fit_rule_text, is_default_range,
                                       scaling_fits)
+
+#: The optional sections (``campaign.results.sections``), in the order they are computed and their
+#: keys enter summary.json. A new statistic is a module ending in ``SECTION = Section(...)`` and its
+#: line here (docs/DEVELOPMENT.md, "The house").
+SECTIONS = (tradeoff.SECTION, systems.SECTION, response.SECTION, protocols.SECTION)
+
+#: The outputs that list the sections in another order than ``SECTIONS``: the order each had before
+#: the sections were a registry, kept so that every output stays byte for byte what it was. The
+#: sections named come first, in this order; the others follow in the order of ``SECTIONS``.
+ORDER = {"console": ("systems", "tradeoff"),               # campaign reduce's text after the table
+         "reduced": ("tradeoff", "systems", "protocols"),  # the groups of /reduced
+         "files": ("response", "protocols", "systems")}    # the files written after summary.json
+
+
+def in_order(output: str) -> tuple:
+    """The sections in the order ``output`` (a key of ``ORDER``, else ``SECTIONS``' order) lists them."""
+    first = ORDER.get(output, ())
+    return tuple(sorted(SECTIONS, key=lambda sec: first.index(sec.name) if sec.name in first else len(first)))
 
 
 @dataclass
@@ -84,12 +106,16 @@ class Reduction:
     peaks: dict                  # variant -> {alpha_e, theta, alpha_v} (``three_disk_peaks``)
     notes: list                  # human-readable: what is missing, what was skipped
     meta: dict
-    variants: list = field(default_factory=list)  # campaign.results.tradeoff records, one per variant
-    systems: list = field(default_factory=list)   # campaign.results.systems records, with two systems or more
-    response: dict = field(default_factory=dict)  # campaign.results.response: {"cells", "fits"} records
-    jamming: list = field(default_factory=list)   # campaign.results.protocols: phi_J, N_R/N per (variant, N)
-    protocols: dict = field(default_factory=dict)  # campaign.results.protocols.compare: N_G -> inf jamming
-    #                                                 point per variant ("jamming") and the variants compared
+    # section name -> its result (SECTIONS), also red.<name>: red.tradeoff (campaign.results.tradeoff's
+    # records, summary.json's "variants"), red.systems, red.response, red.protocols (a Protocols)
+    sections: dict = field(default_factory=dict)
+
+    def __getattr__(self, name):
+        """A section's result by its name (``red.tradeoff``): ``sections[name]``."""
+        sections = self.__dict__.get("sections", {})
+        if name in sections:
+            return sections[name]
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute or section {name!r}")
 
     def fit_rule(self) -> dict:
         """Which cells the scaling fits use: the range's name and sentence, whether it is the
@@ -112,11 +138,10 @@ class Reduction:
                 return [clean(x) for x in v]
             return v
 
-        return clean({"fit_rule": self.fit_rule(), "rows": self.rows, "extrapolated": self.extrapolated,
-                      "variants": self.variants, "systems": self.systems,
-                      **({"response": self.response} if self.response else {}),
-                      "jamming": self.jamming, "protocols": self.protocols,
-                      "status": {k: self.meta[k] for k in ("done", "pending", "failed", "total")},
+        out = {"fit_rule": self.fit_rule(), "rows": self.rows, "extrapolated": self.extrapolated}
+        for sec in SECTIONS:
+            out.update(sec.json(self.sections[sec.name]))
+        return clean({**out, "status": {k: self.meta[k] for k in ("done", "pending", "failed", "total")},
                       "notes": self.notes})
 
 
@@ -179,42 +204,13 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
     everything = load_finished(paths)
     t_load = time.perf_counter() - t0
     tab = reduce_table(everything, s)
-    good, fin, g, cells, notes, vsys = tab.good, tab.fin, tab.grid, tab.cells, tab.notes, tab.systems
+    fin, g, cells, notes, vsys = tab.fin, tab.grid, tab.cells, tab.notes, tab.systems
     fit_records, residuals, rows, extrapolated = tab.fit_records, tab.residuals, tab.rows, tab.extrapolated
     area_hist, width = area_distributions(fin, g, s, cells)
     t1 = time.perf_counter()
     dists, selfavg = histograms(fin, g, s) if distributions else ({}, {})
     t_hist = time.perf_counter() - t1
-
-    from campaign.results import systems as sysmod
-    from campaign.results import tradeoff
-
-    # speed against accuracy compares packings of one physical system: the reference's
-    ref_sys = vsys.get(s.reference)
-    same = np.isin(np.asarray(everything.variant, dtype=str), [v for v, d in vsys.items() if d == ref_sys])
-    if not same.all() and ref_sys is not None:
-        others = sorted({str(v) for v in everything.variant[~same]})
-        notes.append(f"variants {', '.join(others)} are other systems than {s.reference!r}: compared in "
-                     "systems.md, not packing by packing")
-    pick = same if ref_sys is not None else np.ones(len(everything), bool)
-    variants, vnotes = tradeoff.compare(everything.subset(pick), extrapolated, s.reference, n_boot=s.n_boot,
-                                        seed=s.boot_seed, usable=good[pick])
-    notes += vnotes
-    systems = sysmod.compare(rows, extrapolated, vsys, reference=s.reference)
-    from campaign.results import response as respmod
-
-    resp = (respmod.reduce_response(fin, g, s, dists, {v: d["exponent"] for v, d in vsys.items()}, notes)
-            if respmod.present(fin) else {})
-    from campaign.results import protocols as protmod
-
-    jam_rows, jam = protmod.jamming_point(fin, g, s, {v: d["exponent"] for v, d in vsys.items()})
-    same_sys = [v for v in sorted(set(g.cv), key=list(g.cv).index) if ref_sys is None or vsys.get(v) == ref_sys]
-    prot = protmod.compare(extrapolated, jam, s.reference, same_sys, fin=everything, usable=good)
-    prot["jamming"] = jam
-    for rec in prot["values"]:
-        rec["exponent"] = float(vsys[rec["variant"]]["exponent"])  # the potential's alpha
-    for rec in variants + systems:  # their exponents and A_G* come from the scaling fits
-        rec["fit_rule"] = fit_rule_name(s)
+    sections = {sec.name: sec.compute(tab, s, dists) if sec.present(tab) else sec.empty() for sec in SECTIONS}
     meta = {"sources": fin.paths, "done": int(len(fin)), "excluded": int(g.n_excluded.sum()),
             "pending": int(g.n_pending.sum()), "failed": int(g.n_failed.sum()),
             "total": int(g.n_tasks.sum()), "n_boot": s.n_boot,
@@ -229,5 +225,4 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                      area_hist=area_hist, fits=fit_records, residuals=residuals,
                      width_scaling=width, rows=rows, extrapolated=extrapolated,
                      peaks={v: three_disk_peaks(vsys[v]) for v in sorted(set(g.cv))},
-                     notes=notes, meta=meta, variants=variants, systems=systems, response=resp,
-                     jamming=jam_rows, protocols=prot)
+                     notes=notes, meta=meta, sections=sections)

@@ -23,13 +23,18 @@ Per (variant, N) (``fits``): ``G s^2 = c (p s^2)^beta``, ``G s^2 = c Delta_Z^bet
 ``MIN_EXCESS`` contacts beyond isostaticity on average (``Delta Z N_G / 2``): below that the
 finite-size crossover (Goodrich, Liu and Nagel 2012) bends every curve. Errors from the
 weighted fit, scaled by ``sqrt(chi^2/dof)`` when that exceeds 1.
+
+A section of the reducer (``SECTION``, ``campaign.results.sections``), present when the store holds
+the linear response.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from campaign.results import fits
+from campaign.results import bootstrap, fits
+from campaign.results.sections import Group, Section
+from campaign.results.tables import records_csv
 
 #: Gap window of the exponent fit: from 10 typical overlaps (or where the cumulative count of
 #: a cell reaches ``MIN_COUNT`` pairs, whichever is larger) up to ``h = 1e-2``.
@@ -121,14 +126,9 @@ def cumulative_exponent(edges, counts, lo, hi, per_packing=None, n_boot=200, see
     slope = _slope(e[sel], F[sel])
     err = np.nan
     if per_packing is not None and len(per_packing) > 1 and n_boot > 1:
-        rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed)))
-        n = len(per_packing)
         cum = np.cumsum(per_packing, axis=1)[:, sel].astype(float)
-        reps = []
-        for _ in range(n_boot):
-            Fb = cum[rng.integers(0, n, n)].sum(axis=0)
-            if np.all(Fb > 0):
-                reps.append(_slope(e[sel], Fb))
+        # a replica with an empty bin in the window has no slope on log axes: dropped
+        reps = [_slope(e[sel], Fb) for Fb in bootstrap.resampled_sums(cum, n_boot, seed) if np.all(Fb > 0)]
         if len(reps) > 1:
             err = float(np.std(reps, ddof=1))
     return slope, err, lo, hi, int(sel.sum()), ""
@@ -273,5 +273,31 @@ def reduce_response(fin, g, s, dists, exponents, notes):
     return {"cells": records, "fits": fit_records, "exponents": pooled, "alpha": alphas}
 
 
+def compute(table, s, distributions) -> dict:
+    """The reducer's step: ``reduce_response`` on its usable packings, cells and summed histograms."""
+    return reduce_response(table.fin, table.grid, s, distributions,
+                           {v: d["exponent"] for v, d in table.systems.items()}, table.notes)
+
+
+#: The tables of the response's files and groups of /reduced, each written when it has records.
+PARTS = ("cells", "fits", "exponents")
+
+
+def _reduced(resp) -> dict:
+    if not resp:
+        return {}
+    return {"response": Group(), **{f"response/{k}": Group(resp[k]) for k in PARTS if resp.get(k)}}
+
+
+#: The linear response as a section of the reducer (campaign.results.sections), when the store holds
+#: it: response_cells.csv, response_fits.csv, response_exponents.csv, /reduced/response, summary.json's
+#: "response".
+SECTION = Section(
+    name="response", compute=compute, present=lambda table: present(table.fin), empty=dict,
+    files=lambda resp: {f"response_{k}.csv": records_csv(resp.get(k, [])) for k in PARTS} if resp else {},
+    reduced=_reduced,
+    json=lambda resp: {"response": resp} if resp else {})
+
+
 __all__ = ["reduce_response", "present", "cumulative_exponent", "power_fit", "GAP_WINDOW",
-           "FORCE_WINDOW", "MIN_EXCESS", "MIN_COUNT"]
+           "FORCE_WINDOW", "MIN_EXCESS", "MIN_COUNT", "SECTION"]

@@ -1,8 +1,9 @@
 """The scaling fits per size: for every (variant, N_G) the four power laws of ``FITS`` over the
-cells of the fit range, with bootstrap errors over packings; and the fit range itself, in
-numbers (``DEFAULT_FIT_OVERLAP``, ``typical_overlap``) and in words (``fit_rule_name``,
-``fit_rule_text``; docs/REDUCED.md, "The fit range"). The fitting maths is
-``campaign.results.fits``; the N_G -> inf row built on these fits, ``campaign.results.finitesize``.
+cells of the fit range, with bootstrap errors over packings; and the fit range in words
+(``fit_rule_name``, ``fit_rule_text``; docs/REDUCED.md, "The fit range"), in numbers in
+``campaign.plan.targets`` (``DEFAULT_FIT_OVERLAP``, ``typical_overlap``, ``in_fit_range``). The
+fitting maths is ``campaign.results.fits``, its replicas ``campaign.results.bootstrap``; the N_G -> inf
+row built on these fits, ``campaign.results.finitesize``.
 ``s`` is the reducer's ``Settings`` (``campaign.results.reduce``, which imports this module).
 """
 
@@ -13,10 +14,10 @@ import math
 import numpy as np
 
 from campaign.errors import UserError
-# The four laws fitted per (variant, N) with their table keys, the row's keys and the default fit range
+# The four laws fitted per (variant, N) with their table keys, the row's keys and the fit range
 # (docs/REDUCED.md, "The fit range"): defined with the spec, whose precision targets name them.
-from campaign.plan.targets import DEFAULT_FIT_OVERLAP, FITS, TABLE_KEYS, typical_overlap  # noqa: F401
-from campaign.results import fits
+from campaign.plan.targets import DEFAULT_FIT_OVERLAP, FITS, TABLE_KEYS, in_fit_range, typical_overlap  # noqa: F401
+from campaign.results import bootstrap, fits
 from campaign.results.cells import Grid
 
 
@@ -50,6 +51,14 @@ def fit_rule_text(s) -> str:
     return "Fits over every energy" if not window else f"Fits over the cells with {window}"
 
 
+def with_fit_rule(records, s) -> list:
+    """``records`` of values drawn from the scaling fits, each with the fit range they come from
+    (``fit_rule``, the last key)."""
+    for rec in records:
+        rec["fit_rule"] = fit_rule_name(s)
+    return records
+
+
 def _min_positive(x):
     x = x[x > 0]
     return float(x.min()) if len(x) else np.nan
@@ -74,16 +83,14 @@ def scaling_fits(fin, g: Grid, s, cells, notes, exponents=None, per_size=True, c
         row = {"variant": v, "N_G": n, "n_packings": int(n_done[in_group].sum()),
                "n_cells": 0}
         lo, hi = s.fit_energies
-        in_range = (cE[in_group] >= lo * (1 - 1e-9)) & (cE[in_group] <= hi * (1 + 1e-9))
-        if not in_range.all() and gi == 0:
+        alpha = (exponents or {}).get(v, 2.0)
+        if gi == 0 and not in_fit_range(cE[in_group], alpha, math.inf, s.fit_energies).all():
             notes.append(f"scaling fits use the cells with E_G in [{lo:g}, {hi:g}] only")
-        if math.isfinite(s.fit_overlap):
-            alpha = (exponents or {}).get(v, 2.0)
-            in_range &= typical_overlap(cE[in_group], alpha) <= s.fit_overlap * (1 + 1e-9)
-            if n == min(int(x) for x in cN[cv == v]):
-                e_max = 2.0 / alpha * s.fit_overlap ** alpha
-                notes.append(f"{v}: scaling fits use the cells with typical overlap <= {s.fit_overlap:g} "
-                             f"(E_G <= {e_max:.3g} at alpha = {alpha:g})")
+        in_range = in_fit_range(cE[in_group], alpha, s.fit_overlap, s.fit_energies)
+        if math.isfinite(s.fit_overlap) and n == min(int(x) for x in cN[cv == v]):
+            e_max = 2.0 / alpha * s.fit_overlap ** alpha
+            notes.append(f"{v}: scaling fits use the cells with typical overlap <= {s.fit_overlap:g} "
+                         f"(E_G <= {e_max:.3g} at alpha = {alpha:g})")
         in_group = in_group[in_range]
         short = len(in_group) < fits.MIN_CELLS
         why = (f"the fit range ({fit_rule_name(s)}) holds {len(in_group)} energies of the grid, fewer than "
@@ -109,9 +116,9 @@ def scaling_fits(fin, g: Grid, s, cells, notes, exponents=None, per_size=True, c
             data = [d[k] for d, k in zip(data, keep)]
             if all(len(d) >= 2 for d in data) and v in chains:
                 seeds = [fin.seed[g.packings(i)][k] for i, k in zip(usable, keep)]
-                boot = fits.bootstrap_seed_means(data, seeds, s.n_boot, seed=[s.boot_seed, gi])
+                boot = bootstrap.seed_means(data, seeds, s.n_boot, seed=[s.boot_seed, gi])
             elif all(len(d) >= 2 for d in data):
-                boot = fits.bootstrap_cell_means(data, s.n_boot, seed=[s.boot_seed, gi])
+                boot = bootstrap.cell_means(data, s.n_boot, seed=[s.boot_seed, gi])
         not_determined = []
         for quantity, absc, key, bkey in FITS:
             res = np.full(C, np.nan)

@@ -14,7 +14,7 @@ reference system's ``beta_Z``:
   tension in standard deviations.
 
 Each for the extrapolated values (``N_G -> inf``) and, with the suffix ``_largest``, for the
-largest ``N_G``.
+largest ``N_G``. A section of the reducer (``SECTION``, ``campaign.results.sections``).
 """
 
 from __future__ import annotations
@@ -23,6 +23,8 @@ import math
 
 import numpy as np
 
+from campaign.results.scaling import with_fit_rule
+from campaign.results.sections import Group, Section
 from campaign.results.tables import fmt_err, records_csv
 
 #: finite-size table entries carried into a record (each with ``_err``)
@@ -152,3 +154,27 @@ def table_markdown(records) -> str:
 
 def table_csv(records) -> str:
     return records_csv(records)
+
+
+def compute(table, s, distributions) -> list:
+    """The reducer's step: ``compare`` on its table rows, ``N_G -> inf`` row and systems, each record
+    with the fit range its exponents come from."""
+    return with_fit_rule(compare(table.rows, table.extrapolated, table.systems, reference=s.reference), s)
+
+
+def console(records) -> str:
+    """The systems' table under its title ("" with one system)."""
+    title = (f"Systems (beta_E against the prediction beta_Z/(2 alpha); beta_Z against {records[0]['reference']!r}'s; "
+             "tensions in standard deviations)") if records else ""
+    return f"{title}\n\n{table_markdown(records)}" if title else ""
+
+
+#: The physical systems compared as a section of the reducer (campaign.results.sections), with two
+#: systems or more: systems.csv and systems.md, /reduced/systems, summary.json's "systems", the
+#: console's table.
+SECTION = Section(
+    name="systems", compute=compute,
+    files=lambda records: {"systems.csv": table_csv(records), "systems.md": table_markdown(records)} if records else {},
+    reduced=lambda records: {"systems": Group(records)} if records else {},
+    console=console,
+    json=lambda records: {"systems": records})

@@ -25,11 +25,19 @@ the correlations of the ladder protocol (whose packings at different energies sh
 history) and is equally valid for independent packings. ``on_front``: no other
 variant is at once cheaper (cost ratio in force evaluations, deterministic) and more
 accurate (``score``: the largest ``|bias_rel|`` over the quantities).
+
+A section of the reducer (``SECTION``, ``campaign.results.sections``): the variants of the reference's
+physical system; those of other systems are compared in ``campaign.results.systems``.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from campaign.results import bootstrap
+from campaign.results.scaling import with_fit_rule
+from campaign.results.sections import Group, Section
+from campaign.results.tables import records_csv
 
 #: per-packing quantities compared with the reference
 QUANTITIES = ("A_G", "delta_Z", "psi_O", "iso_excess")
@@ -94,7 +102,7 @@ def compare(fin, extrapolated, reference="default", n_boot=1000, seed=20240917, 
                 ss += float(np.sum((v - v.mean()) ** 2))
                 dof += v.size - 1
         spread[q] = np.sqrt(ss / dof) if dof else np.nan
-    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([seed, 7])))
+    rng = bootstrap.generator([seed, 7])
     out = []
     for v in [reference] + [x for x in variants if x != reference]:
         rows = np.flatnonzero(var == v)
@@ -112,18 +120,8 @@ def compare(fin, extrapolated, reference="default", n_boot=1000, seed=20240917, 
         b = np.array([p[1] for p in pairs])
         # clusters for the bootstrap: (N, seed) chains
         chain = {}
-        cl = np.array([chain.setdefault((fin.N[i], fin.seed[i]), len(chain)) for i in a])
-        K = len(chain)
-        boot = [np.flatnonzero(cl == k) for k in range(K)]
-        draws = rng.integers(0, K, size=(n_boot, K)) if n_boot > 1 and K > 1 else None
-
-        def stat(fn):
-            value = fn(np.arange(len(a)))
-            if draws is None or not np.isfinite(value):
-                return value, np.nan
-            vals = [fn(np.concatenate([boot[k] for k in d])) for d in draws]
-            return value, float(np.nanstd(vals, ddof=1))
-
+        stat = bootstrap.clusters(np.array([chain.setdefault((fin.N[i], fin.seed[i]), len(chain)) for i in a]),
+                                  n_boot, rng)
         for name, c in (("fe", fe), ("seconds", secs)):
             ca, cb = c[a], c[b]
             if np.all(np.isfinite(ca)) and np.all(np.isfinite(cb)) and cb.sum() > 0:
@@ -201,3 +199,37 @@ def table_markdown(records) -> str:
     if records[0].get("fit_rule"):
         lines += ["", f"dA_G*(E=0), dbeta_E: the scaling fits' ({records[0]['fit_rule']})."]
     return "\n".join(lines)
+
+
+def compute(table, s, distributions) -> list:
+    """The reducer's step: the variants of the reference's physical system compared packing by
+    packing (``compare``: packings of other systems are named in a note and compared in
+    ``campaign.results.systems``), each record with the fit range its table entries come from."""
+    vsys, everything = table.systems, table.everything
+    ref_sys = vsys.get(s.reference)
+    same = np.isin(np.asarray(everything.variant, dtype=str), [v for v, d in vsys.items() if d == ref_sys])
+    if not same.all() and ref_sys is not None:
+        others = sorted({str(v) for v in everything.variant[~same]})
+        table.notes.append(f"variants {', '.join(others)} are other systems than {s.reference!r}: compared in "
+                           "systems.md, not packing by packing")
+    pick = same if ref_sys is not None else np.ones(len(everything), bool)
+    records, notes = compare(everything.subset(pick), table.extrapolated, s.reference, n_boot=s.n_boot,
+                             seed=s.boot_seed, usable=table.good[pick])
+    table.notes.extend(notes)
+    return with_fit_rule(records, s)  # their A_G* and exponents come from the scaling fits
+
+
+#: what campaign reduce prints above the variants' table
+CONSOLE_TITLE = ("\nVariants against {!r} (cost: ratio of summed force evaluations / seconds over the same "
+                 "packings; deviations: mean paired difference; bias in units of the reference's "
+                 "packing-to-packing spread)\n\n")
+
+
+#: The speed against accuracy comparison as a section of the reducer (campaign.results.sections):
+#: variants.csv in every output, /reduced/variants, summary.json's "variants", the console's table.
+SECTION = Section(
+    name="tradeoff", compute=compute,
+    tables=lambda records: {"variants.csv": records_csv(records)},
+    reduced=lambda records: {"variants": Group(records)} if records else {},
+    console=lambda records: CONSOLE_TITLE.format(records[0]["reference"]) + table_markdown(records) if records else "",
+    json=lambda records: {"variants": records})

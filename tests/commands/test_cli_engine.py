@@ -198,7 +198,7 @@ def test_kernels_are_compiled_once_by_the_master_before_any_worker_starts(tmp_pa
     cmd = [sys.executable, "-m", "campaign", "run", str(_spec(tmp_path)), "--out", str(out),
            "--task-function", "test_cli_engine:WarmProbe"]
     cmd = [str(mpiexec), "-n", "3"] + cmd if launcher == "mpi" else cmd + ["--workers", "2"]
-    env = _env(WARM_LOG=str(log), PYTHONPATH=f"{ROOT}{os.pathsep}{Path(__file__).parent}")
+    env = _env(WARM_LOG=str(log), PYTHONPATH=f"{ROOT}{os.pathsep}{Path(__file__).resolve().parent}")  # WarmProbe's module
     r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     with h5py.File(out, "r") as f:

@@ -505,7 +505,7 @@ def test_read_packings_reduce_verify_and_draw(real, tmp_path, capsys):
             assert _bits_equal(pk.configuration(tid)["box"], box)
     red = reduce_campaign(real, Settings(n_boot=20))
     assert "mean_gamma" in red.cells and "mean_sigma_xy" in red.cells
-    rec = {r["variant"]: r for r in red.variants}
+    rec = {r["variant"]: r for r in red.tradeoff}
     assert rec["shear"]["n_pairs"] == 4
     # the isostatic excess counts 2 N_G + 1 contacts in the shear-stabilised cell
     fin = load_finished(real)

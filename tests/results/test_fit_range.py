@@ -1,9 +1,11 @@
 """The fit range of the scaling laws (docs/REDUCED.md, "The fit range"): the default rule, the
-fixed ranges, the refusals, and every output naming the range or rule it used."""
+fixed ranges, the refusals, every output naming the range or rule it used, and the one test of
+which cells a range holds."""
 
 import csv
 import io
 import json
+import math
 
 import h5py
 import numpy as np
@@ -12,8 +14,9 @@ from synthetic_store import SyntheticCampaign, Truth, write_store
 
 from campaign import cli
 
-from campaign.results import fits
+from campaign.results import bootstrap, fits
 from campaign.results import reduce as R
+from campaign.plan.targets import in_fit_range
 from campaign.results.scaling import DEFAULT_FIT_OVERLAP, typical_overlap
 from campaign.errors import UserError
 
@@ -49,7 +52,7 @@ def _fit(groups, keep, seed):
     x = np.array([c[:, 0].mean() for c in g])
     y = np.array([c[:, 1].mean() for c in g])
     ye = np.array([c[:, 1].std(ddof=1) / np.sqrt(len(c)) for c in g])
-    boot = fits.bootstrap_cell_means(g, 100, seed=seed)
+    boot = bootstrap.cell_means(g, 100, seed=seed)
     return fits.fit_power_law(x, y, ye, boot_x=boot[..., 0], boot_y=boot[..., 1])
 
 
@@ -229,3 +232,11 @@ def test_every_system_and_variant_table_names_its_rule(tmp_path, capsys):
         with open(out / name) as fh:
             recs = list(csv.DictReader(fh))
         assert recs and all(r["fit_rule"] == rule for r in recs), name
+
+
+def test_the_fit_range_is_one_test():
+    E = np.array([1e-15, 1e-9, 1e-6, 1e-6 * (1 + 1e-12), 1e-5, 1e-3])
+    assert list(in_fit_range(E, 2.0)) == [True, True, True, True, False, False]  # to a relative 1e-9
+    assert list(in_fit_range(E, 2.0, math.inf)) == [True] * 6
+    assert list(in_fit_range(E, 2.0, math.inf, (1e-9, 1e-5))) == [False, True, True, True, True, False]
+    assert list(in_fit_range(E, 3.0, 0.01, (0.0, 1e-6))) == list((typical_overlap(E, 3.0) <= 0.01) & (E <= 1e-6))

@@ -1,4 +1,5 @@
-"""The reducer's maths: power-law fits, bootstrap errors, 1/N extrapolation, exact peaks."""
+"""The reducer's maths: power-law fits, bootstrap errors (and where the two seed bootstraps differ),
+1/N extrapolation, exact peaks."""
 
 import numpy as np
 import pytest
@@ -6,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import curve_fit
 
-from campaign.results import fits
+from campaign.results import bootstrap, fits
 
 E_GRID = np.logspace(-15, -3, 13)
 Z_GRID = np.logspace(-3, 0, 10)
@@ -62,7 +63,7 @@ def _fit_cells(groups, n_boot, seed):
     x = np.array([g[:, 0].mean() for g in groups])
     y = np.array([g[:, 1].mean() for g in groups])
     ye = np.array([g[:, 1].std(ddof=1) / np.sqrt(len(g)) for g in groups])
-    boot = fits.bootstrap_cell_means(groups, n_boot, seed=seed)
+    boot = bootstrap.cell_means(groups, n_boot, seed=seed)
     return fits.fit_power_law(x, y, ye, boot_x=boot[..., 0], boot_y=boot[..., 1])
 
 
@@ -93,15 +94,15 @@ def test_bootstrap_errors_cover_truth_at_the_stated_rate():
 def test_bootstrap_cell_means_is_deterministic_and_matches_the_standard_error():
     rng = np.random.default_rng(5)
     groups = [rng.normal(0, 1, (50, 2)), rng.normal(3, 2, (200, 2))]
-    b1 = fits.bootstrap_cell_means(groups, 2000, seed=7)
-    b2 = fits.bootstrap_cell_means(groups, 2000, seed=7)
+    b1 = bootstrap.cell_means(groups, 2000, seed=7)
+    b2 = bootstrap.cell_means(groups, 2000, seed=7)
     assert b1.shape == (2000, 2, 2)
     np.testing.assert_array_equal(b1, b2)
     for k, g in enumerate(groups):
         sem = g.std(ddof=0, axis=0) / np.sqrt(len(g))
         np.testing.assert_allclose(b1[:, k].std(axis=0), sem, rtol=0.08)
         assert np.all(np.abs(b1[:, k].mean(axis=0) - g.mean(axis=0)) < 4 * sem / np.sqrt(2000))
-    assert not np.array_equal(b1, fits.bootstrap_cell_means(groups, 2000, seed=8))
+    assert not np.array_equal(b1, bootstrap.cell_means(groups, 2000, seed=8))
 
 
 @settings(max_examples=25, deadline=None)
@@ -208,3 +209,32 @@ def test_zero_abscissa_is_a_point_at_the_intercept():
     assert f.intercept == pytest.approx(0.4453, abs=1e-10)
     with pytest.raises(ValueError, match=">= 0"):
         fits.fit_power_law(-x[::-1], y, np.full(x.size, 1e-4))
+
+
+def _ladder(rng, seeds, missing):
+    """Two cells of one size, every seed in the first, the second without the seeds ``missing``."""
+    a = rng.normal(0, 1, (seeds, 1))
+    keep = np.setdiff1d(np.arange(seeds), missing)
+    return [a, a[keep] + 1.0], [np.arange(seeds), keep]
+
+
+def test_the_seed_bootstraps_differ_only_where_a_replica_misses_a_cells_seeds():
+    rng = np.random.default_rng(5)
+    for missing in ((), (0, 1, 2, 3, 4, 5, 6)):
+        groups, seeds = _ladder(rng, 8, list(missing))
+        means = bootstrap.seed_means(groups, seeds, 400, seed=3)
+        counts = np.zeros((8, 2))
+        sums = np.zeros((8, 2))
+        for c, (g, sd) in enumerate(zip(groups, seeds)):
+            np.add.at(counts[:, c], sd, 1.0)
+            np.add.at(sums[:, c], sd, g[:, 0])
+        nb, mb = bootstrap.seed_cell_means(counts, sums, 400, bootstrap.generator(3))
+        # the same seeds drawn in the same order: the replicas that hold every cell agree
+        full = bootstrap.seed_weights(bootstrap.generator(3), 8, 400) @ counts
+        held = np.all(full > 0, axis=1)
+        np.testing.assert_allclose(means[held, :, 0], mb, rtol=1e-12)
+        if not missing:
+            assert held.all()
+        else:  # a replica without seed 7 keeps the cell at its mean in one, and is dropped in the other
+            assert not held.all() and len(mb) == held.sum() < 400
+            np.testing.assert_array_equal(means[~held, 1, 0], groups[1].mean())

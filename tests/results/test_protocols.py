@@ -40,13 +40,13 @@ def three(tmp_path_factory):
 def test_the_jamming_point_is_the_truth_at_every_size_and_at_infinity(three):
     _, camp, red = three
     pulls = []
-    for r in red.jamming:
+    for r in red.protocols.jamming_sizes:
         t = TRUTHS[r["variant"]]
         assert r["n_cells"] == 5 and r["n_packings"] == 5 * camp.seeds  # the fit range: E_G <= 5e-7
         pulls.append((r["phi_J"] - (t.phi_inf + t.phi_N / r["N_G"])) / r["phi_J_err"])
         pulls.append((r["rattler_fraction"] - t.f_R) / r["rattler_fraction_err"])
     assert np.all(np.abs(pulls) < 4.5) and 0.5 < np.std(pulls) < 1.6
-    for v, x in red.protocols["jamming"].items():
+    for v, x in red.protocols.jamming_limits.items():
         t = TRUTHS[v]
         assert abs(x["phi_J"] - t.phi_inf) < 4 * x["phi_J_err"] and x["phi_J_err"] < 2e-3
         assert abs(x["rattler_fraction"] - t.f_R) < 4 * x["rattler_fraction_err"]
@@ -55,7 +55,7 @@ def test_the_jamming_point_is_the_truth_at_every_size_and_at_infinity(three):
 
 def test_a_moved_jamming_point_is_found_and_an_unmoved_one_is_not(three):
     _, _, red = three
-    prot = red.protocols
+    prot = red.protocols.comparison
     assert prot["reference"] == "default" and [r["variant"] for r in prot["values"]][0] == "default"
     sig = {(p["variant"], p["quantity"]): p["significant"] for p in prot["pairs"]}
     # dilute: phi_J 0.004 and the rattlers 0.01 lower, A_G* 0.01 off (the store's variant shift)
@@ -74,7 +74,7 @@ def test_a_moved_jamming_point_is_found_and_an_unmoved_one_is_not(three):
 
 def test_differences_are_the_rows_and_the_homogeneity_test_is_its_definition(three):
     _, _, red = three
-    prot = red.protocols
+    prot = red.protocols.comparison
     vals = {r["variant"]: r for r in prot["values"]}
     for v in ("default", "dilute"):
         for q in ("A_G_star_E", "beta_E", "psi_O_star"):
@@ -201,8 +201,8 @@ def test_one_variant_has_its_jamming_point_and_no_comparison(tmp_path):
     camp = SyntheticCampaign(N=(64, 128), seeds=6, histograms=("z_g",))
     write_store(tmp_path / "one.h5", camp)
     red = R.reduce_campaign(tmp_path / "one.h5", R.Settings(n_boot=50), distributions=False)
-    assert red.protocols["pairs"] == [] and red.protocols["homogeneity"] == []
-    x = red.protocols["jamming"]["default"]
+    assert red.protocols.comparison["pairs"] == [] and red.protocols.comparison["homogeneity"] == []
+    x = red.protocols.jamming_limits["default"]
     assert abs(x["phi_J"] - 0.84) < 1e-3 and math.isfinite(x["rattler_fraction_err"])
     from campaign.report.writing import write_outputs
 
@@ -281,23 +281,23 @@ def test_the_seed_bootstrap_moves_a_seeds_packings_together():
     """Cells whose packings are one per-seed value (a ladder's extreme): the replicas of every cell
     are the same. Otherwise two cells' replicas correlate as their packings do across the seeds
     (the sample's correlation, what the bootstrap estimates), each with the variance of a mean."""
-    from campaign.results import fits
+    from campaign.results import bootstrap
 
     rng = np.random.default_rng(2)
     seeds = [np.arange(10), np.arange(10), np.arange(10)[::-1]]
     per_seed = rng.normal(0, 1, 10)
     shared = [np.column_stack([per_seed[sd], 2 * per_seed[sd]]) for sd in seeds]
-    b = fits.bootstrap_seed_means(shared, seeds, 400, seed=1)
+    b = bootstrap.seed_means(shared, seeds, 400, seed=1)
     assert b.shape == (400, 3, 2)
     assert np.allclose(b[:, 0], b[:, 1]) and np.allclose(b[:, 0], b[:, 2]) and np.allclose(b[:, 0, 1], 2 * b[:, 0, 0])
     indep = [rng.normal(0, 1, (10, 1)) for _ in seeds]
-    b = fits.bootstrap_seed_means(indep, seeds, 4000, seed=1)
+    b = bootstrap.seed_means(indep, seeds, 4000, seed=1)
     sample = np.corrcoef(indep[0][:, 0], indep[1][:, 0])[0, 1]
     assert np.corrcoef(b[:, 0, 0], b[:, 1, 0])[0, 1] == pytest.approx(sample, abs=0.05)
     for k, g in enumerate(indep):
         assert np.var(b[:, k, 0]) == pytest.approx(np.var(g) / 10, rel=0.1)
     # a cell missing most seeds: a replica drawing none of them keeps the cell's mean
-    few = fits.bootstrap_seed_means([np.ones((1, 1)) * 3.0, np.zeros((10, 1))], [np.array([4]), np.arange(10)], 300)
+    few = bootstrap.seed_means([np.ones((1, 1)) * 3.0, np.zeros((10, 1))], [np.array([4]), np.arange(10)], 300)
     assert np.all(few[:, 0, 0] == 3.0)
 
 
@@ -316,7 +316,7 @@ def test_the_shipped_stores_reduce_to_the_documented_table():
     table = text[text.index("## The table"):text.index("Does each quantity depend")]
     lines = {ln.split("|")[1].strip().split(" ")[0]: [c.strip() for c in ln.split("|")[2:-1]]
              for ln in table.splitlines() if ln.startswith("| ") and "variant" not in ln}
-    assert set(lines) == {r["variant"] for r in red.protocols["values"]}
-    for r in red.protocols["values"]:
+    assert set(lines) == {r["variant"] for r in red.protocols.comparison["values"]}
+    for r in red.protocols.comparison["values"]:
         assert lines[r["variant"]] == [fmt_err(r[q], r[f"{q}_err"]) for q in P.QUANTITIES], r["variant"]
     assert red.meta["done"] == 9360 and red.meta["excluded"] == 0

@@ -167,7 +167,7 @@ def test_unconverged_and_broken_packings_are_counted_but_left_out(tmp_path, caps
     text = "\n".join(red.notes)
     assert "5 finished packing(s) left out" in text
     assert "3 with jam_status != 0" in text and "3 with identities_ok != 1" in text
-    by_variant = {r["variant"]: r for r in red.variants}
+    by_variant = {r["variant"]: r for r in red.tradeoff}
     assert by_variant["default"]["n_excluded"] == (~good[data["variant"] == "default"]).sum()
     assert by_variant["loose"]["n_excluded"] == (~good[data["variant"] == "loose"]).sum()
     assert by_variant["loose"]["n_packings"] == T // 2  # finished ones, used or not
