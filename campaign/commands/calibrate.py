@@ -12,8 +12,11 @@ stores' measured times.
 
 from __future__ import annotations
 
+import argparse
 import math
 import os
+import platform
+import socket
 import sys
 import time
 from pathlib import Path
@@ -21,6 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import UserError
+from campaign.plan import calibration
+from campaign.plan.calibration import BLOCKS, _fixed_factor, machine
+from campaign.storage.layout import stored_spec
+from kernels.names import DEFAULT_OBSERVABLES
 
 HELP = "fit the cost model to packings timed here (--run) or in stores (--store); --check compares"
 
@@ -42,8 +49,6 @@ CALIBRATION_SEED = 314159
 
 
 def configure(parser):
-    import argparse
-
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = EPILOG
     parser.add_argument("--store", nargs="+", metavar="FILE", default=[],
@@ -98,16 +103,13 @@ def _seed_filter(text):
 def _store_records(path, seeds):
     """The store's finished packings as fit records, and what was skipped (their protocols are not
     in the model)."""
-    from campaign.plan.calibration import _fixed_factor
-    from campaign.plan.parse import parse_spec
-    from campaign.report.frames import Packings
+    from campaign.report.frames import Packings  # brings h5py: loaded when the command reads a store, not at --help
 
     with Packings(path, good=False) as pk:
         cols = pk.read_all()
-        spec_yaml = pk.attrs.get("spec_yaml")
-    if spec_yaml is None:
+        spec = stored_spec(pk.attrs, strict=True, name=f"{path} (its spec)")
+    if spec is None:
         raise UserError(f"{path}: the store holds no spec (spec_yaml); cannot tell its packings' protocols")
-    spec = parse_spec(str(spec_yaml), f"{path} (its spec)")
     variants = {v.name: v for v in spec.variants}
     if "jam_seconds" not in cols:
         raise UserError(f"{path}: no jam_seconds scalar: the store's packings were not timed")
@@ -168,7 +170,7 @@ def _load_note(path, cols, keep):
 # ---------------------------------------------------------------------- timing here
 
 def _plan(args, cal):
-    from kernels.jamming import DEFAULTS, energy_floor, initial_state
+    from kernels.jamming import DEFAULTS, energy_floor, initial_state  # numba: only when --run times packings
 
     plan = dict(QUICK if args.quick else PLAN)
     sizes, seeds = list(plan["sizes"]), plan["seeds"]
@@ -213,11 +215,8 @@ def _time_one(kernels, N, E, seed, protocol, start, observables):
 
 
 def _run_records(args, cal):
-    import socket
-
     os.environ.setdefault("NUMBA_CACHE_DIR", str(Path.home() / ".cache" / "jamming-campaign" / "numba"))
-    import kernels
-    from kernels.names import DEFAULT_OBSERVABLES
+    import kernels  # numba: imported once NUMBA_CACHE_DIR is set, and only to time packings here
 
     chosen, minutes = _plan(args, cal)
     n_packings = sum(3 * len(e) - 1 for _, _, e in chosen)
@@ -264,8 +263,6 @@ def _run_records(args, cal):
 # ---------------------------------------------------------------------- printing
 
 def _table(fit):
-    from campaign.plan.calibration import BLOCKS
-
     cal = fit.calibration
     lines = [f"cost model ({sum(n for _, n in fit.counts.values())} packings; L0 = {cal.L0:g}, "
              f"sigma_task = {cal.sigma_task:.3f}, sigma_systematic = {cal.sigma_systematic:.3f})",
@@ -328,9 +325,7 @@ def _gpu_ratios(args) -> dict:
     first minimisation bounded at the plan's steps) over a CPU core's for the same starts, per size:
     the ``gpu`` block of a calibration. Needs a CUDA device; ``CAMPAIGN_GPU_BACKEND=emulate``
     times the CPU emulation instead (for tests: its ratios price nothing real)."""
-    import os
-
-    from kernels.gpu import describe, resolve_backend
+    from kernels.gpu import describe, resolve_backend  # numba and the GPU backends: for --gpu only
 
     backend = resolve_backend(None)
     if backend != "cuda" and os.environ.get("CAMPAIGN_GPU_BACKEND") != "emulate":
@@ -338,7 +333,6 @@ def _gpu_ratios(args) -> dict:
                         "(pip install 'jamming-campaign[gpu]'); none is available here")
     if args.gpu_batch < 1:
         raise UserError(f"--gpu-batch must be at least 1, got {args.gpu_batch}")
-    from campaign.plan.calibration import machine
     from kernels.gpu.batch import time_steps
 
     plan = GPU_QUICK if args.quick else GPU_PLAN
@@ -356,8 +350,6 @@ def _gpu_ratios(args) -> dict:
 
 
 def main(args) -> int:
-    from campaign.plan import calibration
-
     seeds = _seed_filter(args.seeds)
     if args.check and not args.store:
         raise UserError("--check compares a calibration with stores: give --store FILE ...")
@@ -405,8 +397,6 @@ def main(args) -> int:
             got, share = _run_records(args, start)
             for k in records:
                 records[k] += got[k]
-        from campaign.plan.calibration import machine
-
         info = {"created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "host": _host(), "machine": machine(),
                 "stores": list(args.store), "seeds": args.seeds or "all",
                 "run": bool(args.run or not args.store), "packings": len(records["N"])}
@@ -437,8 +427,4 @@ def main(args) -> int:
 
 
 def _host() -> str:
-    import platform
-
-    from campaign.plan.calibration import machine
-
     return f"{platform.node()} ({machine()})"

@@ -2,12 +2,22 @@
 
 from __future__ import annotations
 
+import math
 import shutil
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 from campaign.errors import UserError
+from campaign.plan import calibration
+from campaign.plan.calibration import Estimate
+from campaign.plan.parse import load_spec
+from campaign.plan.tasks import expand
+from campaign.run.slurm import (SlurmOptions, advice_text, advise, chain_commands, job_work, refuse_without_gpu_tasks,
+                                render_script)
+from campaign.storage.checksums import read_rounds
+from campaign.storage.layout import DONE, PENDING
 
 HELP = "write a SLURM batch script for a campaign (and print or submit a chain of resuming jobs)"
 
@@ -48,8 +58,6 @@ def configure(p):
 
 
 def main(args) -> int:
-    from campaign.plan import calibration
-
     with calibration.using(getattr(args, "calibration", None)) as cal:
         return _main(args, cal)
 
@@ -57,11 +65,7 @@ def main(args) -> int:
 def _estimate(spec, results, cal, options):
     """What the tasks not done yet in ``results`` (all, when it does not exist or another spec wrote
     it) cost a job of ``options`` (``campaign.run.slurm.JobWork``), and how many they are."""
-    from campaign.errors import UserError
-    from campaign.plan.tasks import expand
-    from campaign.run.slurm import job_work
-    from campaign.storage.readers import read_summary
-    from campaign.storage.store import DONE
+    from campaign.storage.reader import read_summary  # brings h5py: loaded when the command runs, not at --help
 
     tasks = expand(spec)
     if spec.precision is not None:
@@ -85,31 +89,26 @@ def _precision_estimate(spec, tasks, results, cal, options):
     (``campaign.precision.planner.plan_from_prior``), else the pilot alone. The chain's jobs go on
     through the rounds: each resumes, decides when a round is complete and exits at once when the
     campaign has ended."""
-    import math
-    from dataclasses import replace
-
-    from campaign.plan.calibration import Estimate
+    # imported here: the precision planner (the reducer's fits, the error model) is only for a spec with
+    # precision targets, and the store's reader brings h5py, which `campaign --help` need not load
     from campaign.precision.errormodel import campaign_cells
     from campaign.precision.planner import plan_from_prior
-    from campaign.run.slurm import job_work
-    from campaign.storage.checksums import read_rounds
+    from campaign.storage.reader import open_store
 
     cells = campaign_cells(spec, tasks)
     status, last = None, None
     if results.exists():
         try:
-            import h5py
-
-            with h5py.File(results, "r", locking=False) as f:
+            with open_store(results) as f:
                 if f.attrs.get("spec_hash") == spec.hash:
                     status = f["tasks/status"][:]
                     got, _ = read_rounds(f)
                     last = got[max(got)] if got else None
-        except (OSError, KeyError, ValueError):
+        except (UserError, OSError, KeyError, ValueError):  # no estimate from a store that does not read
             status, last = None, None
     if last is not None:
         given = cells.tasks_of(last["early"])
-        left = [t for t in tasks if given[t.index] and status[t.index] == 0]
+        left = [t for t in tasks if given[t.index] and status[t.index] == PENDING]
     else:
         left = [t for t in tasks if t.seed < spec.precision.pilot]
     if last is None or last["action"] == "pilot":  # before the first decision: the prior's plan
@@ -126,10 +125,6 @@ def _precision_estimate(spec, tasks, results, cal, options):
 
 
 def _main(args, cal) -> int:
-    from campaign.run.slurm import (SlurmOptions, advice_text, advise, chain_commands, refuse_without_gpu_tasks,
-                                    render_script)
-    from campaign.plan.parse import load_spec
-
     spec = load_spec(args.spec)
     results = Path(args.results or spec.output or f"results/{spec.name}.h5")
     options = SlurmOptions(nodes=args.nodes, ntasks_per_node=args.ntasks_per_node, time=args.time,

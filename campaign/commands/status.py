@@ -11,7 +11,19 @@ wait suspended in the store for the next run (stop and go, docs/GPU.md).
 
 from __future__ import annotations
 
+import datetime
 import json
+import math
+
+import numpy as np
+
+from campaign.errors import StoreDamaged
+from campaign.plan.costmodel import CostModel
+from campaign.run.slurm import has_gpu_tasks
+from campaign.storage.checksums import check_identities, damaged_message, failure_problem, has_sums, read_rounds
+from campaign.storage.journal import task_indices
+from campaign.storage.layout import DONE, FAILED, PENDING, stored_spec
+from campaign.storage.progress import progress_text, read_sidecar, writer_state
 
 HELP = "show the progress and failures recorded in a campaign store (also while it runs)"
 
@@ -23,8 +35,6 @@ def configure(parser):
 
 
 def main(args) -> int:
-    from campaign.storage.progress import progress_text, read_sidecar, writer_state
-
     s = _scan(args.file)
     groups = [[key, c[0], c[1], c[2]] for key, c in s["cells"].items()]
     totals = s["totals"]
@@ -119,18 +129,15 @@ def _scan(path):
     finished rows (N, E, wall, variant) for the cost model. Memory: one block, the cells,
     the failures and the sample; the status column (one byte a task) is read first, to
     space the sample."""
-    import numpy as np
-
-    from campaign.storage.readers import read_retrying
-    from campaign.storage.store import DONE, FAILED, PENDING
-
-    return read_retrying(path, lambda f: _scan_open(f, np, DONE, FAILED, PENDING))
-
-
-def _scan_open(f, np, DONE, FAILED, PENDING):
+    # imported when the command runs: they bring h5py, which `campaign --help` (every command's
+    # module imported to build the parser) need not load
     from campaign.results.finished import given_rows
-    from campaign.storage.checksums import read_rounds
+    from campaign.storage.reader import read_retrying
 
+    return read_retrying(path, lambda f: _scan_open(f, given_rows))
+
+
+def _scan_open(f, given_rows):
     t = f["tasks"]
     status_all = t["status"][:]
     T = len(status_all)
@@ -141,26 +148,21 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
     stride = max(1, -(-n_done // FIT_ROWS))
     failure_recs = {tid: dict(f["failures"][tid].attrs) for tid in f["failures"]} if "failures" in f else {}
     for tid, rec in failure_recs.items():
-        from campaign.storage.checksums import damaged_message, failure_problem, has_sums
-
         problem = failure_problem(rec, has_sums(f))
         if problem is not None:
-            from campaign.errors import StoreDamaged
-
             raise StoreDamaged(damaged_message(f.filename, f"failures/{tid}", problem))
     cells, failures = {}, []
     sample = {"N": [], "E": [], "wall": [], "variant": []}
     done_seen = 0
     # GPU packings record what ran them beside the host ("node12 cuda:NVIDIA H100 ..."): counted per
     # device, read only for a spec that asks for them
-    devices = {} if "gpu" in str(f.attrs.get("spec_yaml", "")) else None
+    written = stored_spec(f)
+    devices = {} if written is not None and has_gpu_tasks(written) else None
     clock = None  # the device clock's scalars, when the store has them
     if devices is not None and all(f"device_{k}" in f["scalars"] for k in ("start", "end", "seconds", "slots")):
         clock = {k: f["scalars"][f"device_{k}"] for k in ("start", "end", "seconds", "slots")}
     busy = GpuBusy(run_spans(f.attrs.get("runs", "[]")))
-    from campaign.storage.checksums import check_identities, stored_spec
-
-    spec = stored_spec(f.attrs)
+    spec = stored_spec(f, verified=True)
     for lo in range(0, T, BLOCK):
         hi = min(lo + BLOCK, T)
         st = np.where(given[lo:hi] | (status_all[lo:hi] != PENDING), status_all[lo:hi], -1)  # -1: not given out
@@ -213,7 +215,7 @@ def _scan_open(f, np, DONE, FAILED, PENDING):
     sample = {k: (np.concatenate(x) if x else np.zeros(0)) for k, x in sample.items()}
     return {"attrs": {k: f.attrs[k] for k in f.attrs}, "cells": cells, "totals": totals,
             "failures": failures, "sample": sample, "status": status_all, "devices": devices or {},
-            "busy": busy.result(), "suspended": _suspended(f, status_all, np, PENDING), "rounds": rounds}
+            "busy": busy.result(), "suspended": _suspended(f, status_all), "rounds": rounds}
 
 
 def precision_lines(rounds, totals) -> list:
@@ -252,7 +254,7 @@ def precision_lines(rounds, totals) -> list:
     return out
 
 
-def _suspended(f, status, np, PENDING):
+def _suspended(f, status):
     """Suspended GPU packings the store keeps for pending tasks: ``{"tasks", "steps"}`` (FIRE steps
     so far, summed); one that cannot be read is not counted (its task starts over)."""
     out = {"tasks": 0, "steps": 0}
@@ -283,9 +285,6 @@ def _suspended(f, status, np, PENDING):
 def run_spans(runs_json) -> list:
     """``(start, end)`` in epoch seconds of each run of a store's ``runs`` attribute (a run without
     an end, killed or still running: until the next run's start, else open)."""
-    import datetime
-    import math
-
     try:
         runs = json.loads(runs_json)
     except (TypeError, ValueError):
@@ -328,16 +327,12 @@ class GpuBusy:
     its own span inside the window (its device clock holds the earlier runs' too)."""
 
     def __init__(self, spans):
-        import numpy as np
-
         self.spans = spans
         self.starts = np.array([a for a, _ in spans], np.float64)
         self.windows = {}  # (label, host, rank, run) -> [first start, last end, block-seconds, slots, packings]
 
     def add(self, hosts, ranks, start, end, seconds, slots):
         """GPU packings: their host column's values, ranks and device clocks (arrays alike)."""
-        import numpy as np
-
         start, end, seconds, slots = (np.asarray(x, np.float64) for x in (start, end, seconds, slots))
         for k, h in enumerate(hosts):
             label = h.decode(errors="replace").partition(" ")[2] if isinstance(h, bytes) else str(h).partition(" ")[2]
@@ -357,8 +352,6 @@ class GpuBusy:
 
     def _run(self, end) -> int:
         """The run during which a packing that ended at ``end`` ran (-1: none)."""
-        import numpy as np
-
         k = int(np.searchsorted(self.starts, end + 1.0, side="right")) - 1
         if k >= 0 and end <= self.spans[k][1] + 1.0:
             return k
@@ -385,25 +378,16 @@ class GpuBusy:
 def _journal_only(path, status):
     """How many tasks the journal has records of that the store does not hold yet (finished by a
     run that is still to write them, or that stopped before it could: the next run replays them)."""
-    import numpy as np
-
-    from campaign.storage.journal import task_indices
-
     idx = np.fromiter((i for i in task_indices(str(path) + ".journal") if 0 <= i < len(status)), np.int64)
-    return int(np.count_nonzero(status[idx] == 0)) if len(idx) else 0
+    return int(np.count_nonzero(status[idx] == PENDING)) if len(idx) else 0
 
 
 def _remaining_core_hours(attrs, s):
     """Core-hours of the unfinished tasks by the cost model learnt from (a sample of at most
     FIT_ROWS of) the finished ones. Per cell: the tasks of a (variant, N, E) cell cost the
     same, so the sum over the unfinished tasks is the count per cell times the cell's estimate."""
-    from campaign.plan.costmodel import CostModel
-    from campaign.errors import UserError
-    from campaign.plan.parse import parse_spec
-
-    try:
-        spec = parse_spec(str(attrs["spec_yaml"]), "the file's spec")
-    except (KeyError, UserError, TypeError, ValueError):  # no estimate from a spec that does not read
+    spec = stored_spec(attrs)
+    if spec is None:  # no estimate from a spec that does not read
         return None, 0
     if spec.n_tasks != s["totals"]["rows"]:
         return None, 0

@@ -2,6 +2,21 @@
 
 from __future__ import annotations
 
+from collections import Counter
+from dataclasses import replace
+from pathlib import Path
+
+from campaign.errors import UserError
+from campaign.plan import calibration, targets
+from campaign.plan.calibration import calibrated_on, machine
+from campaign.plan.parse import load_spec
+from campaign.plan.spec import resolve_protocol
+from campaign.plan.tasks import energy_floor_problems, estimate, expand, task_cost
+from campaign.run.walltime import remaining_seconds
+from campaign.storage.checksums import read_rounds
+from campaign.storage.layout import DONE
+from campaign.storage.progress import fmt_duration
+
 HELP = "check a campaign spec; print its task count and estimated cost"
 
 #: `endgame: auto` is advised when it saves at least this share of a variant's estimate
@@ -16,20 +31,11 @@ def configure(parser):
 
 
 def main(args) -> int:
-    from campaign.plan import calibration
-
     with calibration.using(getattr(args, "calibration", None)) as cal:
         return _main(args, cal)
 
 
 def _main(args, cal) -> int:
-    from campaign.storage.progress import fmt_duration
-    from campaign.plan.parse import load_spec
-    from campaign.errors import UserError
-    from campaign.plan.tasks import energy_floor_problems, estimate, expand, task_cost
-    from campaign.plan.calibration import calibrated_on, machine
-    from campaign.plan import targets
-
     spec = load_spec(args.spec)
     problems = energy_floor_problems(spec)
     if problems:
@@ -106,7 +112,7 @@ def _precision_cost(spec, tasks, cal, est, longest):
     """A precision campaign's price: its pilot and its ceiling by the cost model; what reaching its
     targets would cost, from its store's last decision when its pilot has run, else from the prior
     (campaign.precision.planner.plan_from_prior), or why that needs the pilot."""
-    from campaign.plan.tasks import estimate
+    # imported here: only a spec with precision targets needs the planner (and the reducer's fits it brings)
     from campaign.precision.planner import plan_from_prior
 
     p = spec.precision
@@ -142,20 +148,16 @@ def _precision_cost(spec, tasks, cal, est, longest):
 
 def _last_decision(spec):
     """What the spec's store says of its rounds (its last decision), or None without one."""
-    from pathlib import Path
-
     if not spec.output or not Path(spec.output).exists():
         return None
+    from campaign.storage.reader import open_store  # brings h5py: only when there is a store to read
+
     try:
-        import h5py
-
-        from campaign.storage.checksums import read_rounds
-
-        with h5py.File(spec.output, "r", locking=False) as f:
+        with open_store(spec.output) as f:
             if f.attrs.get("spec_hash") != spec.hash:
                 return None
             got, _ = read_rounds(f)
-    except (OSError, KeyError, ValueError):
+    except (UserError, OSError, KeyError, ValueError):  # nothing to say of a store that does not read
         return None
     if not got:
         return None
@@ -212,8 +214,6 @@ def _repriced(mine, cal, key):
     """One variant's tasks ``mine`` priced as they are and as ``key(task) -> (N, E, protocol,
     exponent, parent_E)`` would have them: ``(seconds, {cell: count}, Estimate)``, or None unless
     the alternative saves at least ``AUTO_ADVICE`` of the time."""
-    from collections import Counter
-
     now = sum(cal.seconds(t.N, t.E, t.protocol, t.exponent, t.parent_E) for t in mine)
     cells = Counter(key(t) for t in mine)
     alt = cal.estimate((n, *k) for k, n in cells.items())
@@ -225,8 +225,6 @@ def _repriced(mine, cal, key):
 def _auto_advice(spec, tasks, cal):
     """Where `endgame: auto` would save time by the calibrated model: FIRE's (or Newton's)
     estimate against auto's, per variant that could take it."""
-    from campaign.plan.spec import resolve_protocol
-
     out = []
     for v in spec.variants:
         proto = dict(v.protocol)
@@ -256,8 +254,6 @@ def _fast_advice(spec, tasks, cal):
     """What the fast protocol for energy scans (`start: ladder` with `endgame: auto`) would cost,
     per variant of independent FIRE packings at three energies or more, with its price in
     accuracy (measured in docs/SPEED_ACCURACY.md)."""
-    from dataclasses import replace
-
     out = []
     for v in spec.variants:
         proto = dict(v.protocol)
@@ -280,15 +276,9 @@ def _fast_advice(spec, tasks, cal):
 
 def _learnt_remaining(spec, tasks):
     """What the spec's existing output file says is left, by the cost model learnt from it."""
-    from pathlib import Path
-
-    from campaign.errors import UserError
-    from campaign.storage.readers import read_summary
-    from campaign.storage.store import DONE
-    from campaign.run.walltime import remaining_seconds
-
     if not spec.output or not Path(spec.output).exists():
         return None
+    from campaign.storage.reader import read_summary  # brings h5py: only when there is a store to read
     try:
         s = read_summary(spec.output, fields=("status", "wall"))
     except UserError as exc:

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import time
+
+from campaign.errors import UserError
+from campaign.storage.checksums import PROTECTED_SINCE, checksums_on
 
 HELP = "check every block and configuration of a store against its checksums; --repair drops the damaged rows"
 
@@ -33,8 +37,6 @@ sees cannot be found (docs/STORE.md, "Stores written before the block checksums"
 
 
 def configure(parser):
-    import argparse
-
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = EPILOG
     parser.add_argument("file", metavar="FILE", help="campaign store (HDF5) written by 'campaign run'")
@@ -74,9 +76,10 @@ class _Progress:
 
 
 def main(args) -> int:
-    from campaign.errors import UserError
-    from campaign.storage.checksums import checksums_on, run_is_writing
+    # imported when the command runs: the scan, the reader and the repair bring h5py, which
+    # `campaign --help` (every command's module imported to build the parser) need not load
     from campaign.storage.integrity import scan
+    from campaign.storage.reader import run_is_writing
     from campaign.storage.repair import repair
 
     if run_is_writing(args.file):
@@ -110,8 +113,6 @@ def _size(n) -> str:
 
 
 def _print(report, out, path):
-    from campaign.storage.checksums import PROTECTED_SINCE
-
     c = report.checked
     print(f"{path}: campaign {report.name or '?'}, {report.T} tasks ({report.counts['done']} done, "
           f"{report.counts['failed']} failed, {report.counts['pending']} pending)")

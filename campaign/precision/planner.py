@@ -21,6 +21,7 @@ from campaign.results.reduce import Settings, reduce_table
 from campaign.precision.allocation import (MIN_FIT_PACKINGS, State, Target, fill_costs, plan_greedy, smooth_costs, decide, pilot,
                                          seconds_per_disk_force_evaluation)
 from campaign.precision.errormodel import Cells, LawModel, campaign_cells, param_index as _k
+from campaign.storage.layout import DONE, PENDING
 
 #: the scalars a decision reads (the laws' quantities and abscissae, the cost, which packings are usable)
 DECISION_SCALARS = ("E_G", "delta_Z", "A_G", "psi_O", "force_evaluations", "jam_status", "identities_ok")
@@ -42,7 +43,7 @@ def cell_state(cells: Cells, table, rows, status, fe, given, disk_seconds) -> St
     their ``status`` and force evaluations ``fe``) and the seeds given out per cell."""
     C = cells.C
     cell_of = (np.asarray(rows) // cells.seeds).astype(np.int64)
-    final = np.bincount(cell_of[status != 0], minlength=C)
+    final = np.bincount(cell_of[status != PENDING], minlength=C)
     index = cells.index()
     usable = np.zeros(C)
     g = table.grid
@@ -51,14 +52,14 @@ def cell_state(cells: Cells, table, rows, status, fe, given, disk_seconds) -> St
         if c is not None:
             usable[c] = g.n_done[gc]
     unit = np.asarray(fe, float) * cells.N[cell_of] * disk_seconds
-    ok = (status == 1) & np.isfinite(unit) & (unit > 0)
+    ok = (status == DONE) & np.isfinite(unit) & (unit > 0)
     n_ok = np.bincount(cell_of[ok], minlength=C)
     with np.errstate(invalid="ignore", divide="ignore"):
         cost = np.where(n_ok > 0, np.bincount(cell_of[ok], weights=unit[ok], minlength=C) / np.maximum(n_ok, 1),
                         np.nan)
     cost = smooth_costs(fill_costs(cost, cells), n_ok, cells)
     # spent: every finished packing's force evaluations (one without them at its cell's mean)
-    spent = float(np.sum(unit[ok]) + np.sum(cost[cell_of[(status != 0) & ~ok]]))
+    spent = float(np.sum(unit[ok]) + np.sum(cost[cell_of[(status != PENDING) & ~ok]]))
     return State(given=np.asarray(given, np.int64), final=final, usable=usable, cost=cost, spent=spent)
 
 
@@ -137,7 +138,7 @@ def run_in_memory(cells: Cells, settings, draw, *, attrs=None, reducer=None, dis
     attrs = attrs or {"schema": "jamming-campaign/1"}
 
     def run(mask):
-        todo = np.flatnonzero(mask & (status == 0))
+        todo = np.flatnonzero(mask & (status == PENDING))
         if len(todo):
             got = draw(todo)
             for k, v in got.items():

@@ -40,7 +40,10 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import UserError
-from campaign.storage.configio import describe_box, tilt
+from campaign.results.finished import variant_systems
+from campaign.storage.configio import describe_box, detect_format, read_configuration, tilt
+from campaign.storage.layout import SCHEMA
+from campaign.storage.reader import open_store, read_summary
 
 LAYERS = ("disks", "contacts", "network", "grains", "voids", "fictitious", "forces")
 DEFAULT_LAYERS = ("disks", "contacts", "network", "grains", "voids", "fictitious")
@@ -474,48 +477,17 @@ class Source:
 
 
 def _is_store(path):
-    import h5py
-
-    from campaign.storage.store import SCHEMA
-
     try:
-        with h5py.File(path, "r", locking=False) as f:
+        with open_store(path, accept="hdf5") as f:
             return f.attrs.get("schema") == SCHEMA and "tasks" in f
-    except OSError:
+    except UserError:  # not one: read_configuration says what it is
         return False
-
-
-def _store_exponent(attrs):
-    try:
-        import yaml
-
-        spec = yaml.safe_load(attrs.get("spec_yaml", "")) or {}
-        return float(spec["system"]["potential"]["exponent"])
-    except Exception:  # noqa: BLE001 - no potential in the spec: its default
-        return 2.0
-
-
-def _store_ids_with_configurations(path):
-    import h5py
-
-    from campaign.storage.readerror import read_failure
-
-    with h5py.File(path, "r", locking=False) as f:
-        try:
-            return set(f["configurations"].keys()) if "configurations" in f else set()
-        except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
-            err = read_failure(path, exc, f, ["configurations"])
-            if err is None:
-                raise
-            raise err from None
 
 
 def store_packings(path):
     """Rows of a campaign store that hold a configuration: (task table, rows, attrs)."""
-    from campaign.storage.readers import read_summary
-
-    table = read_summary(path)
-    have = _store_ids_with_configurations(path)
+    table = read_summary(path, configurations=True)
+    have = table["configurations"]
     ids = np.array([i.decode() if isinstance(i, bytes) else str(i) for i in table["id"]])
     rows = np.flatnonzero([i in have for i in ids])
     return table, ids, rows
@@ -524,8 +496,6 @@ def store_packings(path):
 def read_source(path, *, task=None, index=None, fmt="auto", group="/", exponent=None, frame=None) -> Source:
     """The configuration to draw: a configuration file (``frame`` K of a GSD or extended XYZ
     file), or one packing of a campaign store."""
-    from campaign.storage.configio import detect_format, read_configuration
-
     path = str(path)
     if not os.path.exists(path):
         raise UserError(f"{path}: no such file (expected a configuration: text, .npz, HDF5, .gsd or extended XYZ, "
@@ -565,7 +535,10 @@ def read_source(path, *, task=None, index=None, fmt="auto", group="/", exponent=
         variant = table["variant"][row]
         variant = variant.decode() if isinstance(variant, bytes) else str(variant)
         N, E, seed = int(table["N"][row]), float(table["E"][row]), int(table["seed"][row])
-        alpha = _store_exponent(table["attrs"]) if exponent is None else exponent
+        if exponent is None:  # the potential of the packing's own variant, which may override the spec's
+            alpha = variant_systems(table["attrs"], [variant])[variant]["exponent"]
+        else:
+            alpha = exponent
         label = f"{Path(path).name}: row {row}, {variant}, N = {N}, E = {E:.3g}, seed {seed}"
         return Source(conf.positions, conf.radii, conf.box, conf.species, alpha, label,
                       f"{Path(path).stem}_{ids[row][:8]}")

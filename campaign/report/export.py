@@ -31,6 +31,7 @@ import numpy as np
 
 from campaign.storage.configio import GSD_BOX64, GSD_POSITIONS64, GSD_PREFIX, GSD_RADII64, fractional, tilt
 from campaign.errors import UserError, require
+from campaign.storage.layout import stored_spec
 
 FORMATS = ("csv", "parquet", "gsd", "xyz")
 SUFFIXES = {".csv": "csv", ".parquet": "parquet", ".pq": "parquet", ".gsd": "gsd", ".xyz": "xyz",
@@ -149,17 +150,13 @@ def variant_types(attrs) -> dict:
     the protocol's, "fixed" or "shear"); a spec this version cannot read gives the paper's system
     (A, B; exponent 2) in a fixed cell."""
     from campaign.plan.spec import System
-    from campaign.plan.parse import parse_spec
 
     def describe(system, protocol=()):
         names = ("A",) if system.sizes is not None else tuple(s.name for s in system.species)
         return names, float(system.exponent), dict(protocol).get("cell", "fixed")
 
-    try:
-        spec = parse_spec(str(attrs.get("spec_yaml", "")), "the stored spec")
-        out = {v.name: describe(v.system, v.protocol) for v in spec.variants}
-    except UserError:
-        out = {}
+    spec = stored_spec(attrs)
+    out = {} if spec is None else {v.name: describe(v.system, v.protocol) for v in spec.variants}
     out.setdefault("default", describe(System()))
     return out
 

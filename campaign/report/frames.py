@@ -24,9 +24,12 @@ from __future__ import annotations
 
 import os
 
+import h5py
 import numpy as np
 
 from campaign.errors import UserError, require
+from campaign.storage.layout import DONE
+from campaign.storage.reader import open_store, read_failure
 
 #: The task table's columns, in this order, before the scalars.
 TASK_COLUMNS = ("id", "variant", "N", "E", "seed", "status")
@@ -61,27 +64,14 @@ class Packings:
     """
 
     def __init__(self, path, variant=None, good=True, *, block=BLOCK_ROWS):
-        import h5py
-
         self.path = os.fspath(path)
         self.good = bool(good)
         self.block = int(block)
         if self.block <= 0:
             raise ValueError(f"block: expected a positive number of rows, got {block}")
-        if not os.path.exists(self.path):
-            raise UserError(f"{self.path}: no such file (expected a campaign store)")
-        if os.path.isdir(self.path):
-            raise UserError(f"{self.path}: is a directory (expected a campaign store)")
+        self._f = open_store(self.path, accept="layout")  # a file of the layout without a schema is read too
         try:
-            from campaign.storage.checksums import open_checked
-
-            self._f = open_checked(self.path)  # every block of rows read is checked against its checksum
-        except OSError as exc:
-            from campaign.storage.checksums import open_failure
-
-            raise open_failure(self.path, exc, f"{self.path}: not a readable HDF5 file ({exc})") from None
-        try:
-            self._setup(h5py, variant)
+            self._setup(variant)
         except UserError:
             self._f.close()
             raise
@@ -96,20 +86,14 @@ class Packings:
             raise
 
     def _failure(self, exc, patterns):
-        from campaign.storage.readerror import read_failure
-
         return read_failure(self.path, exc, self._f, patterns)
 
     # ------------------------------------------------------------------ opening
-    def _setup(self, h5py, variant):
+    def _setup(self, variant):
         f = self._f
         if not isinstance(f.get("tasks"), h5py.Group):
             raise UserError(f"{self.path}: not a campaign store (no /tasks table of datasets); expected the "
                             "layout of docs/STORE.md")
-        if "schema" in f.attrs:
-            from campaign.storage.store import check_format
-
-            check_format(f.attrs, self.path)
         t = f["tasks"]
         missing = [k for k in ("status", "id", "N", "E") if k not in t]
         if missing:
@@ -167,7 +151,7 @@ class Packings:
             for lo in range(0, self.n_tasks, self.block):
                 hi = min(lo + self.block, self.n_tasks)
                 st = status[lo:hi]
-                if not np.any(st == 1):
+                if not np.any(st == DONE):
                     continue
                 ids = _strings(t["id"][lo:hi])
                 keep = first_done(ids, st, seen)

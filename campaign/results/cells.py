@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from campaign.results import fits
-from campaign.results.finished import STATUS_FAILED, STATUS_PENDING
+from campaign.storage.layout import FAILED, PENDING
 
 #: Histograms whose self-averaging is not tested: radial pair counts are not per-object
 #: variables; gaps and forces are counted on log-spaced bins for their small-value tails.
@@ -97,8 +97,8 @@ def grid(everything, good, tasks) -> Grid:
     return Grid(cv=cv, cN=cN, cE=cE, cell=cell,
                 n_done=np.bincount(cell, minlength=C),
                 n_excluded=np.bincount(cell_everything[~good], minlength=C),
-                n_failed=np.bincount(cell_all[counted & (st == STATUS_FAILED)], minlength=C),
-                n_pending=np.bincount(cell_all[counted & (st == STATUS_PENDING)], minlength=C),
+                n_failed=np.bincount(cell_all[counted & (st == FAILED)], minlength=C),
+                n_pending=np.bincount(cell_all[counted & (st == PENDING)], minlength=C),
                 order=order, bounds=np.searchsorted(cell[order], np.arange(C + 1)))
 
 
@@ -138,7 +138,7 @@ def count_notes(fin, g: Grid, reasons) -> list:
         for i in np.flatnonzero((g.n_pending + g.n_failed) > 0):
             notes.append(f"  {cv[i]} N={cN[i]} E={cE[i]:.3g}: {g.n_done[i]} done, "
                          f"{g.n_pending[i]} pending, {g.n_failed[i]} failed")
-        errs = fin.tasks["error"][(fin.tasks["status"] == STATUS_FAILED)]
+        errs = fin.tasks["error"][(fin.tasks["status"] == FAILED)]
         if len(errs):
             first = next((e for e in errs if e), "")
             if first:

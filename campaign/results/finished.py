@@ -17,8 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import UserError
-
-STATUS_PENDING, STATUS_DONE, STATUS_FAILED = 0, 1, 2
+from campaign.plan.spec import System
+from campaign.storage.checksums import check_identities, read_rounds
+from campaign.storage.layout import DONE, FAILED, stored_spec
+from campaign.storage.reader import open_store, read_failure
 
 
 def _decode(a):
@@ -64,7 +66,7 @@ def first_done(ids, status, seen):
     such row of a task id not in ``seen`` (a set, updated), so that a packing done in several
     rows or files is used once."""
     keep = np.zeros(len(status), bool)
-    for r in np.flatnonzero(np.asarray(status) == STATUS_DONE):
+    for r in np.flatnonzero(np.asarray(status) == DONE):
         if ids[r] not in seen:
             seen.add(ids[r])
             keep[r] = True
@@ -109,12 +111,10 @@ class Finished:
 
     def histogram_blocks(self, name, block=8192):
         """Yield ``(positions, counts)``: finished-row positions and their int64 counts."""
-        import h5py
-
         for path, (rows, pos) in zip(self.paths, self._rows):
             if len(rows) == 0:
                 continue
-            with _open(path, h5py) as f:
+            with open_store(path, accept="layout") as f:
                 try:
                     ds = f[f"histograms/{name}/counts"]
                     lo = int(rows.min())
@@ -127,8 +127,6 @@ class Finished:
                         data = ds[s:e]
                         yield pos[m], np.asarray(data[rows[m] - s], dtype=np.int64)
                 except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
-                    from campaign.storage.readerror import read_failure
-
                     err = read_failure(path, exc, f, [f"histograms/{name}/counts"], what=f"histogram {name!r}")
                     if err is None:
                         raise
@@ -139,7 +137,7 @@ def _failed_errors(f, status, block=65536):
     """The error column (decoded) with the failed rows' messages, read block by block
     (the column is 512 bytes a row; only failed rows have one)."""
     err = np.full(len(status), "", dtype=object)
-    failed = np.flatnonzero(status == STATUS_FAILED)
+    failed = np.flatnonzero(status == FAILED)
     if not failed.size or "error" not in _column_names(f):
         return err
     t = f["tasks"]
@@ -155,8 +153,6 @@ def given_rows(f, T):
     """Which rows of a store are tasks of its campaign: all of them, except in a campaign with precision
     targets, whose rounds give out seeds 0 .. n - 1 of each cell (the last decision's ``early``
     counts; its task table holds every seed up to ``max_seeds``, in cells of equal length)."""
-    from campaign.storage.checksums import read_rounds
-
     got, _ = read_rounds(f)
     if not got:
         return np.ones(T, bool)
@@ -173,27 +169,12 @@ def _column_names(f):
     return set(t.keys()) if hasattr(t, "keys") else set(t.dtype.names or ())
 
 
-def _open(path, h5py):
-    from campaign.storage.checksums import open_checked
-
-    try:
-        return open_checked(path)  # every block of rows read is checked against its checksum
-    except FileNotFoundError:
-        raise UserError(f"{path}: no such file") from None
-    except OSError as exc:
-        from campaign.storage.checksums import open_failure
-
-        raise open_failure(path, exc, f"{path}: not a readable HDF5 file ({exc})") from None
-
-
 def load_finished(paths) -> Finished:
     """Read the task tables, scalars and histogram edges of the campaign file(s).
 
     This is the only function that knows the store layout. A packing that appears
     done in several files (same task id) is used once.
     """
-    import h5py
-
     if isinstance(paths, (str, Path)):
         paths = [paths]
     paths = [str(p) for p in paths]
@@ -203,15 +184,11 @@ def load_finished(paths) -> Finished:
     scal_parts, per_file, edges, attrs = [], [], None, None
     offset = 0
     for path in paths:
-        with _open(path, h5py) as f:
+        with open_store(path, accept="layout") as f:  # a file of the layout without a schema is read too
             try:
                 if "tasks" not in f:
                     raise UserError(f"{path}: not a campaign file (no /tasks table); "
                                     "expected the layout of docs/CONTRACTS.md")
-                if "schema" in f.attrs:
-                    from campaign.storage.store import check_format
-
-                    check_format(f.attrs, path)
                 # status first: a row's data is complete before its status says done
                 cols = _columns(f, ("status", "id", "variant", "N", "E", "seed"))
                 for need in ("status", "id", "N", "E"):
@@ -232,15 +209,11 @@ def load_finished(paths) -> Finished:
                     for n in f["histograms"]:
                         hedges[n] = np.asarray(f[f"histograms/{n}/edges"][...], dtype=float)
             except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
-                from campaign.storage.readerror import read_failure
-
                 err = read_failure(path, exc, f, ["tasks", "scalars", "histograms/*/edges"])
                 if err is None:
                     raise
                 raise err from None
-        from campaign.storage.checksums import check_identities, stored_spec
-
-        check_identities(path, stored_spec(file_attrs), variant, cols["N"], cols["E"])
+        check_identities(path, stored_spec(file_attrs, verified=True), variant, cols["N"], cols["E"])
         attrs = attrs or file_attrs
         if edges is None:
             edges = hedges
@@ -264,7 +237,7 @@ def load_finished(paths) -> Finished:
     tasks = {k: np.concatenate(v) for k, v in all_rows.items()}
     # a task done in one file but pending/failed in another counts as done; a task
     # pending or failed in several files counts once
-    counted = tasks["status"] == STATUS_DONE
+    counted = tasks["status"] == DONE
     # a seed a precision campaign's rounds did not give out is no task of the campaign (yet)
     for i in np.flatnonzero(~counted & tasks.pop("given")):
         if tasks["id"][i] not in seen:
@@ -287,7 +260,7 @@ def finished_from_arrays(*, attrs, variant, N, E, ids, seed, status, scalars, er
     counts (a task table has each id once)."""
     status = np.asarray(status).astype(np.int64)
     T = len(status)
-    done = np.flatnonzero(status == STATUS_DONE)
+    done = np.flatnonzero(status == DONE)
     variant = np.asarray(variant, dtype=object)
     N, E, ids, seed = (np.asarray(a) for a in (N, E, ids, seed))
     err = np.full(T, "", dtype=object) if error is None else np.asarray(error, dtype=object)
@@ -309,13 +282,10 @@ def variant_systems(attrs, variants=()) -> dict:
     A spec this version cannot read gives every variant the paper's system (exponent 2, the
     1.4:1 mixture).
     """
-    from campaign.plan.spec import System
-    from campaign.plan.parse import parse_spec
-
-    try:
-        spec = parse_spec(str(attrs.get("spec_yaml", "")), "the stored spec")
+    spec = stored_spec(attrs)
+    if spec is not None:
         out = {v.name: _describe_system(v.system) for v in spec.variants}
-    except UserError:  # an old or foreign spec
+    else:  # an old or foreign spec
         out = {"default": _describe_system(System())}
     for v in variants:
         out.setdefault(str(v), dict(out["default"]))
@@ -326,11 +296,8 @@ def ladder_variants(attrs) -> set:
     """The variants of the stored spec whose packings of one seed share a history (``start:
     ladder``: each energy from the seed's packing one energy up); empty for a spec this version
     cannot read."""
-    from campaign.plan.parse import parse_spec
-
-    try:
-        spec = parse_spec(str(attrs.get("spec_yaml", "")), "the stored spec")
-    except UserError:
+    spec = stored_spec(attrs)
+    if spec is None:
         return set()
     return {v.name for v in spec.variants if dict(v.protocol).get("start") == "ladder"}
 

@@ -160,6 +160,7 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     from campaign.run.master import Master
     from campaign.storage.progress import Progress
     from campaign.plan.parse import load_spec
+    from campaign.storage.layout import FAILED, PENDING
     from campaign.storage.store import Store
     from campaign.plan.tasks import energy_floor_problems, expand, warm_ups
     from campaign.run.worker import resolve
@@ -225,7 +226,7 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
             rounds.advance()
             todo = rounds.pending_given()
         else:
-            todo = int(np.count_nonzero((store.status == 0) | ((store.status == 2) if args.retry_failed else False)))
+            todo = int(np.count_nonzero((store.status == PENDING) | ((store.status == FAILED) if args.retry_failed else False)))
         context["warm_up"] = bool(todo)
         c = store.counts_by_status()
         progress = Progress(len(tasks), sidecar=Path(str(out) + ".progress.json"),
@@ -325,7 +326,7 @@ def run_campaign(args, mpi_comm=None, MPI=None, state=None) -> int:
     if outcome["stopped"] is not None and left:
         from campaign.run.walltime import fit_from_store
 
-        waiting = (store.status == 0) if rounds is None else (store.status == 0) & rounds.given
+        waiting = (store.status == PENDING) if rounds is None else (store.status == PENDING) & rounds.given
         pending = [tasks[i] for i in np.flatnonzero(waiting)]
         hours = fit_from_store(store, tasks).total_seconds(pending) / 3600.0
         _log(f"campaign: stopped ({outcome['stopped']}); {left} task(s) left, about {hours:.3g} "

@@ -44,7 +44,7 @@ from collections import deque
 
 import numpy as np
 
-from campaign.storage.store import DONE, FAILED, PENDING
+from campaign.storage.layout import DONE, FAILED, PENDING
 from campaign.plan.tasks import task_cost
 
 

@@ -23,7 +23,7 @@ import threading
 
 import numpy as np
 
-from campaign.storage.store import PENDING
+from campaign.storage.layout import PENDING
 
 #: decisions that end a campaign (``campaign.precision.allocation.ACTIONS``, the others go on)
 STOPS = ("met", "budget", "max_seeds", "unreachable")

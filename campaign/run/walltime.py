@@ -23,7 +23,7 @@ import numpy as np
 from campaign.plan.costmodel import CostModel
 from campaign.errors import UserError
 from campaign.run.slurm import parse_time
-from campaign.storage.store import DONE
+from campaign.storage.layout import DONE
 
 
 #: seconds before ``deadline - margin`` a GPU task still goes out: time to launch, run some

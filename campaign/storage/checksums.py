@@ -16,11 +16,13 @@ from __future__ import annotations
 import json
 import os
 import re
+import time
 import zlib
 
 import numpy as np
 
-from campaign.errors import StoreDamaged, UserError
+from campaign.errors import StoreDamaged
+from campaign.version import __version__
 
 CONFIG_KEYS = ("positions", "radii", "box", "species")
 CHECKSUM_ATTR = "crc32"
@@ -330,16 +332,6 @@ def damaged_message(path, what, how, held="") -> str:
             f"tasks pending, for `campaign run` of the same spec to recompute them ({DOCS})")
 
 
-def run_is_writing(path) -> bool:
-    """Whether a live run writes the store (its progress file, judged as ``campaign status`` does)."""
-    try:
-        from campaign.storage.progress import read_sidecar, writer_state
-
-        return writer_state(read_sidecar(path))["state"] == "running"
-    except Exception:  # noqa: BLE001 - no progress file, or an unreadable one: no run known
-        return False
-
-
 def looks_like_store(path) -> bool:
     """Whether ``path`` is an HDF5 file by its signature (at 0, 512, 1024, ...: where HDF5 looks for
     it), or has a campaign journal beside it."""
@@ -358,17 +350,6 @@ def looks_like_store(path) -> bool:
         return False
 
 
-def open_failure(path, exc, otherwise: str) -> UserError:
-    """The error for a file h5py cannot open: damaged when it looks like an HDF5 file (or has a
-    campaign journal), else ``otherwise`` (not an HDF5 file)."""
-    if looks_like_store(path):
-        return StoreDamaged(
-            f"{path} is damaged: it cannot be opened as HDF5 ({reason(exc)}), though it is an HDF5 file (or has "
-            f"a campaign journal beside it): its superblock or root group is damaged, or the file was cut short. "
-            f"`campaign verify {path}` says what can be recovered ({DOCS})")
-    return UserError(otherwise)
-
-
 def _text(v):
     if isinstance(v, bytes):
         return v.decode("utf-8", "replace")
@@ -377,23 +358,11 @@ def _text(v):
     return v if isinstance(v, str) else None
 
 
-def stored_spec(attrs):
-    """The spec that wrote a store (its ``spec_yaml``, which must hash to its ``spec_hash``), or None:
-    unreadable, or a file made otherwise (by hand, by another program) whose spec does not describe it."""
-    from campaign.plan.parse import parse_spec
-
-    try:
-        spec = parse_spec(str(_text(attrs.get("spec_yaml")) or ""), "the stored spec")
-    except UserError:
-        return None
-    return spec if spec.hash == _text(attrs.get("spec_hash")) else None
-
-
 def check_identities(path, spec, variant, N, E, lo=0):
     """StoreDamaged unless every row (from row ``lo``) of the store ``path`` is a task of its own
-    ``spec`` (``stored_spec``: its variant, N and E; nothing is checked without): a block of the task table read
-    from another place (a damaged chunk index, in a store without block checksums) can read as rows
-    of no task, and must not become a cell of a table."""
+    ``spec`` (``campaign.storage.layout.stored_spec``, verified: its variant, N and E; nothing is
+    checked without): a block of the task table read from another place (a damaged chunk index, in a
+    store without block checksums) can read as rows of no task, and must not become a cell of a table."""
     if spec is None:
         return
     variant = np.array([_text(x) if isinstance(x, bytes) else str(x) for x in np.asarray(variant).ravel()])
@@ -533,10 +502,6 @@ def protection_text(upgraded=False) -> str:
     was created, or added (``upgraded``) when a store without them was written anew."""
     if not upgraded:
         return "written with every block since the store was created"
-    import time
-
-    from campaign.version import __version__
-
     return (f"added {time.strftime('%Y-%m-%dT%H:%M:%S%z')} by jamming-campaign {__version__}, which wrote the store "
             "anew from a store without them: damage done before that and not found by the checks of "
             "`campaign verify` then cannot be found")
@@ -624,6 +589,8 @@ def _block_rows(sums_ds, T):
 
 
 def _import_h5py():
+    # imported when a store is opened, not with this module: the command line (its note on stores
+    # without block checksums) and the reading of text or GSD configurations need no HDF5
     import h5py
 
     return h5py

@@ -26,8 +26,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from campaign.errors import UserError
+from campaign.errors import UserError, require
 from campaign.plan.spec import CELLS
+from campaign.storage.checksums import check_configuration
+from campaign.storage.layout import stored_spec
 from kernels.names import MAX_TILT  # a larger tilt is reduced on reading
 
 FORMATS = ("auto", "text", "npz", "hdf5", "gsd", "xyz")
@@ -275,20 +277,10 @@ def _as_float(path, pos, rad, box):
 
 
 def _read_hdf5(path, group):
-    try:
-        import h5py
-    except ImportError:  # pragma: no cover - h5py is a dependency
-        raise UserError(f"{path}: reading HDF5 needs h5py") from None
-    from campaign.storage.checksums import check_configuration, open_failure
-    from campaign.storage.readerror import read_failure
+    # imported here: reading text, npz, GSD or XYZ (campaign analyze, draw) needs no HDF5
+    from campaign.storage.reader import open_store, read_failure
 
-    try:
-        from campaign.storage.checksums import open_checked
-
-        fh = open_checked(path)  # a store's task table is checked against its block checksums
-    except OSError as exc:
-        raise open_failure(path, exc, f"{path}: not a readable HDF5 file ({exc})") from None
-    with fh:
+    with open_store(path, accept="hdf5") as fh:  # any HDF5 file; a store's blocks are checked
         try:
             if group not in fh:
                 raise UserError(f"{path}: no group {group!r} (expected datasets positions, radii, box there)")
@@ -319,13 +311,12 @@ def _store_cell(fh, group):
     """The cell of a campaign store's packing read in place (``/configurations/<task id>``): its
     variant's, from the spec stored in the file; None for any other HDF5 group."""
     parts = [p for p in group.split("/") if p]
-    if len(parts) != 2 or parts[0] != "configurations" or "spec_yaml" not in fh.attrs:
+    if len(parts) != 2 or parts[0] != "configurations":
         return None
     try:
-        from campaign.plan.parse import parse_spec
-
-        text = fh.attrs["spec_yaml"]
-        spec = parse_spec(text.decode() if isinstance(text, bytes) else str(text), "the stored spec")
+        spec = stored_spec(fh)
+        if spec is None:
+            return None
         cells = {v.name: dict(v.protocol).get("cell", "fixed") for v in spec.variants}
         if set(cells.values()) == {"fixed"}:
             return "fixed"
@@ -376,8 +367,6 @@ def _log_value(value):
 
 
 def _read_gsd(path, frame):
-    from campaign.errors import require
-
     hoomd = require("gsd.hoomd", "export", f"reading {path} (a GSD file)")
     try:
         traj = hoomd.open(path, "r")

@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from campaign.storage.layout import PENDING
+
 
 @dataclass
 class Damage:
@@ -84,7 +86,7 @@ class Report:
         if self.status is None:
             return rows
         rows = rows[rows < len(self.status)]
-        return rows[self.status[rows] != 0]
+        return rows[self.status[rows] != PENDING]
 
     def unrepairable(self) -> list:
         out = [d for d in self.damage if d.repair == "none"]

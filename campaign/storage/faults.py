@@ -32,6 +32,8 @@ import ctypes
 import errno
 import os
 import re
+import sys
+import tempfile
 from pathlib import Path
 
 from campaign.errors import SPACE_ERRNOS, OutOfSpace, UserError, WriteFault
@@ -291,8 +293,6 @@ def _scratch_fd():
     an unlinked temporary file."""
     if hasattr(os, "memfd_create"):
         return os.memfd_create("campaign-discarded-hdf5-writes")
-    import tempfile
-
     with tempfile.TemporaryFile() as fh:
         return os.dup(fh.fileno())
 
@@ -319,8 +319,6 @@ def neutralise(h5file):
 def neutralise_open_files(near=None):
     """Neutralise every HDF5 file this process has open for writing (on the file system
     of ``near``, when given): the command line's last resort after a write fault."""
-    import sys
-
     h5py = sys.modules.get("h5py")
     if h5py is None:
         return

@@ -1,5 +1,8 @@
-"""Finding damage in the campaign store: ``campaign verify``'s scan, and the error every reader
-raises when a read of the store fails.
+"""``campaign verify``'s scan: every part of a campaign store read and checked (``scan``), what it
+finds recorded in a ``Report`` (``campaign.storage.damage``: what is damaged, which rows a repair
+drops; ``campaign.storage.repair`` rebuilds the store from it, so that ``campaign run`` of
+the same spec recomputes exactly those rows); and the readers' search for the first damage among
+the datasets a failed read was after (``first_damage``, for ``campaign.storage.reader.read_failure``).
 
 What carries a checksum (docs/STORE.md, "Checksums, verify and repair"; written and checked by
 ``campaign.storage.checksums``): every per-task block dataset (``tasks/*`` but ``status``,
@@ -12,15 +15,10 @@ name is then found, and a repair renames the dataset back). ``tasks/status``, th
 (``Scan._rows``).
 
 HDF5's own metadata (object headers, chunk indices, heaps) has no checksum in the file format
-the store uses; ``Scan`` checks what can be checked of it: the filter pipelines, each chunk's
-filter mask and lookup, the names against the layout and the spec, and a walk of the file.
-
-``scan(path)`` reads everything (``campaign verify``) and returns a ``Report``
-(``campaign.storage.damage``: what is damaged, which rows a repair drops);
-``campaign.storage.repair`` rebuilds the store from it (``campaign verify --repair``), so that
-``campaign run`` of the same spec recomputes exactly those rows; ``read_failure`` is the error a
-reader raises when a read of the store fails: damage found there is named, and "try again" is
-said only when a run writes the file and reading again worked.
+the store uses; the scan checks what can be checked of it: the filter pipelines, each chunk's
+filter mask and lookup (``campaign.storage.blockscan``, the reading of the block datasets), the
+names against the layout and the spec, and a walk of the file. In a store written before the block
+checksums it also checks each finished task the journal still holds against its row.
 
 A store written without checksums (before they were added, or with ``CAMPAIGN_NO_CHECKSUMS=1``,
 the benchmarks' and tests' switch) reads as before; ``scan`` counts what carries none.
@@ -28,75 +26,30 @@ the benchmarks' and tests' switch) reads as before; ``scan`` counts what carries
 
 from __future__ import annotations
 
-import fnmatch
 import json
 import os
 import time
 
+import h5py
 import numpy as np
 
 from campaign.errors import UserError
-from campaign.storage.checksums import (BLOCK_FILTERS, CHECKSUM_ATTR, CONFIG_KEYS, CONFIG_WEIGHT, EDGES_NOTE,
-                                        FLETCHER32, IDENTITY, ROOT_ATTRS, ROOT_MEMBERS, SLAB_BYTES,
-                                        _text, checkpoint_damage, configuration_problem, failure_problem,
-                                        good_scalar_name, is_filter_failure, looks_like_store, reason,
-                                        scalar_names_listed)
-from campaign.storage.checksums import (BLOCK_MISMATCH, SUMS_GROUP, SUMS_ROWS, has_sums, mismatched_blocks,
-                                        sums_name)
+from campaign.storage.blockscan import BlockScan, _Found, _matches, identities
+from campaign.storage.checksums import (BLOCK_MISMATCH, CHECKSUM_ATTR, CONFIG_KEYS, CONFIG_WEIGHT, ROOT_ATTRS,
+                                        ROOT_MEMBERS, SUMS_GROUP, _text, checkpoint_damage, configuration_problem,
+                                        failure_problem, good_scalar_name, looks_like_store, reason,
+                                        scalar_names_listed, sums_name)
 from campaign.storage.damage import Damage, Report
-from campaign.storage.unprotected import expected_identities, identities, identity_blocks, journal_rows
+from campaign.storage.journal import header_spec_hash, scan_journal, task_indices
+from campaign.storage.layout import (DONE, FAILED, FORMAT_VERSION, PENDING, SCHEMA, TASK_FIELDS, format_problem,
+                                     row_values, stored_spec)
 
 
-# --------------------------------------------------------------------------- the scan
-
-class _Found(Exception):
-    """Raised inside a scan that stops at the first damage."""
-
-
-class Scan:
-    """One reading of a store, recording every damage it meets into ``self.report``.
-
-    ``progress(fraction, what)`` is called now and then; with ``stop_first`` the scan raises
-    ``_Found`` at the first damage (the readers' search)."""
-
-    def __init__(self, f, path, progress=None, stop_first=False):
-        self.f, self.path = f, path
-        self.progress = progress
-        self.stop_first = stop_first
-        self.report = Report(path)
-        self.done_units = 0
-        self.total_units = 1
-        self.last_progress = 0.0
-        self.ids = None           # (T,) S32 task ids, as read (None while unknown)
-        self.id_order = None
-        self.attempts = None
-        self.error_set = None     # (T,) bool: the error column holds text
-        self.failure_ids = set()  # rows with a failure record (readable or not)
-        self.config_rows = set()  # rows with a configuration group (sound or not)
-        self.summed = has_sums(f)  # the store keeps block checksums
-        self.status_bad = []      # blocks of the status column that do not match their checksums
-        self.expected = None      # without block checksums: the spec's task identities, column by column
-
-    # ---- recording
-    def add(self, d: Damage):
-        self.report.damage.append(d)
-        if self.stop_first:
-            raise _Found()
-
-    def finished_in(self, lo, hi):
-        st = self.report.status
-        if st is None or len(st) < hi:
-            return np.arange(lo, hi, dtype=np.int64)
-        return np.flatnonzero(st[lo:hi] != 0).astype(np.int64) + lo
-
-    def tick(self, units, what):
-        self.done_units += units
-        if self.progress is None:
-            return
-        now = time.monotonic()
-        if now - self.last_progress >= 0.5:
-            self.last_progress = now
-            self.progress(min(1.0, self.done_units / max(1, self.total_units)), what)
+class Scan(BlockScan):
+    """One reading of a whole store (``BlockScan``: what it records, and its reading of the block
+    datasets): the root attributes and the spec, the layout's names, the configurations, failure
+    records and suspended packings, the commit marker against its rows, the journal's records
+    against theirs, ``/reduced``, and a walk of every object."""
 
     # ---- the walk
     def run(self, patterns=None):
@@ -109,7 +62,7 @@ class Scan:
         self._status()
         if full:
             self._layout()
-            self.expected = expected_identities(self)
+            self.expected = self._expected_identities()
         names = self._block_names(patterns)
         if not full:
             names = [n for n in names if _matches(n, patterns)]
@@ -132,7 +85,7 @@ class Scan:
             for name, how in checkpoint_damage(f, self._rows_of if self.ids is not None else None):
                 self.add(Damage(name, how, repair="remove", note="left out: its task starts over"))  # stop and go
             self._rows()
-            journal_rows(self)
+            self._journal_rows()
             self._reduced()
             self._walk()
         else:
@@ -151,8 +104,6 @@ class Scan:
 
     # ---- root attributes and the spec
     def _root(self):
-        from campaign.storage.layout import FORMAT_VERSION, SCHEMA, format_problem
-
         f, r = self.f, self.report
         attrs, unreadable = {}, []
         try:
@@ -173,7 +124,7 @@ class Scan:
                 unreadable.append(Damage(f"/@{_text(k) or k}", "is not an attribute of the layout (a damaged name?)",
                                          repair="remove", note="left out"))
         try:
-            has_tasks = isinstance(f.get("tasks/status"), __import__("h5py").Dataset)
+            has_tasks = isinstance(f.get("tasks/status"), h5py.Dataset)
         except Exception:  # noqa: BLE001
             has_tasks = False
         if schema != SCHEMA and not unreadable and not (has_tasks and "spec_yaml" in attrs):
@@ -205,17 +156,13 @@ class Scan:
             if "spec_yaml" in attrs:
                 self.add(Damage("/@spec_yaml", "is not text", repair="none"))
             return
-        from campaign.plan.parse import parse_spec
-
         try:
-            spec = parse_spec(text, "the stored spec")
+            spec = stored_spec(attrs, strict=True)
         except UserError as exc:
             self.add(Damage("/@spec_yaml", f"no longer reads as the spec that wrote the store ({reason(exc)})",
                             repair="none"))
             return
         if spec.hash != stored_hash:
-            from campaign.storage.journal import header_spec_hash
-
             witness = header_spec_hash(str(self.path) + ".journal")
             if witness == spec.hash:  # the journal's header agrees with spec_yaml: spec_hash is the damaged one
                 self.add(Damage("/@spec_hash", f"is {stored_hash!r}, but the stored spec and the journal's header "
@@ -233,8 +180,6 @@ class Scan:
     def _layout(self):
         """The groups and names the layout has: a damaged link name shows as a member missing and a
         stray one."""
-        from campaign.storage.layout import TASK_FIELDS
-
         f, r = self.f, self.report
         spec = r.spec
         every = self.finished_in(0, r.T)
@@ -248,9 +193,9 @@ class Scan:
                 self.add(Damage(f"/{m}", "is not part of the layout (a damaged name?)", repair="remove",
                                 note="left out"))
         required = {"tasks": every, "scalars": every, "histograms": every, "failures":
-                    np.flatnonzero(r.status == 2) if r.status is not None else every}
+                    np.flatnonzero(r.status == FAILED) if r.status is not None else every}
         if spec is not None and spec.configurations:
-            required["configurations"] = np.flatnonzero(r.status == 1) if r.status is not None else every
+            required["configurations"] = np.flatnonzero(r.status == DONE) if r.status is not None else every
         for g, rows in required.items():
             if g not in members:
                 self.add(Damage(g, "is missing (its link in the root group is damaged?)", rows=rows.astype(np.int64)))
@@ -312,333 +257,6 @@ class Scan:
                 self.add(Damage(f"{SUMS_GROUP}/{_text(m) or m}", "are the checksums of no dataset of the store (a "
                                 "damaged name?)", repair="remove", note="left out"))
 
-    # ---- the commit marker
-    def _status(self):
-        import h5py
-
-        f, r = self.f, self.report
-        try:
-            ds = f["tasks/status"]
-            if not isinstance(ds, h5py.Dataset) or ds.ndim != 1 or ds.dtype != np.int8:
-                raise ValueError(f"shape {ds.shape}, type {ds.dtype}: not one int8 a task")
-            if r.spec is not None and ds.shape[0] != r.spec.n_tasks:
-                raise ValueError(f"{ds.shape[0]} rows, but the spec has {r.spec.n_tasks} tasks")
-            st = ds[:]
-        except Exception as exc:  # noqa: BLE001
-            T = r.spec.n_tasks if r.spec is not None else 0
-            r.T = T
-            self.add(Damage("tasks/status", f"cannot be read ({reason(exc)}): no task can be trusted",
-                            rows=np.arange(T, dtype=np.int64), span=(0, T) if T else None))
-            return
-        r.T = len(st)
-        r.status = st
-        B = self._status_rows(f, len(st))
-        sums = self._sums("tasks/status", len(st), B) if B else None
-        if sums is not None:
-            self.status_bad = mismatched_blocks(sums, st, 0, B, len(st))
-            if self.status_bad and self.stop_first:  # a reader's search: name it now (verify: see _rows)
-                a, b = self.status_bad[0]
-                self.add(Damage("tasks/status", f"rows {a}-{b - 1} {BLOCK_MISMATCH}", rows=self.finished_in(a, b),
-                                span=(a, b)))
-        self.attempts = np.zeros(r.T, np.int32)
-        self.error_set = np.zeros(r.T, bool)
-        r.counts = {"done": int(np.count_nonzero(st == 1)), "failed": int(np.count_nonzero(st == 2)),
-                    "pending": int(np.count_nonzero(st == 0))}
-        try:
-            r.B = int(f["tasks/attempts"].chunks[0])
-        except Exception:  # noqa: BLE001
-            from campaign.storage.layout import BLOCK_ROWS
-
-            r.B = max(1, min(BLOCK_ROWS, r.T))
-
-    def _status_rows(self, f, T):
-        """The rows of a block of the status column's checksums (those of the other columns' chunks)."""
-        try:
-            return int(np.asarray(f[sums_name("tasks/status")].attrs[SUMS_ROWS]).reshape(-1)[0])
-        except Exception:  # noqa: BLE001 - reported by _sums
-            try:
-                return int(f["tasks/attempts"].chunks[0])
-            except Exception:  # noqa: BLE001
-                return 0
-
-    # ---- block datasets
-    def _block_names(self, patterns=None):
-        f = self.f
-        names = []
-        for n in IDENTITY + ("attempts", "wall", "rank", "host", "error"):
-            names.append(f"tasks/{n}")
-        for group, sub in (("scalars", None), ("histograms", "counts")):
-            if patterns is not None and not any(p == group or p.startswith((group + "/", "*")) for p in patterns):
-                continue
-            try:
-                if group not in f:
-                    continue
-                keys = sorted(f[group].keys(), key=str)
-            except Exception as exc:  # noqa: BLE001
-                self.add(Damage(group, f"its index cannot be read ({reason(exc)}): every finished task's "
-                                       f"{group} are lost", rows=self.finished_in(0, self.report.T)))
-                continue
-            if group == "scalars":
-                keys = [k for k in keys if isinstance(k, str) and "/" not in k]  # damaged names: see _layout
-            names += [f"{group}/{k}" + (f"/{sub}" if sub else "") for k in keys]
-        return names
-
-    def _exists(self, name):
-        try:
-            return name in self.f
-        except Exception:  # noqa: BLE001
-            return True
-
-    def _units(self, name):
-        try:
-            ds = self.f[name]
-            return int(np.prod(ds.shape, dtype=np.float64) * ds.dtype.itemsize)
-        except Exception:  # noqa: BLE001
-            return 0
-
-    def _expected(self, name):
-        """(row shape, dtype kind) a block dataset must have."""
-        if name.startswith("histograms/"):
-            return "2d", "i"
-        if name.startswith("scalars/"):
-            return (), "f"
-        col = name[6:]
-        return (), {"id": "S", "variant": "S", "host": "S", "error": "S", "N": "i", "seed": "i", "attempts": "i",
-                    "rank": "i", "E": "f", "wall": "f"}[col]
-
-    def _dataset(self, name):
-        import h5py
-
-        f, r = self.f, self.report
-        T = r.T
-        identity = name[6:] in IDENTITY if name.startswith("tasks/") else False
-        repair = "rewrite" if identity else "drop"
-        try:
-            ds = f[name]
-            if not isinstance(ds, h5py.Dataset):
-                raise ValueError("not a dataset")
-            shape, kind = self._expected(name)
-            if ds.shape[0] != T or ds.dtype.kind != kind or (shape == () and ds.ndim != 1) or (
-                    shape == "2d" and (ds.ndim != 2 or not 0 < ds.shape[1] < 1 << 24)):
-                raise ValueError(f"shape {ds.shape}, type {ds.dtype}: not the layout's")
-            chunk = int(ds.chunks[0]) if ds.chunks else T
-            has_sum = bool(ds.fletcher32)
-            pipeline = _filters(ds)
-            if pipeline not in (BLOCK_FILTERS, BLOCK_FILTERS + (FLETCHER32,)):
-                raise ValueError(f"its filter pipeline {pipeline} is not the layout's {BLOCK_FILTERS + (FLETCHER32,)} "
-                                 "(shuffle, deflate, fletcher32): its header is damaged, and HDF5 would read "
-                                 "its chunks wrongly without noticing")
-        except KeyError as exc:
-            missing = name.startswith("tasks/") and not self._exists(name)
-            self.add(Damage(name, "is missing" if missing else f"cannot be opened ({reason(exc)})",
-                            rows=np.zeros(0, np.int64) if identity else self.finished_in(0, T),
-                            span=None if identity else (0, T), repair=repair))
-            return
-        except Exception as exc:  # noqa: BLE001
-            self.add(Damage(name, f"cannot be read ({reason(exc)})", rows=np.zeros(0, np.int64) if identity
-                            else self.finished_in(0, T), span=None if identity else (0, T), repair=repair))
-            return
-        r.checked["datasets"] += 1
-        if not has_sum:
-            r.unchecked["datasets"].append(name)
-        rowbytes = max(1, ds.dtype.itemsize * (ds.shape[1] if ds.ndim == 2 else 1))
-        sums = self._sums(name, T, chunk)
-        skip = self._chunk_index(name, ds, chunk, rowbytes, repair)
-        step = max(chunk, (SLAB_BYTES // rowbytes) // chunk * chunk)
-        col = name[6:] if name.startswith("tasks/") else None
-        for lo in range(0, T, step):
-            hi = min(lo + step, T)
-            if skip and any(lo < b and a < hi for a, b in skip):  # read chunk by chunk, past the bad ones
-                self._by_chunks(name, ds, col, lo, hi, chunk, repair, skip, sums=sums)
-                self.tick((hi - lo) * rowbytes, name)
-                continue
-            try:
-                data = ds[lo:hi]
-                self._values(col, lo, hi, data)
-                r.checked["chunks"] += -(-(hi - lo) // chunk)
-            except _Found:
-                raise
-            except Exception:  # noqa: BLE001 - find the damaged chunks of this slab
-                self._by_chunks(name, ds, col, lo, hi, chunk, repair, sums=sums)
-            else:
-                self._check_sums(name, sums, lo, data, chunk, repair)
-            self.tick((hi - lo) * rowbytes, name)
-        r.checked["bytes"] += _stored_size(ds)
-
-    def _by_chunks(self, name, ds, col, lo, hi, chunk, repair, skip=(), sums=None):
-        """Read rows [lo, hi) of ``ds`` chunk by chunk, past the chunks in ``skip``: a chunk that
-        cannot be read is damage (``_bad_chunk``), the others are checked as usual."""
-        for a in range(lo, hi, chunk):
-            b = min(a + chunk, hi)
-            if (a, b) in skip:
-                continue
-            try:
-                data = ds[a:b]
-            except Exception as exc:  # noqa: BLE001
-                self._bad_chunk(name, ds, a, b, exc, repair)
-                continue
-            self.report.checked["chunks"] += 1
-            self._values(col, a, b, data)
-            self._check_sums(name, sums, a, data, chunk, repair)
-
-    # ---- block checksums (campaign.storage.checksums: which rows a read gives back)
-    def _sums(self, name, T, B):
-        """The block checksums of the dataset ``name`` (T rows, blocks of B), or None when the store
-        keeps none; missing or malformed ones are damage (a damaged name or header: a repair
-        writes them anew from the rows, which their own checksums still guard)."""
-        if not self.summed:
-            return None
-        key = sums_name(name)
-        try:
-            ds = self.f[key]
-            rows = int(np.asarray(ds.attrs[SUMS_ROWS]).reshape(-1)[0])
-            if rows != B or ds.shape != (-(-T // B),) or ds.dtype != np.uint64:
-                raise ValueError(f"not one uint64 a block of {B} rows (shape {ds.shape}, type {ds.dtype}, "
-                                 f"{rows} rows a block)")
-            return ds[()]
-        except Exception as exc:  # noqa: BLE001
-            how = ("has no block checksums (" + key + " is missing: a damaged name?)" if isinstance(exc, KeyError)
-                   else f"has block checksums that cannot be read ({reason(exc)})")
-            self.add(Damage(name, how, repair="rewrite", note="its checksums are written anew; no task is lost"))
-            return None
-
-    def _check_sums(self, name, sums, lo, data, B, repair):
-        """Blocks of rows ``data`` (from row ``lo``) that differ from the checksums of the rows written
-        there: read from the wrong place (a damaged chunk index), as never written, or decoded
-        otherwise (a damaged header), though each chunk's own bytes are sound."""
-        if sums is None:
-            return
-        k = lo // B
-        for a, b in mismatched_blocks(sums[k:k + -(-len(data) // B)], data, lo, B, lo + len(data)):
-            rows = np.zeros(0, np.int64) if repair == "rewrite" else self.finished_in(a, b)
-            note = "the task identities it held are rewritten from the spec" if repair == "rewrite" else ""
-            self.add(Damage(name, f"rows {a}-{b - 1} {BLOCK_MISMATCH}", rows=rows, span=(a, b), repair=repair,
-                            note=note))
-
-    def _chunk_index(self, name, ds, chunk, rowbytes, repair):
-        """Every chunk the index lists must have had every filter applied (a set bit of its filter
-        mask makes HDF5 skip that filter on read, checksum included), lie on the chunk grid and
-        have a plausible size. Returns the (first, last + 1) rows of the chunks found wrong."""
-        infos = []
-        try:
-            ds.id.chunk_iter(infos.append)
-        except AttributeError:  # an HDF5 without chunk iteration: the reads alone check the chunks
-            return set()
-        except Exception as exc:  # noqa: BLE001
-            self.add(Damage(name, f"its chunk index cannot be walked ({reason(exc)})",
-                            rows=np.zeros(0, np.int64) if repair == "rewrite" else self.finished_in(0, self.report.T),
-                            span=(0, self.report.T), repair=repair))
-            return {(a, min(a + chunk, self.report.T)) for a in range(0, self.report.T, chunk)}
-        bad = set()
-        limit = chunk * rowbytes + chunk * rowbytes // 100 + 1024  # deflate's worst case, and more
-        for info in infos:
-            a = int(info.chunk_offset[0])
-            b = min(a + chunk, self.report.T)
-            if a % chunk or not 0 <= a < self.report.T or any(int(x) != 0 for x in info.chunk_offset[1:]):
-                self.add(Damage(name, f"its chunk index lists a chunk at row {a}, off the chunk grid (the index is "
-                                      "damaged)", rows=self.finished_in(0, self.report.T) if repair == "drop" else
-                                np.zeros(0, np.int64), span=(0, self.report.T), repair=repair))
-                continue
-            problem = None
-            if info.filter_mask:
-                problem = (f"its chunk index says filters were skipped for it (filter mask {info.filter_mask}): HDF5 "
-                           "would read it without unpacking or checking it")
-            elif not 0 < info.size <= limit:
-                problem = f"its chunk index gives it {info.size} bytes, impossible for {b - a} rows"
-            else:  # a read looks the chunk up by its key: it must find this very chunk
-                try:
-                    mask, raw = ds.id.read_direct_chunk(tuple(int(x) for x in info.chunk_offset))
-                    if mask or len(raw) != info.size:
-                        problem = ("its chunk index is inconsistent: a read finds another chunk than the index "
-                                   "lists")
-                except Exception as exc:  # noqa: BLE001
-                    problem = (f"its chunk index is inconsistent: a read does not find the chunk the index lists "
-                               f"({reason(exc)}), and HDF5 would return the rows as never written")
-            if problem is not None:
-                rows = np.zeros(0, np.int64) if repair == "rewrite" else self.finished_in(a, b)
-                where = f" (the chunk at byte {info.byte_offset} of the file, {info.size} bytes)"
-                note = "the task identities it held are rewritten from the spec" if repair == "rewrite" else ""
-                self.add(Damage(name, f"rows {a}-{b - 1}{where}: {problem}", rows=rows, span=(a, b), repair=repair,
-                                note=note))
-                bad.add((a, b))
-        st = self.report.status
-        if st is not None and (name.startswith(("tasks/", "histograms/"))):  # written for every block
-            have = {int(i.chunk_offset[0]) for i in infos}
-            for a in range(0, self.report.T, chunk):
-                b = min(a + chunk, self.report.T)
-                if a in have or (a, b) in bad:
-                    continue
-                rows = np.flatnonzero(st[a:b] != 0).astype(np.int64) + a
-                if len(rows) or repair == "rewrite":
-                    self.add(Damage(name, f"rows {a}-{b - 1} have no chunk in its index, though the block holds "
-                                          "finished tasks (the index is damaged: HDF5 returns the rows as never "
-                                          "written)", rows=np.zeros(0, np.int64) if repair == "rewrite" else rows,
-                                    span=(a, b), repair=repair))
-                    bad.add((a, b))
-        return bad
-
-    def _bad_chunk(self, name, ds, a, b, exc, repair):
-        where = ""
-        try:
-            info = ds.id.get_chunk_info_by_coord((a,) + (0,) * (ds.ndim - 1))
-            if info.byte_offset is not None:
-                where = f" (the chunk at byte {info.byte_offset} of the file, {info.size} bytes)"
-        except Exception:  # noqa: BLE001 - the location is a courtesy
-            pass
-        what = "fails its checksum" if is_filter_failure(exc) else "cannot be read"
-        rows = np.zeros(0, np.int64) if repair == "rewrite" else self.finished_in(a, b)
-        how = f"rows {a}-{b - 1}{where} {what} ({reason(exc)})"
-        note = "the task identities it held are rewritten from the spec" if repair == "rewrite" else ""
-        self.add(Damage(name, how, rows=rows, span=(a, b), repair=repair, note=note))
-
-    def _values(self, col, lo, hi, data):
-        """What the task table's columns say about their rows (checked in ``_rows``)."""
-        identity_blocks(self, col, lo, data)
-        if col == "attempts" and self.attempts is not None:
-            self.attempts[lo:hi] = data
-        elif col == "error" and self.error_set is not None:
-            self.error_set[lo:hi] = np.char.str_len(np.asarray(data)) > 0
-        elif col == "id":
-            if self.ids is None:
-                self.ids = np.zeros(self.report.T, "S32")
-            self.ids[lo:hi] = data
-
-    def _edges(self, patterns=None):
-        f, r = self.f, self.report
-        try:
-            names = sorted(f["histograms"].keys()) if "histograms" in f else []
-        except Exception:  # noqa: BLE001 - reported with the counts
-            names = []
-        for h in names:
-            name = f"histograms/{h}/edges"
-            if not _matches(name, patterns):
-                continue
-            try:
-                ds = f[name]
-                if _filters(ds) not in ((), (FLETCHER32,)):
-                    raise ValueError(f"its filter pipeline {_filters(ds)} is not the layout's (none, or fletcher32)")
-                e = ds[()]
-                width = f[f"histograms/{h}/counts"].shape[1]
-                sums = self._sums(name, len(e), max(1, len(e)))
-                if sums is not None and mismatched_blocks(sums, e, 0, max(1, len(e)), len(e)):
-                    raise ValueError(BLOCK_MISMATCH)
-                if not ds.fletcher32:
-                    r.unchecked["datasets"].append(name)
-                r.checked["datasets"] += 1
-            except KeyError:
-                self.add(Damage(name, "is missing", repair="rewrite", note=EDGES_NOTE))
-                continue
-            except Exception as exc:  # noqa: BLE001
-                self.add(Damage(name, f"cannot be read ({reason(exc)})", repair="rewrite", note=EDGES_NOTE))
-                continue
-            e = np.asarray(e)
-            if (e.ndim != 1 or e.dtype.kind != "f" or len(e) != width + 1 or not np.all(np.isfinite(e))
-                    or not np.all(np.diff(e) > 0)):
-                self.add(Damage(name, "is not a list of increasing bin edges for its counts", repair="rewrite",
-                                note=EDGES_NOTE))
-                continue
-            r.edges[h] = e
-
     # ---- configurations and failure records
     def _rows_of(self, names):
         """Task rows of task ids ``names`` (-1 where none)."""
@@ -653,8 +271,6 @@ class Scan:
         return np.where(self.ids[rows] == keys, rows, -1).astype(np.int64)
 
     def _configurations(self, patterns=None):
-        import h5py
-
         f, r = self.f, self.report
         try:
             if "configurations" not in f:
@@ -678,7 +294,7 @@ class Scan:
                 self.add(Damage(name, "is named after no task of this store (its name is damaged)", repair="remove",
                                 note="left out"))
                 continue
-            held = (np.array([row], np.int64) if row >= 0 and (r.status is None or r.status[row] != 0)
+            held = (np.array([row], np.int64) if row >= 0 and (r.status is None or r.status[row] != PENDING)
                     else np.zeros(0, np.int64))
             try:
                 c = g[key]
@@ -702,14 +318,12 @@ class Scan:
             self.config_rows.add(row)
 
     def _failures(self, patterns=None):
-        import h5py
-
         f, r = self.f, self.report
         try:
             names = list(f["failures"].keys()) if "failures" in f else []
         except Exception as exc:  # noqa: BLE001
             self.add(Damage("failures", f"its index cannot be read ({reason(exc)})",
-                            rows=np.flatnonzero(r.status == 2) if r.status is not None else np.zeros(0, np.int64)))
+                            rows=np.flatnonzero(r.status == FAILED) if r.status is not None else np.zeros(0, np.int64)))
             return
         rows = self._rows_of(names)
         for key, row in zip(names, rows.tolist()):
@@ -722,7 +336,7 @@ class Scan:
                     self.add(Damage(name, "is named after no task of this store (its name is damaged)",
                                     repair="remove", note="left out"))
                 continue
-            held = np.array([row], np.int64) if r.status is None or r.status[row] != 0 else np.zeros(0, np.int64)
+            held = np.array([row], np.int64) if r.status is None or r.status[row] != PENDING else np.zeros(0, np.int64)
             self.failure_ids.add(row)
             try:
                 obj = f["failures"][key]
@@ -740,10 +354,9 @@ class Scan:
                 r.unchecked["failures"] += 1
             r.checked["failures"] += 1
 
+    # ---- the commit marker against its rows
     def _rows(self):
         """The commit marker against the rows it commits (it carries no checksum of its own)."""
-        from campaign.storage.journal import task_indices
-
         r = self.report
         st = r.status
         if st is None or self.attempts is None:
@@ -758,20 +371,20 @@ class Scan:
         failed_rec = np.zeros(r.T, bool)
         failed_rec[list(self.failure_ids)] = True
         problems = [
-            (~np.isin(st, (0, 1, 2)), "is not 0, 1 or 2"),
-            (np.isin(st, (1, 2)) & (self.attempts < 1), "says finished, but its row holds no finished task"),
-            ((st == 0) & (self.attempts >= 1) & ~journal,
+            (~np.isin(st, (PENDING, DONE, FAILED)), "is not 0, 1 or 2"),
+            (np.isin(st, (DONE, FAILED)) & (self.attempts < 1), "says finished, but its row holds no finished task"),
+            ((st == PENDING) & (self.attempts >= 1) & ~journal,
              "says pending, but its row holds a finished task and the journal has no record of it (a flipped "
              "byte, or a run killed between the two writes whose journal was lost since)"),
-            ((st == 1) & self.error_set, "says done, but its row holds a failure message"),
-            ((st == 1) & failed_rec, "says done, but the task has a failure record"),
-            ((st == 2) & ~failed_rec & ~journal, "says failed, but the task has no failure record"),
+            ((st == DONE) & self.error_set, "says done, but its row holds a failure message"),
+            ((st == DONE) & failed_rec, "says done, but the task has a failure record"),
+            ((st == FAILED) & ~failed_rec & ~journal, "says failed, but the task has no failure record"),
         ]
         spec = r.spec
         if spec is not None and spec.configurations:
             have = np.zeros(r.T, bool)
             have[[i for i in self.config_rows if i >= 0]] = True
-            problems.append(((st == 1) & ~have & ~journal,
+            problems.append(((st == DONE) & ~have & ~journal,
                              "says done, but the configuration the spec keeps is missing"))
         flagged = np.zeros(r.T, bool)
         for mask, _ in problems:
@@ -788,8 +401,6 @@ class Scan:
                                                 "marker or its row is damaged", rows=rows))
 
     def _reduced(self):
-        import h5py
-
         f = self.f
         try:
             if "reduced" not in f:
@@ -811,32 +422,55 @@ class Scan:
             self.add(Damage("/", f"walking its objects fails ({reason(exc)}): a heap or index of HDF5's is "
                                  "damaged", repair="rewrite", note="written anew; no task is lost by it"))
 
-    # ---- naming the tasks
-    def _column(self, name):
+    # ---- a store without block checksums (0.2.7 and older): the journal's records against their rows
+    def _journal_rows(self):
+        """Every finished task the journal has a record of (a run killed before its checkpoint) against the
+        row the store holds for it, where both say done. A row that differs was read from another place, or
+        changed since it was written: a repair drops it, and the next run replays the record."""
+        r = self.report
+        if self.summed:  # the block checksums say it all
+            return
         try:
-            return self.f[name][:]
-        except Exception:  # noqa: BLE001
-            return None
-
-    def _labels(self, rows):
-        if not len(rows):
-            return []
-        out = []
-        cols = {}
-        for k in IDENTITY:
-            try:
-                cols[k] = self.f[f"tasks/{k}"][np.sort(np.asarray(rows))]
-            except Exception:  # noqa: BLE001
-                cols[k] = None
-        order = {int(x): i for i, x in enumerate(np.sort(np.asarray(rows)))}
-        for row in rows.tolist():
-            i = order[int(row)]
-            try:
-                out.append(f"{_text(cols['id'][i])} ({_text(cols['variant'][i])} N={int(cols['N'][i])} "
-                           f"E={float(cols['E'][i]):g} seed {int(cols['seed'][i])})")
-            except Exception:  # noqa: BLE001
-                out.append(f"row {row}")
-        return out
+            with open(str(self.path) + ".journal", "rb") as fh:
+                records, _, _ = scan_journal(fh.read())
+        except OSError:
+            return
+        head = records[0][0] if records else {}
+        if r.spec is None or r.status is None or head.get("type") != "header" or head.get("spec_hash") != r.spec.hash:
+            return
+        last = {int(m["index"]): (m, a) for m, a in records[1:] if m.get("type") == "task" and "index" in m}
+        rows = sorted(i for i, (m, _) in last.items() if 0 <= i < r.T and r.status[i] == DONE
+                      and int(m.get("status", -1)) == DONE)
+        if not rows:
+            return
+        try:
+            names = ["tasks/attempts"] + [f"scalars/{n}" for n in self.f["scalars"].keys() if good_scalar_name(n)]
+        except Exception:  # noqa: BLE001 - reported with the block datasets
+            return
+        names += [f"histograms/{h}/counts" for h in r.edges]
+        B = max(1, r.B)
+        lost = {d.span for d in r.damage if d.span is not None}
+        for name in names:
+            bad = []
+            for block in sorted({i // B for i in rows}):
+                a, b = block * B, min(block * B + B, r.T)
+                if any(lo < b and a < hi for lo, hi in lost):
+                    continue  # its rows are dropped already
+                try:
+                    data = self.f[name][a:b]
+                except Exception:  # noqa: BLE001 - reported with the block datasets
+                    continue
+                for i in (i for i in rows if a <= i < b):
+                    want = row_values(*last[i], r.edges, [name])[name]
+                    got = data[i - a]
+                    same = (np.array_equal(got, want) if name.startswith("histograms/") else
+                            got == want or (name.startswith("scalars/") and np.isnan(got) and np.isnan(want)))
+                    if not same:
+                        bad.append(i)
+            if bad:
+                self.add(Damage(name, f"differs from the journal's record of the task at {len(bad)} row(s): read from "
+                                      "another place, or changed since it was written", rows=np.asarray(bad, np.int64),
+                                note="dropped; the next run replays the journal's record"))
 
 
 def _config_shape_problem(a, n):
@@ -851,30 +485,10 @@ def _config_shape_problem(a, n):
     return None
 
 
-def _filters(ds) -> tuple:
-    pl = ds.id.get_create_plist()
-    return tuple(int(pl.get_filter(i)[0]) for i in range(pl.get_nfilters()))
-
-
-def _stored_size(ds) -> int:
-    try:
-        return int(ds.id.get_storage_size())
-    except Exception:  # noqa: BLE001
-        return 0
-
-
-def _matches(name, patterns) -> bool:
-    if patterns is None:
-        return True
-    return any(name == p or name.startswith(p.rstrip("/") + "/") or fnmatch.fnmatchcase(name, p) for p in patterns)
-
-
 def scan(path, progress=None) -> Report:
     """Read every part of the store ``path`` (``campaign verify``). Raises UserError for a file that
     is not a campaign store (missing, a directory, not HDF5 and no journal, another schema or store
     format); a store that cannot be opened at all comes back with ``fatal`` set."""
-    import h5py
-
     path = str(path)
     if not os.path.exists(path):
         raise UserError(f"{path}: no such file (expected a campaign store)")
@@ -898,3 +512,19 @@ def scan(path, progress=None) -> Report:
         except Exception as exc:  # noqa: BLE001 - a structure so damaged that the walk itself fails
             s.report.fatal = f"walking it failed ({reason(exc)})"
         return s.report
+
+
+def first_damage(f, path, patterns):
+    """The first damage among the datasets ``patterns`` name in the open store ``f`` at ``path``, its
+    first tasks named, or None: a reader's search after a failed read
+    (``campaign.storage.reader.read_failure``)."""
+    s = Scan(f, str(path), stop_first=True)
+    try:
+        s.run(patterns=patterns)
+    except _Found:
+        pass
+    if not s.report.damage:
+        return None
+    d = s.report.damage[0]
+    d.labels = s._labels(d.rows[:5])
+    return d

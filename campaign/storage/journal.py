@@ -24,12 +24,14 @@ import os
 import struct
 import sys
 import zlib
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from campaign.errors import UserError
 from campaign.storage.faults import write_fault
+from campaign.storage.layout import DONE, FAILED, FORMAT_VERSION, OLD_FORMAT_HELP, SCHEMA, ForeignStore
 
 _HEAD = struct.Struct("<4sII")  # magic, payload length, crc32(payload)
 _MAGIC = b"JCJ1"
@@ -64,6 +66,30 @@ def decode_payload(payload: bytes):
         pos += count * dt.itemsize
     if pos != len(payload):
         raise ValueError("record length does not match its arrays")
+    return meta, arrays
+
+
+def task_record(index, tid, summary, attempts, edges, run_id):
+    """The journal record ``(meta, arrays)`` of the final outcome of task ``tid`` (row ``index``), from
+    its worker's ``summary`` (docs/CONTRACTS.md): done if ``summary['ok']``, else failed; ``row_values``
+    (``campaign.storage.layout``) reads it back."""
+    status = DONE if summary["ok"] else FAILED
+    err = summary.get("error") or {}
+    meta = {"type": "task", "index": index, "id": tid, "status": status, "attempts": int(attempts),
+            "wall": float(summary.get("wall", float("nan"))), "rank": int(summary.get("rank", -1)),
+            "host": str(summary.get("host", "")), "message": err.get("message", ""),
+            "traceback": err.get("traceback", ""), "run_id": run_id}
+    arrays = {}
+    if status == DONE:
+        sc = summary.get("scalars", {})
+        meta["scalar_names"] = ",".join(sc)
+        arrays["s"] = np.fromiter(sc.values(), np.float64, len(sc))
+        for h in edges:
+            arrays["h/" + h] = np.asarray(summary["histograms"][h], np.int64)
+        cfg = summary.get("configuration")
+        if cfg is not None:  # asked for by the spec, or a ladder parent's
+            for k in ("positions", "radii", "box", "species"):
+                arrays["c/" + k] = np.asarray(cfg[k])
     return meta, arrays
 
 
@@ -162,20 +188,63 @@ def header_spec_hash(path):
         return None
 
 
+@dataclass
+class Replay:
+    """What a run's start takes from its journal (``Journal.replay``): the records that follow the
+    header (``task``, ``suspended``, ``round``, ``run``, ``checkpoint``), in order, to be replayed into
+    the store; whether there was a journal at all (a header); and what reading it found damaged."""
+
+    path: Path
+    found: bool = False
+    records: list = field(default_factory=list)  # (meta, arrays) after the header
+    damaged: list = field(default_factory=list)  # (offset, length, records lost) of each damaged stretch
+    torn: int = 0  # bytes of a torn last record, cut off
+
+    @property
+    def committed(self) -> int:
+        """The finished tasks the store held at the journal's last checkpoint."""
+        last = {}
+        for meta, _ in self.records:
+            if meta.get("type") == "checkpoint":
+                last = meta
+        return int(last.get("committed", 0))
+
+    def rows(self) -> set:
+        """The task rows its records go to: the only ones a killed run can have been writing (their
+        blocks' rows and checksums may be out of step until the replay rewrites them)."""
+        return {int(m["index"]) for m, _ in self.records if m.get("type") == "task"}
+
+    def notes(self) -> list:
+        """What reading it found, as the lines a run prints: damaged stretches skipped (their tasks run
+        again), a torn record cut off."""
+        out = []
+        if self.damaged:
+            kept = sum(1 for m, _ in self.records if m.get("type") == "task")
+            n_lost = sum(k for _, _, k in self.damaged)
+            n_bytes = sum(n for _, n, _ in self.damaged)
+            where = ", ".join(f"{o}" for o, _, _ in self.damaged[:5])
+            out.append(f"campaign: {self.path} is damaged: skipped {len(self.damaged)} damaged stretch(es) ({n_bytes} "
+                       f"bytes at offset {where}), about {n_lost} record(s) lost; kept {kept} intact task record(s). "
+                       "The tasks of the lost records are pending again and will be run again")
+        if self.torn:
+            out.append(f"campaign: cut a torn record ({self.torn} bytes) off the end of {self.path}")
+        return out
+
+
 class Journal:
     """The write-ahead journal, locked for the lifetime of a run (one writer per store)."""
 
     def __init__(self, path: Path):
         self.path = Path(path)
         self.fd = None
-        store = str(self.path)[:-len(".journal")] if str(self.path).endswith(".journal") else str(self.path)
+        self.store = str(self.path)[:-len(".journal")] if str(self.path).endswith(".journal") else str(self.path)
         try:
             self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as exc:
             fault = write_fault(exc, self.path, "creating the journal")
             if fault is not None and fault.out_of_space:
                 raise fault from None
-            raise UserError(f"cannot open {str(self.path)!r} (the journal of {store!r}) for writing: "
+            raise UserError(f"cannot open {str(self.path)!r} (the journal of {self.store!r}) for writing: "
                             f"{exc.strerror}; choose another --out, or make its directory writable") from None
         try:
             fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -183,7 +252,7 @@ class Journal:
             if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                 os.close(self.fd)
                 self.fd = None
-                raise UserError(f"another run is writing {store!r} (its journal {str(self.path)!r} is locked); "
+                raise UserError(f"another run is writing {self.store!r} (its journal {str(self.path)!r} is locked); "
                                 "wait for it to finish or stop it first") from None
             # a file system without flock (some Lustre mounts): carry on, unprotected
             print(f"campaign: warning: cannot lock {self.path} ({exc.strerror}); make sure no other run "
@@ -198,6 +267,38 @@ class Journal:
         self.size = good
         os.lseek(self.fd, 0, os.SEEK_END)
         self.dirty = False
+
+    def clear(self):
+        """Start afresh (``campaign run --new``): nothing of what the journal held is kept or reported."""
+        self.rewrite([])
+        self.damaged, self.torn = [], 0
+
+    def replay(self, spec_hash) -> Replay:
+        """What the journal holds for a run of the spec ``spec_hash`` to replay (``Replay``), handed over
+        once (the journal keeps no copy). ForeignStore when its header is another spec's or program's,
+        or of another store format."""
+        records, self.records = self.records, []
+        replay = Replay(self.path, found=bool(records), records=records[1:], damaged=self.damaged, torn=self.torn)
+        if not records:
+            return replay
+        header = records[0][0]
+        if header.get("type") != "header" or header.get("spec_hash") != spec_hash:
+            raise ForeignStore(f"{str(self.path)!r} belongs to a different spec (or a different program); rerun "
+                               f"with --new to start {self.store!r} afresh, or choose another --out")
+        if header.get("format_version", 1) != FORMAT_VERSION:
+            raise ForeignStore(f"{str(self.path)!r} was written by a store of format "
+                               f"{header.get('format_version', 1)}; " + OLD_FORMAT_HELP.format(new=FORMAT_VERSION))
+        return replay
+
+    def cut_back(self, spec_hash, T, runs, committed, when):
+        """Cut the journal back to what a store that holds every finished task needs of it: its header
+        (the spec ``spec_hash`` of ``T`` tasks), the ``runs`` so far and a checkpoint record (``committed``
+        tasks in the store, at ``when``)."""
+        header = {"type": "header", "schema": SCHEMA, "format_version": FORMAT_VERSION, "spec_hash": spec_hash,
+                  "T": T}
+        recs = [(header, None)] + [({"type": "run", "run": r}, None) for r in runs]
+        recs.append(({"type": "checkpoint", "committed": committed, "time": when}, None))
+        self.rewrite(recs)
 
     def rewrite(self, records):
         """Replace the journal's content by ``records`` ((meta, arrays) pairs), durably.

@@ -19,11 +19,15 @@ temporary file. Salvaging creates its file the same way (``create_file``'s ``fil
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from campaign.errors import UserError
+from campaign.plan.parse import parse_spec
+from campaign.storage.checksums import (PROTECTION_ATTR, _text, block_sums, checksums_on, create_fill_sums,
+                                        create_sums, protection_text, write_sums)
 from campaign.storage.faults import GuardedFile, release, reserve, write_fault
 
 BLOCK_ROWS = 256        # rows per chunk of every per-task dataset
@@ -34,6 +38,7 @@ SCHEMA = "jamming-campaign/1"
 #: half-plane rule. 2: chunked compressed rows, checkpointed journal, A_G and A_V as
 #: fractions of the box area, a grain whose contacts lie in a closed half-plane is a rattler.
 FORMAT_VERSION = 2
+#: A task row's status (``tasks/status``, the commit marker), defined here once for every wing.
 PENDING, DONE, FAILED = 0, 1, 2
 HOST_LEN, ERROR_LEN, VARIANT_LEN = 64, 512, 64
 TASK_FIELDS = ("id", "variant", "N", "E", "seed", "status", "attempts", "wall", "rank", "host", "error")
@@ -44,6 +49,13 @@ CHUNK_CACHE = 1 << 20  # HDF5 chunk cache per open dataset (whole blocks are wri
 #: chunk indices and symbol tables that grow or move while it writes; the store adds more
 #: per dataset and for large files).
 SLACK = 32 << 10
+
+
+def status_counts(status) -> dict:
+    """How many rows of a status column say done, failed and pending (in that order)."""
+    st = np.asarray(status)
+    return {"done": int(np.count_nonzero(st == DONE)), "failed": int(np.count_nonzero(st == FAILED)),
+            "pending": int(np.count_nonzero(st == PENDING))}
 
 
 def fill_value(name):
@@ -137,16 +149,12 @@ def fsync_path(path):
 def dataset_kwargs(B, shape, fill):
     """A per-task block dataset: chunks of ``B`` rows, shuffled, deflated, and HDF5's fletcher32
     checksum on each chunk (written last, checked first on every read; ``campaign.storage.checksums``)."""
-    from campaign.storage.checksums import checksums_on
-
     chunks = (B,) + tuple(shape[1:])
     return dict(shape=shape, chunks=chunks, fillvalue=fill, fletcher32=checksums_on(), **COMPRESSION)
 
 
 def edges_kwargs(e):
     """A histogram's bin edges: one chunk with its checksum (contiguous without checksums)."""
-    from campaign.storage.checksums import checksums_on
-
     e = np.asarray(e, np.float64)
     if checksums_on():
         return dict(data=e, chunks=e.shape, fletcher32=True)
@@ -163,6 +171,12 @@ OLD_FORMAT_HELP = (
     "functions of the spec, so the rerun is reproducible; a few jams stop at another step than before, "
     "since the force residual uses the new rattler rule): campaign run SPEC --out NEW.h5 (or --new to "
     "replace this file); the spec is stored in the file's 'spec_yaml' attribute")
+
+
+class ForeignStore(UserError):
+    """A file no run or reader of this program may use as the store it was given: another program's
+    file, a store of another format, or (for a run) a store of another spec or other bins. Exit status
+    2; the message says what it is and what to do."""
 
 
 def format_problem(attrs, path) -> str | None:
@@ -186,81 +200,150 @@ def format_problem(attrs, path) -> str | None:
             f"(this one reads format {FORMAT_VERSION}); upgrade jamming-campaign to read it")
 
 
+def stored_spec(source, *, verified=False, strict=False, name="the stored spec"):
+    """The spec that wrote a store: its root attribute ``spec_yaml`` parsed (``campaign.plan.parse.parse_spec``),
+    the one place that reads it. ``source``: the store's root attributes (a mapping), or an open h5py
+    file (its ``attrs``).
+
+    None when the store holds no spec text, or one that does not parse (a spec of another version or
+    program, a damaged attribute): each caller says what it does without (the paper's system, no
+    check). ``verified``: None also when the spec does not hash to the store's ``spec_hash`` (a file
+    made otherwise, by hand or by another program, whose spec does not describe it). ``strict``: a
+    text that does not parse raises its UserError, ``name`` saying whose spec it is."""
+    attrs = getattr(source, "attrs", source)
+    text = _text(attrs.get("spec_yaml"))
+    if text is None:
+        return None
+    try:
+        spec = parse_spec(text, name)
+    except UserError:
+        if strict:
+            raise
+        return None
+    if verified and spec.hash != _text(attrs.get("spec_hash")):
+        return None
+    return spec
+
+
 def check_format(attrs, path):
-    """Raise UserError (exit 2) for a file of another schema or store format."""
+    """Raise ForeignStore (exit 2) for a file of another schema or store format."""
     problem = format_problem(attrs, path)
     if problem is not None:
-        raise UserError(problem)
+        raise ForeignStore(problem)
 
 
 # --------------------------------------------------------------------------- checking
 
-def check_file(path, spec_hash, tasks, edges, B, touched=()):
-    """None if the file is a valid store of this spec; 'refuse:...' if it belongs to another;
-    else what is wrong with it (it is then salvaged).
+@dataclass(frozen=True)
+class Verdict:
+    """What a run's start does with the file at its store's path (``inspect``): ``"keep"`` it (its
+    ``state`` read), ``"salvage"`` its readable rows into a new file (``problem``: what is wrong with
+    it), or ``"create"`` one."""
+
+    action: str
+    problem: str | None = None
+    state: State | None = None
+
+
+def inspect(path, spec_hash, tasks, edges, B, touched=()) -> Verdict:
+    """One read-only look at the file a run of the spec ``spec_hash`` starts from: kept (with the
+    scheduler's ``State`` read) when it is a sound store of the spec, salvaged when it is damaged,
+    created when there is none. ForeignStore when it belongs to another program, store format or
+    spec, or has other bin edges; a sound store whose state cannot be read raises what h5py raised
+    (the caller names the damage).
 
     ``touched``: the blocks the journal's records go to, the only ones a killed run can
     have been writing; each of their chunks must decompress.
     """
-    import h5py
+    import h5py  # here, not with the module: the layout's names serve readers of no HDF5 (see create_file)
 
+    if not Path(path).exists():
+        return Verdict("create")
+    try:
+        f = h5py.File(path, "r", locking=False)
+    except Exception as exc:  # noqa: BLE001 - a file HDF5 cannot open: salvage it
+        return Verdict("salvage", f"{type(exc).__name__}: {exc}")
+    with f:
+        problem = _problem(f, path, spec_hash, tasks, edges, B, touched)
+        if problem is not None:
+            return Verdict("salvage", problem)
+        return Verdict("keep", state=State.read(f))
+
+
+def _problem(f, path, spec_hash, tasks, edges, B, touched):
+    """What is wrong with the store ``f`` at ``path`` (None: nothing); ForeignStore when it is not
+    this spec's store at all."""
     T = len(tasks)
     try:
-        with h5py.File(path, "r", locking=False) as f:
-            problem = format_problem(f.attrs, path)
-            if problem is not None:
-                return "refuse:" + problem
-            if f.attrs.get("spec_hash") != spec_hash:
-                return (f"refuse:{str(path)!r} was written by a different spec (name "
-                        f"{f.attrs.get('name')!r}, spec hash {f.attrs.get('spec_hash')}; this spec's hash is "
-                        f"{spec_hash}); rerun with --new to overwrite it, or choose another --out")
-            for name in TASK_FIELDS:
-                if f[f"tasks/{name}"].shape != (T,):
-                    return f"tasks/{name} has the wrong shape"
-            ids = f["tasks/id"]
-            for lo in range(0, T, 65536):
-                hi = min(lo + 65536, T)
-                want = np.array([t.id.encode() for t in tasks[lo:hi]], "S32")
-                if not np.array_equal(ids[lo:hi], want):
-                    return "its task ids differ from the spec's"
-            for h, e in edges.items():
-                if f[f"histograms/{h}/counts"].shape != (T, len(e) - 1):
-                    return f"histograms/{h}/counts has the wrong shape"
-                if not np.array_equal(f[f"histograms/{h}/edges"][:], e):
-                    return (f"refuse:the bin edges of histogram {h!r} in {str(path)!r} differ from "
-                            "the ones this installation would use (the default bins changed?); pin them "
-                            "in the spec's 'bins', or rerun with --new")
-            for name in f["scalars"]:
-                if f[f"scalars/{name}"].shape != (T,):
-                    return f"scalars/{name} has the wrong shape"
-            # groups written under a SIGKILL can be torn (unreadable, or missing a dataset)
-            for tid, g in (f["configurations"].items() if "configurations" in f else ()):
-                for k in ("positions", "radii", "box", "species"):
-                    if k not in g:
-                        return f"configurations/{tid} lacks {k}"
-                    g[k].shape
-            for g in (f["failures"].values() if "failures" in f else ()):
-                dict(g.attrs)  # an object that is not a group (a damaged header) fails here too
-            names = [f"tasks/{n}" for n in ROW_FIELDS] + [f"scalars/{n}" for n in f["scalars"]]
-            names += [f"histograms/{h}/counts" for h in edges]
-            for name in names:
-                ds = f[name]
-                for b in sorted(touched):
-                    ds[b * B:(b + 1) * B]
-            f["tasks/status"][:]
+        check_format(f.attrs, path)
+        if f.attrs.get("spec_hash") != spec_hash:
+            raise ForeignStore(f"{str(path)!r} was written by a different spec (name "
+                               f"{f.attrs.get('name')!r}, spec hash {f.attrs.get('spec_hash')}; this spec's hash "
+                               f"is {spec_hash}); rerun with --new to overwrite it, or choose another --out")
+        for name in TASK_FIELDS:
+            if f[f"tasks/{name}"].shape != (T,):
+                return f"tasks/{name} has the wrong shape"
+        ids = f["tasks/id"]
+        for lo in range(0, T, 65536):
+            hi = min(lo + 65536, T)
+            want = np.array([t.id.encode() for t in tasks[lo:hi]], "S32")
+            if not np.array_equal(ids[lo:hi], want):
+                return "its task ids differ from the spec's"
+        for h, e in edges.items():
+            if f[f"histograms/{h}/counts"].shape != (T, len(e) - 1):
+                return f"histograms/{h}/counts has the wrong shape"
+            if not np.array_equal(f[f"histograms/{h}/edges"][:], e):
+                raise ForeignStore(f"the bin edges of histogram {h!r} in {str(path)!r} differ from the ones this "
+                                   "installation would use (the default bins changed?); pin them in the spec's "
+                                   "'bins', or rerun with --new")
+        for name in f["scalars"]:
+            if f[f"scalars/{name}"].shape != (T,):
+                return f"scalars/{name} has the wrong shape"
+        # groups written under a SIGKILL can be torn (unreadable, or missing a dataset)
+        for tid, g in (f["configurations"].items() if "configurations" in f else ()):
+            for k in ("positions", "radii", "box", "species"):
+                if k not in g:
+                    return f"configurations/{tid} lacks {k}"
+                g[k].shape
+        for g in (f["failures"].values() if "failures" in f else ()):
+            dict(g.attrs)  # an object that is not a group (a damaged header) fails here too
+        names = [f"tasks/{n}" for n in ROW_FIELDS] + [f"scalars/{n}" for n in f["scalars"]]
+        names += [f"histograms/{h}/counts" for h in edges]
+        for name in names:
+            ds = f[name]
+            for b in sorted(touched):
+                ds[b * B:(b + 1) * B]
+        f["tasks/status"][:]
+    except ForeignStore:
+        raise
     except Exception as exc:  # noqa: BLE001 - whatever a damaged file makes h5py raise: salvage it
         return f"{type(exc).__name__}: {exc}"
     return None
 
 
-def load_state(path, status, attempts, wall):
-    """The scheduler's columns of a valid store, read into the given arrays."""
-    import h5py
+@dataclass
+class State:
+    """The scheduler's columns of a store, one value a task: ``status`` (int8), ``attempts`` (int32)
+    and ``wall`` (float64, seconds). The master keeps them in memory; everything else is read from
+    the file when asked."""
 
-    with h5py.File(path, "r", locking=False) as f:
-        status[:] = f["tasks/status"][:]
-        attempts[:] = f["tasks/attempts"][:]
-        wall[:] = f["tasks/wall"][:]
+    status: np.ndarray
+    attempts: np.ndarray
+    wall: np.ndarray
+
+    @classmethod
+    def fresh(cls, T) -> "State":
+        """Every task pending: the fill values of a new store."""
+        return cls(np.zeros(T, np.int8), np.zeros(T, np.int32), np.full(T, np.nan))
+
+    @classmethod
+    def read(cls, f) -> "State":
+        """The columns of the open store ``f``."""
+        return cls(f["tasks/status"][:], f["tasks/attempts"][:], f["tasks/wall"][:])
+
+    def counts(self) -> list:
+        """``[pending, done, failed]``: rows of each status (a list indexed by the codes)."""
+        return [int(np.count_nonzero(self.status == k)) for k in (PENDING, DONE, FAILED)]
 
 
 # --------------------------------------------------------------------------- creating
@@ -284,6 +367,8 @@ def create_file(path, spec, tasks, edges, B, *, fill=None, extra=0, what="creati
     the step in a fault's message. The space it needs is reserved first; a full disk (OutOfSpace)
     or any other fault removes the temporary file and leaves ``path`` as it was.
     """
+    # imported here, not with the module: its names and the stored spec serve commands that read no
+    # HDF5 (the command line's closing note, campaign analyze of a text configuration, validate)
     import h5py
 
     path = Path(path)
@@ -331,15 +416,10 @@ def create_file(path, spec, tasks, edges, B, *, fill=None, extra=0, what="creati
 
 def block_sums_of(e):
     """The checksum of a dataset read whole (a histogram's bin edges: one block)."""
-    from campaign.storage.checksums import block_sums
-
     return block_sums(e, max(1, len(e)))
 
 
 def _write_layout(f, spec, tasks, edges, B):
-    from campaign.storage.checksums import (PROTECTION_ATTR, checksums_on, create_fill_sums, create_sums,
-                                            protection_text, write_sums)
-
     T = len(tasks)
     g = f.create_group("tasks")
     cols = {"id": "S32", "variant": f"S{VARIANT_LEN}", "N": np.int64, "E": np.float64, "seed": np.int64}

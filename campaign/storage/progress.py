@@ -23,6 +23,8 @@ import threading
 import time
 from pathlib import Path
 
+from campaign.storage.faults import write_fault
+
 #: A running master rewrites its progress file at least this often (seconds).
 HEARTBEAT_SECONDS = 10.0
 #: Seen from another host, a progress file older than this (seconds) means its run is dead.
@@ -213,8 +215,6 @@ class Progress:
                     tmp.unlink()
                 except OSError:
                     pass
-                from campaign.storage.faults import write_fault
-
                 fault = write_fault(exc, self.sidecar, "writing the progress file", needed=len(text.encode()))
                 if fault is not None and fault.out_of_space:
                     raise fault from None

@@ -9,21 +9,24 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import os
 from pathlib import Path
 
 import numpy as np
 
 from campaign.errors import UserError
+from campaign.plan.spec import histogram_edges
+from campaign.plan.tasks import expand
 from campaign.storage.damage import Report
+from campaign.storage.layout import status_counts
+from campaign.storage.salvage import salvage
 
 
 @contextlib.contextmanager
 def run_lock(path):
     """Hold the lock a run holds (an exclusive ``flock`` on ``<path>.journal``, created if missing):
     no run can start meanwhile; UserError if one is writing."""
-    import fcntl
-
     jpath = Path(str(path) + ".journal")
     created = not jpath.exists()
     try:
@@ -60,9 +63,6 @@ def repair(report: Report) -> dict:
     whatever is not a task's (damaged provenance, stray groups, ``/reduced``) is left out.
     Returns ``{"pending_again", "rows_before", "rows_after"}``. Raises UserError when it cannot be
     done (the file cannot be opened, its spec attributes are damaged, a run is writing it)."""
-    from campaign.plan.tasks import expand
-    from campaign.storage.salvage import salvage
-
     if report.fatal is not None:
         raise UserError(f"{report.path}: cannot be repaired: {report.fatal}")
     bad = report.unrepairable()
@@ -73,19 +73,13 @@ def repair(report: Report) -> dict:
     edges = dict(report.edges)
     missing = [h for h in spec.histograms if h not in edges]
     if missing:
-        from campaign.plan.spec import histogram_edges
-
         edges.update(histogram_edges(missing, {h: list(e) for h, e in spec.bins}))
     edges = {h: np.asarray(edges[h], np.float64) for h in sorted(spec.histograms)}
-    T = len(tasks)
     B = report.B or 1
     drop = set(report.drop_rows().tolist())
     before = report.counts
-    state = (np.zeros(T, np.int8), np.zeros(T, np.int32), np.full(T, np.nan))
     with run_lock(report.path):
-        salvage(report.path, spec, tasks, edges, B, state, drop=drop, renames=report.renames, checked=True)
-    st = state[0]
-    after = {"done": int(np.count_nonzero(st == 1)), "failed": int(np.count_nonzero(st == 2)),
-             "pending": int(np.count_nonzero(st == 0))}
+        state = salvage(report.path, spec, tasks, edges, B, drop=drop, renames=report.renames, checked=True)
+    after = status_counts(state.status)
     return {"pending_again": before["done"] + before["failed"] - after["done"] - after["failed"],
             "rows_before": before, "rows_after": after}

@@ -15,6 +15,7 @@ import json
 import os
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from campaign.storage.checksums import (PROTECTION_ATTR, ROUNDS_GROUP, SUMS_GROUP, SUMS_ROWS, check_rows,
@@ -22,18 +23,19 @@ from campaign.storage.checksums import (PROTECTION_ATTR, ROUNDS_GROUP, SUMS_GROU
                                         checksums_on, configuration_problem, create_fill_sums, failure_problem,
                                         good_scalar_name, has_sums, protection_text, sums_name, write_checkpoint,
                                         write_configuration, write_failure, write_scalar_names, write_sums)
-from campaign.storage.layout import (DONE, FAILED, PENDING, ROW_FIELDS, create_file, dataset_kwargs,
-                                        fill_value)
+from campaign.storage.layout import (DONE, FAILED, PENDING, ROW_FIELDS, State, create_file, dataset_kwargs,
+                                    fill_value)
 
 
-def salvage(path, spec, tasks, edges, B, state, *, drop=(), renames=None, checked=False):
+def salvage(path, spec, tasks, edges, B, *, drop=(), renames=None, checked=False) -> State:
     """Rebuild the damaged store at ``path`` as a fresh one holding every committed row that can
-    still be read from it, copied block by block. Lost (their tasks pending again): a block that
+    still be read from it, copied block by block; returns the new store's ``State`` (the kept rows'
+    values, every other task pending). Lost (their tasks pending again): a block that
     cannot be read, a row in ``drop``, a row whose commit marker contradicts it, and one whose
     configuration or failure record cannot be read or fails its checksum (or, failed, has none); a block that differs
     from its block checksums too, unless ``checked`` (``campaign verify --repair``: its scan found
-    those, and ``drop`` holds their rows). ``state`` (status, attempts, wall arrays) gets the kept
-    rows' values; ``renames`` maps scalar datasets found under a damaged name to their name.
+    those, and ``drop`` holds their rows). ``renames`` maps scalar datasets found under a damaged
+    name to their name.
 
     The space it needs (the new layout and the damaged file's size) is reserved first; a full disk
     (OutOfSpace) or any other fault removes the temporary file and leaves ``path`` as it was."""
@@ -42,22 +44,22 @@ def salvage(path, spec, tasks, edges, B, state, *, drop=(), renames=None, checke
         extra = os.stat(path).st_size
     except OSError:
         extra = 0
+    state = State.fresh(len(tasks))
     create_file(path, spec, tasks, edges, B, extra=extra, what="salvaging the damaged store into a new file",
                 fill=lambda f: _salvage_into(f, path, tasks, edges, B, state, drop, renames or {}, checked))
+    return state
 
 
 def _salvage_into(f, old_path, tasks, edges, B, state, drop=(), renames=None, checked=False):
-    """Copy every readable committed row of the damaged store ``old_path`` into ``f``.
+    """Copy every readable committed row of the damaged store ``old_path`` into ``f``, and their
+    values into the new store's ``state`` (every task pending in it to begin with).
 
     Dropped (pending again, every column at its fill value): the rows of a block that cannot be
     read, the rows in ``drop``, a row whose status is not 0, 1 or 2 or says finished where its
     row holds no finished task (``attempts`` 0), and a finished row whose configuration or failure
     record cannot be read or fails its checksum, and a failed row without its failure record. Root
     attributes that read are carried over."""
-    import h5py
-
     T = len(tasks)
-    status, attempts, wall = state
     drop = set(int(i) for i in drop)
     try:
         old = h5py.File(old_path, "r", locking=False)
@@ -150,10 +152,10 @@ def _salvage_into(f, old_path, tasks, edges, B, state, drop=(), renames=None, ch
                     write_failure(f["failures"], tid, v)
             f["tasks/status"][lo:hi] = st
             write_sums(f.get(sums_name("tasks/status")), lo, st, B)
-            status[lo:hi] = st
-            attempts[lo:hi] = data["tasks/attempts"]
-            wall[lo:hi] = data["tasks/wall"]
-        _carry_checkpoints(f, old, tasks, status)
+            state.status[lo:hi] = st
+            state.attempts[lo:hi] = data["tasks/attempts"]
+            state.wall[lo:hi] = data["tasks/wall"]
+        _carry_checkpoints(f, old, tasks, state.status)
         _carry_rounds(f, old)
 
 

@@ -1,68 +1,54 @@
-"""The campaign's HDF5 store: the master's writer, and the readers (layout: docs/STORE.md).
+"""The master's writer of a campaign store: a run's start (opening or resuming the store), its
+finished tasks staged and written block by block, checkpoints, and its close (docs/STORE.md).
 
-Two files per campaign, written only by the master:
+Two files, written only by the master: the HDF5 store (``OUT``, its layout ``campaign.storage.layout``:
+per-task datasets chunked by blocks of rows, ``tasks/status`` the commit marker) and its write-ahead
+journal (``OUT.journal``, ``campaign.storage.journal``: one record per finished task, written before
+anything touches the HDF5 file, cut back at a *checkpoint* once the store holds everything).
 
-* ``OUT`` (HDF5): the store users read with plain h5py. Every per-task dataset has
-  T rows (T known from the spec), chunked by blocks of ``block`` rows and compressed
-  (shuffle + deflate), so the file grows with the finished packings, not with the
-  grid; a chunk never written costs nothing. ``tasks/status`` (one byte a task, not
-  compressed) is the commit marker: a row counts once its status says so. Its layout
-  (with a block of rows built from the tasks' records), creation and checking:
-  ``campaign.storage.layout``; the salvage of a damaged one: ``campaign.storage.salvage``.
-* ``OUT.journal``: a write-ahead log (``campaign.storage.journal``). One length-prefixed,
-  CRC-checked record per finished task, written with a single ``write()`` before
-  anything touches the HDF5 file. At a *checkpoint* (when the journal passes
-  ``JOURNAL_BYTES``, and when a run ends) every staged row is written into the store,
-  the store is flushed and ``fsync``ed, and only then is the journal cut back to its
-  header: it never holds what the store already holds.
+A run's start (``Store._open``): the journal is read and the file looked at once (``layout.inspect``):
+kept, salvaged from its readable rows when it is damaged (``campaign.storage.salvage``) or created,
+each giving the scheduler's ``layout.State``; a store of another spec or program is refused
+(``layout.ForeignStore``). Then it is opened for writing, the journal replayed into it (idempotent: a
+row is a pure function of its last record; rows lost with damage are counted and run again, packings
+being pure functions of the spec) and both are checkpointed.
 
-The master keeps O(1) per task in memory: status, attempts and wall time (the
-scheduler and the wall-time model need them). A finished task's scalars and
-histograms wait in a staging buffer only until the block of rows they belong to is
-complete (or ``HOLD_SECONDS`` have passed, or the buffer passes ``BUFFER_BYTES``),
-then go to disk: data first, ``flush``, then the status column, ``flush`` again.
-Writing whole blocks keeps each compressed chunk written about once. A chunk rewritten
-whole could lose its committed rows to a write cut by SIGKILL, so before a block is
-written again, its committed rows that are no longer in the journal are appended to it
-again (from the store).
+The master keeps O(1) per task in memory: status, attempts and wall time (the scheduler and the
+wall-time model need them). A finished task's scalars and histograms wait in a staging buffer only
+until the block of rows they belong to is complete (or ``HOLD_SECONDS`` have passed, or the buffer
+passes ``BUFFER_BYTES``), then go to disk: data first, ``flush``, then the status column, ``flush``
+again. Writing whole blocks keeps each compressed chunk written about once. A chunk rewritten whole
+could lose its committed rows to a write cut by SIGKILL, so before a block is written again, its
+committed rows that are no longer in the journal are appended to it again (from the store).
 
-On every start the journal is replayed into the store (idempotent: a row is a pure
-function of its last record). A damaged journal keeps every intact record (a record
-that fails its checksum is skipped up to the next intact one) and says how many
-were lost; their tasks are pending again and run again. If the store is unreadable,
-every readable committed row is salvaged into a new file (created under a temporary
-name and renamed into place), the journal is replayed on top, and the rows lost
-with the damage are counted and run again: packings are pure functions of the spec.
+A full disk (or quota, or a failing file system) never leaves the two files disagreeing: every HDF5
+write step first reserves the space it may need (``campaign.storage.space``) and raises
+``OutOfSpace`` before writing anything; should HDF5 itself meet a failed write, its handle is
+*poisoned* (``campaign.storage.faults.GuardedFile.poisoned``) and never flushed or closed normally
+again, and the next start salvages the store from the journal. Either way the run stops with a
+``WriteFault`` (exit status 3).
 
-A full disk (or quota, or a file system that fails) never leaves the two files
-disagreeing: every HDF5 write step first reserves the space it may need and raises
-``OutOfSpace`` before writing anything when it is not there (``campaign.storage.space``:
-the estimate, the reservation, what finishing needs; the store hands it data, the blocks its
-file holds once when it opens it, and it never calls back); a journal append that fails is cut
-back to the previous record. Should HDF5 itself still meet a failed write, its handle is
-*poisoned* (``campaign.storage.faults.GuardedFile.poisoned``, the handle's own state, set by the
-failed write step): never flushed or closed normally again, since its cache then holds blocks
-that never reached the disk (its writes go to memory); the journal holds every finished task and
-the next start salvages the store. Either way the run stops with a ``WriteFault`` (exit status 3).
+Suspended GPU packings (stop and go, docs/GPU.md) take the same path: a ``suspended`` record in the
+journal first (``Store.suspend``), then the group ``/checkpoints/<id>`` (the packing's state and
+counters, with a checksum) at the next flush; the task stays pending, and the group is removed in the
+write step that commits the task's row. A checkpoint that cannot be read or does not match its
+checksum is ignored (``Store.suspended``): its task starts over.
 
-Suspended GPU packings (stop and go, docs/GPU.md) take the same path: a ``suspended`` record
-in the journal first (``Store.suspend``), then the group ``/checkpoints/<id>`` (the packing's
-state and counters, with a checksum) at the next flush; the task stays pending, and the group is
-removed in the write step that commits the task's row. A checkpoint that cannot be read or does
-not match its checksum is ignored (``Store.suspended``): its task starts over.
-
-Calls go one way: here -> ``space``, ``salvage``, ``layout``, ``checksums``,
-``journal``, ``faults``; none of them imports this module.
+Calls go one way: here -> ``space``, ``salvage``, ``layout``, ``checksums``, ``journal``,
+``faults`` and ``reader`` (the readers' error, should the task table not read); none of them
+imports this module.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import resource
 import sys
 import time
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from campaign.errors import OutOfSpace, StoreDamaged, UserError
@@ -73,14 +59,15 @@ from campaign.storage.checksums import (CHECKPOINT_ATTRS, CHECKPOINT_KEYS, CONFI
                                         create_fill_sums, has_sums, read_rounds, sums_name, unprotected_note,
                                         write_checkpoint, write_configuration, write_failure, write_round,
                                         write_scalar_names, write_sums)
+from campaign.storage.journal import Journal, task_record
 from campaign.storage.journal import (  # noqa: F401 - part of this module's interface
-    MAX_RECORD, Journal, decode_payload, encode_record, read_journal, scan_journal)
+    MAX_RECORD, decode_payload, encode_record, read_journal, scan_journal)
 from campaign.storage.layout import (  # noqa: F401 - part of this module's interface
     CHUNK_CACHE, COMPRESSION, DONE, ERROR_LEN, FAILED, FORMAT_VERSION, HOST_LEN, OLD_FORMAT_HELP, PENDING,
-    ROW_FIELDS, SCHEMA, SLACK, TASK_FIELDS, VARIANT_LEN, check_file, check_format, create_file, dataset_kwargs,
-    fill_value, fixed, format_problem, fsync_path, load_state, row_dtype, row_values)
+    ROW_FIELDS, SCHEMA, SLACK, TASK_FIELDS, VARIANT_LEN, State, block_values, check_format, column_block,
+    create_file, dataset_kwargs, fill_value, fixed, format_problem, fsync_path, inspect, row_dtype, row_values)
+from campaign.storage.reader import read_failure
 from campaign.storage.salvage import salvage
-from campaign.storage.layout import block_values, column_block
 from campaign.storage.space import StoreSpace
 
 FLUSH_SECONDS = 0.5     # staged complete blocks are written at least this often
@@ -93,10 +80,8 @@ def peak_rss_mb() -> float:
     """This process's peak resident memory so far (MB), as the kernel counts it: the master's,
     recorded in the run's record when the store closes."""
     try:
-        import resource
-
         return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)  # kB on Linux
-    except (ImportError, OSError):
+    except OSError:
         return float("nan")
 
 
@@ -109,23 +94,14 @@ class Store:
     """
 
     def __init__(self, path, spec, tasks, edges: dict, *, new=False, provenance=None, log=None):
-        import h5py  # noqa: F401 - fail early and clearly if missing
-
         self.path = Path(path)
         self.spec, self.tasks = spec, tasks
         self.T = len(tasks)
         self.B = max(1, min(BLOCK_ROWS, self.T))
         self.edges = {k: np.asarray(v, np.float64) for k, v in sorted(edges.items())}
         self.log = log or (lambda msg: print(msg, file=sys.stderr))
-        self.f = self.io = self.space = None
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            fault = write_fault(exc, self.path.parent, "creating the output directory")
-            if fault is not None and fault.out_of_space:
-                raise fault from None
-            raise UserError(f"cannot create the directory of {str(self.path)!r}: {exc.strerror or exc}") from None
-        self.journal = Journal(Path(str(self.path) + ".journal"))
+        self.f = self.io = self.space = self.journal = None
+        _make_directory(self.path)
         try:
             self._open(new, provenance or {})
         except BaseException:
@@ -134,68 +110,59 @@ class Store:
 
     # ---- opening, refusing, salvaging, replaying
     def _open(self, new, provenance):
-        import h5py
-
-        spec_hash = self.spec.hash
-        records = self.journal.records
-        self.journal.records = []
+        """The journal (locked: one writer), then one look at the file with a verdict (ForeignStore:
+        another spec's or program's), then the file kept, salvaged or created, each giving the
+        scheduler's ``State``; then one open for writing loads what the run keeps, the journal is
+        replayed on top and both are checkpointed."""
+        self.journal = Journal(Path(str(self.path) + ".journal"))  # locked: one writer per store
         if new:
-            self.journal.rewrite([])
-            records = []
-            self.journal.damaged = []
-            self.journal.torn = 0
-            if self.path.exists():
-                self.path.unlink()
-        header = records[0][0] if records else None
-        if header is not None and (header.get("type") != "header" or header.get("spec_hash") != spec_hash):
-            raise UserError(f"{str(self.journal.path)!r} belongs to a different spec (or a different "
-                            f"program); rerun with --new to start {str(self.path)!r} afresh, or choose "
-                            "another --out")
-        if header is not None and header.get("format_version", 1) != FORMAT_VERSION:
-            raise UserError(f"{str(self.journal.path)!r} was written by a store of format "
-                            f"{header.get('format_version', 1)}; " + OLD_FORMAT_HELP.format(new=FORMAT_VERSION))
-        checkpoint = {}
-        for meta, _ in records[1:]:
-            if meta.get("type") == "checkpoint":
-                checkpoint = meta
-        self._init_state()
-        salvage_from = rebuilt = None
-        touched = {int(m["index"]) // self.B for m, _ in records[1:] if m.get("type") == "task"}
+            self.journal.clear()
+            self.path.unlink(missing_ok=True)
+        replay = self.journal.replay(self.spec.hash)
         # blocks a killed run may have left half written (rows and checksums out of step): the journal
         # rewrites them, so reading them back does not check their checksums
-        self.unsure = set(touched)
-        if self.path.exists():
-            problem = check_file(self.path, spec_hash, self.tasks, self.edges, self.B, touched)
-            if problem is None:
-                try:
-                    load_state(self.path, self.status, self.attempts, self.wall)
-                except (OSError, KeyError, ValueError, RuntimeError) as exc:
-                    from campaign.storage.readerror import read_failure
-
-                    raise read_failure(self.path, exc, None, ["tasks/attempts", "tasks/wall"],
-                                       what="its task table") from None
-                self.n_status = [int(np.count_nonzero(self.status == k)) for k in (PENDING, DONE, FAILED)]
-            elif problem.startswith("refuse:"):
-                raise UserError(problem[len("refuse:"):])
-            elif not records:
-                raise UserError(f"{str(self.path)!r} is unreadable ({problem}) and has no journal to rebuild it "
-                                f"from. `campaign verify {self.path}` says what is damaged, and `--repair` rebuilds "
-                                "it from its readable rows; or move it away, or rerun with --new")
-            else:
-                self.log(f"campaign: {self.path} is damaged ({problem}); salvaging its readable rows into a "
-                         "new file and replaying the journal")
-                salvage_from = problem
-        if salvage_from is not None or not self.path.exists():
-            if salvage_from is not None:
-                salvage(self.path, self.spec, self.tasks, self.edges, self.B, (self.status, self.attempts, self.wall))
-            else:
-                create_file(self.path, self.spec, self.tasks, self.edges, self.B)
-            self.n_status = [int(np.count_nonzero(self.status == k)) for k in (PENDING, DONE, FAILED)]
-            rebuilt = "the damaged part of the" if salvage_from else "the missing"
+        self.unsure = {i // self.B for i in replay.rows()}
+        committed, notes = replay.committed, replay.notes()
+        try:
+            verdict = inspect(self.path, self.spec.hash, self.tasks, self.edges, self.B, self.unsure)
+        except (OSError, KeyError, ValueError, RuntimeError) as exc:  # a sound store whose state does not read
+            raise read_failure(self.path, exc, None, ["tasks/attempts", "tasks/wall"],
+                               what="its task table") from None
+        state = verdict.state
+        if verdict.action == "salvage" and not replay.found:
+            raise UserError(f"{str(self.path)!r} is unreadable ({verdict.problem}) and has no journal to rebuild it "
+                            f"from. `campaign verify {self.path}` says what is damaged, and `--repair` rebuilds "
+                            "it from its readable rows; or move it away, or rerun with --new")
+        if verdict.action == "salvage":
+            self.log(f"campaign: {self.path} is damaged ({verdict.problem}); salvaging its readable rows into a "
+                     "new file and replaying the journal")
+            state = salvage(self.path, self.spec, self.tasks, self.edges, self.B)
+        elif verdict.action == "create":
+            create_file(self.path, self.spec, self.tasks, self.edges, self.B)
+            state = State.fresh(self.T)
         # the space accounting (what a write step may add, its reservation, what finishing needs),
         # told once which blocks the file holds
         self.space = StoreSpace(self.path, self.B, self.T, self.edges,
-                                written=(np.flatnonzero(self.status != PENDING) // self.B).tolist())
+                                written=(np.flatnonzero(state.status != PENDING) // self.B).tolist())
+        self._load(state)
+        self.run = dict(provenance, start=_now(), end=None, run_id=os.urandom(8).hex())
+        self._replay(replay.records)
+        del replay  # the records not staged any more need not stay in memory
+        lost = committed - self.n_final()
+        if verdict.action != "keep" and lost > 0:
+            where = "the damaged part of the" if verdict.action == "salvage" else "the missing"
+            self.log(f"campaign: at least {lost} finished task(s) were only in {where} store; they are "
+                     "pending again and will be run again")
+        for note in notes:
+            self.log(note)
+        self._merge_run(self.run)
+        self._write_root_attrs()
+        self.checkpoint()
+
+    def _load(self, state):
+        """Open the file for writing (the file system's refusal: a WriteFault) and take what the run
+        keeps in memory: the scheduler's ``state``, the groups the file holds, its round decisions and
+        runs."""
         try:
             self.io = GuardedFile(self.path)
         except OSError as exc:
@@ -203,80 +170,33 @@ class Store:
             if fault is None:
                 raise
             raise fault from None
-        self.f = h5py.File(self.io, "r+", rdcc_nbytes=CHUNK_CACHE)
+        self.f = f = h5py.File(self.io, "r+", rdcc_nbytes=CHUNK_CACHE)
+        self.status, self.attempts, self.wall = state.status, state.attempts, state.wall
         self._datasets = {}
-        self._sums = {} if has_sums(self.f) else None  # dataset name -> its block checksums
+        self._sums = {} if has_sums(f) else None  # dataset name -> its block checksums
         if self._sums is None and checksums_on():  # a store of 0.2.7 or older: it stays as it is
             self.log(f"campaign: {unprotected_note(self.path)} (this run adds none to it)")
-        self.have_configs = set(self.f["configurations"].keys()) if "configurations" in self.f else set()
+        self.have_configs = set(f["configurations"].keys()) if "configurations" in f else set()
         try:  # suspended packings (stop and go); a group that cannot be listed holds none we trust
-            self.have_checkpoints = set(self.f["checkpoints"].keys()) if "checkpoints" in self.f else set()
+            self.have_checkpoints = set(f["checkpoints"].keys()) if "checkpoints" in f else set()
         except Exception:  # noqa: BLE001 - its tasks start over
             self.log(f"campaign: {self.path}: the suspended packings (checkpoints) cannot be listed; their "
                      "tasks start over")
             self.have_checkpoints = set()
-        self.have_failures = set(self.f["failures"].keys()) if "failures" in self.f else set()
+        self.have_failures = set(f["failures"].keys()) if "failures" in f else set()
         self._rerun_unrecorded_failures()
-        if ROUNDS_GROUP in self.f:  # a precision campaign's decisions so far (a fixed grid has none)
-            self.rounds_stored, problems = read_rounds(self.f)
+        self.n_status = state.counts()  # pending, done, failed; kept up to date by _stage
+        self.rounds_stored: dict[int, dict] = {}        # a precision campaign's decisions in the file
+        if ROUNDS_GROUP in f:  # a precision campaign's decisions so far (a fixed grid has none)
+            self.rounds_stored, problems = read_rounds(f)
             if problems:
                 self.log(f"campaign: {self.path}: {len(problems)} round decision(s) cannot be used ("
                          + "; ".join(problems[:3]) + "); they are made again from the packings")
-        self.scalar_names = set(self.f["scalars"].keys())
+        self.scalar_names = set(f["scalars"].keys())
         try:
-            self.runs = json.loads(self.f.attrs.get("runs", "[]"))
+            self.runs = json.loads(f.attrs.get("runs", "[]"))
         except (TypeError, ValueError):
             self.runs = []
-        self.run = dict(provenance, start=_now(), end=None, run_id=os.urandom(8).hex())
-        replayed = 0
-        for meta, arrays in records[1:] if header is not None else ():
-            if meta.get("type") == "task":
-                self._stage(meta, arrays)
-                replayed += 1
-            elif meta.get("type") == "suspended":
-                self._stage_suspended(meta, arrays)
-            elif meta.get("type") == "round":
-                self.rounds_staged[int(meta["round"])] = meta["record"]
-            elif meta.get("type") == "run":
-                self._merge_run(meta["run"])
-            if self.staged_bytes > BUFFER_BYTES:
-                self._write_blocks(list(self.staged))
-        del records
-        lost = int(checkpoint.get("committed", 0)) - self.n_final()
-        if rebuilt and lost > 0:
-            self.log(f"campaign: at least {lost} finished task(s) were only in {rebuilt} store; they are "
-                     "pending again and will be run again")
-        if self.journal.damaged:
-            n_lost = sum(k for _, _, k in self.journal.damaged)
-            n_bytes = sum(n for _, n, _ in self.journal.damaged)
-            where = ", ".join(f"{o}" for o, _, _ in self.journal.damaged[:5])
-            self.log(f"campaign: {self.journal.path} is damaged: skipped {len(self.journal.damaged)} damaged "
-                     f"stretch(es) ({n_bytes} bytes at offset {where}), about {n_lost} record(s) lost; kept "
-                     f"{replayed} intact task record(s). The tasks of the lost records are pending again and "
-                     "will be run again")
-        if self.journal.torn:
-            self.log(f"campaign: cut a torn record ({self.journal.torn} bytes) off the end of {self.journal.path}")
-        self._merge_run(self.run)
-        self._write_root_attrs()
-        self.checkpoint()
-
-    def _rerun_unrecorded_failures(self):
-        """A row that says failed without its failure record (a SIGKILL tore the ``failures``
-        group's index and took the link with it) is pending again: its task runs again and gets its
-        record back, instead of a record rebuilt without its traceback."""
-        lost = [int(i) for i in np.flatnonzero(self.status == FAILED) if self.tasks[i].id not in self.have_failures]
-        if lost:
-            self.status[lost] = PENDING
-            self.n_status = [int(np.count_nonzero(self.status == k)) for k in (PENDING, DONE, FAILED)]
-            self.log(f"campaign: {self.path}: {len(lost)} failed task(s) have lost their failure record; they "
-                     "are pending again and will be run again")
-
-    def _init_state(self):
-        T = self.T
-        self.status = np.zeros(T, np.int8)
-        self.n_status = [T, 0, 0]  # pending, done, failed
-        self.attempts = np.zeros(T, np.int32)
-        self.wall = np.full(T, np.nan)
         self.hosts = set()
         self.staged: dict[int, dict[int, tuple]] = {}   # block -> row -> (meta, arrays)
         self.staged_since: dict[int, float] = {}        # block -> when its first staged row came
@@ -285,9 +205,33 @@ class Store:
         self.in_journal: set[int] = set()               # rows with a record in the journal
         self.suspended_staged: dict[int, tuple] = {}     # row -> suspended packing's (meta, arrays)
         self.bad_checkpoints: set[str] = set()          # ids whose checkpoint was found damaged
-        self.rounds_stored: dict[int, dict] = {}        # a precision campaign's decisions in the file
         self.rounds_staged: dict[int, str] = {}         # ... and those in the journal only (JSON text)
         self.last_flush = time.monotonic()
+
+    def _replay(self, records):
+        """Stage the journal's records (a killed run's finished tasks, suspended packings, round
+        decisions and runs): a row is a pure function of its last record, so replaying is idempotent."""
+        for meta, arrays in records:
+            if meta.get("type") == "task":
+                self._stage(meta, arrays)
+            elif meta.get("type") == "suspended":
+                self._stage_suspended(meta, arrays)
+            elif meta.get("type") == "round":
+                self.rounds_staged[int(meta["round"])] = meta["record"]
+            elif meta.get("type") == "run":
+                self._merge_run(meta["run"])
+            if self.staged_bytes > BUFFER_BYTES:
+                self._write_blocks(list(self.staged))
+
+    def _rerun_unrecorded_failures(self):
+        """A row that says failed without its failure record (a SIGKILL tore the ``failures``
+        group's index and took the link with it) is pending again: its task runs again and gets its
+        record back, instead of a record rebuilt without its traceback."""
+        lost = [int(i) for i in np.flatnonzero(self.status == FAILED) if self.tasks[i].id not in self.have_failures]
+        if lost:
+            self.status[lost] = PENDING
+            self.log(f"campaign: {self.path}: {len(lost)} failed task(s) have lost their failure record; they "
+                     "are pending again and will be run again")
 
     def n_final(self) -> int:
         return self.n_status[DONE] + self.n_status[FAILED]
@@ -310,24 +254,7 @@ class Store:
 
     def record(self, index: int, summary: dict, attempts: int):
         """Record a task's final outcome: done if ``summary['ok']``, else failed."""
-        t = self.tasks[index]
-        status = DONE if summary["ok"] else FAILED
-        err = summary.get("error") or {}
-        meta = {"type": "task", "index": index, "id": t.id, "status": status, "attempts": int(attempts),
-                "wall": float(summary.get("wall", float("nan"))), "rank": int(summary.get("rank", -1)),
-                "host": str(summary.get("host", "")), "message": err.get("message", ""),
-                "traceback": err.get("traceback", ""), "run_id": self.run["run_id"]}
-        arrays = {}
-        if status == DONE:
-            sc = summary.get("scalars", {})
-            meta["scalar_names"] = ",".join(sc)
-            arrays["s"] = np.fromiter(sc.values(), np.float64, len(sc))
-            for h in self.edges:
-                arrays["h/" + h] = np.asarray(summary["histograms"][h], np.int64)
-            cfg = summary.get("configuration")
-            if cfg is not None:  # asked for by the spec, or a ladder parent's
-                for k in ("positions", "radii", "box", "species"):
-                    arrays["c/" + k] = np.asarray(cfg[k])
+        meta, arrays = task_record(index, self.tasks[index].id, summary, attempts, self.edges, self.run["run_id"])
         self._append(meta, arrays)
         self._stage(meta, arrays)
         self.maybe_flush()
@@ -725,10 +652,10 @@ class Store:
         scal = {n: self._read_block(f"scalars/{n}", lo, hi) for n in sorted(self.scalar_names)}
         hist = {h: self._read_block(f"histograms/{h}/counts", lo, hi) for h in self.edges}
         for i in rows:
-            k = i - lo
-            t = self.tasks[i]
-            status = int(self.status[i])
-            meta = {"type": "task", "index": i, "id": t.id, "status": status,
+            k, tid, status = i - lo, self.tasks[i].id, int(self.status[i])
+            failure = f[f"failures/{tid}"].attrs if status != DONE and tid in self.have_failures else None
+            conf = self._stored_configuration(tid) if tid in self.have_configs else None
+            meta = {"type": "task", "index": i, "id": tid, "status": status,
                     "attempts": int(cols["attempts"][k]), "wall": float(cols["wall"][k]),
                     "rank": int(cols["rank"][k]), "host": cols["host"][k].decode(errors="replace"),
                     "message": cols["error"][k].decode(errors="replace"), "traceback": "", "run_id": None}
@@ -736,16 +663,13 @@ class Store:
             if status == DONE:
                 meta["scalars"] = {n: float(v[k]) for n, v in scal.items() if not np.isnan(v[k])}
                 arrays = {"h/" + h: c[k] for h, c in hist.items()}
-            elif t.id in self.have_failures:
-                a = f[f"failures/{t.id}"].attrs
-                meta["message"], meta["traceback"] = str(a.get("message", "")), str(a.get("traceback", ""))
-            if t.id in self.have_configs:
-                conf = self._stored_configuration(t.id)
+            elif failure is not None:
+                meta["message"], meta["traceback"] = str(failure.get("message", "")), str(failure.get("traceback", ""))
+            if conf is not None:
                 arrays.update(("c/" + k, a) for k, a in conf.items())
             self.journal.append(meta, arrays)
             self.in_journal.add(i)
         self.journal.sync()
-
 
     def checkpoint(self):
         """Everything staged into the store, the store made durable, then the journal cut back
@@ -771,11 +695,7 @@ class Store:
             if fault is None:
                 raise
             raise fault from None
-        header = {"type": "header", "schema": SCHEMA, "format_version": FORMAT_VERSION,
-                  "spec_hash": self.spec.hash, "T": self.T}
-        recs = [(header, None)] + [({"type": "run", "run": r}, None) for r in self.runs]
-        recs.append(({"type": "checkpoint", "committed": self.n_final(), "time": _now()}, None))
-        self.journal.rewrite(recs)
+        self.journal.cut_back(self.spec.hash, self.T, self.runs, self.n_final(), _now())
         self.in_journal = set()
         self.last_flush = time.monotonic()
 
@@ -860,6 +780,18 @@ class Store:
 
 def _nbytes(arrays) -> int:
     return sum(a.nbytes for a in arrays.values()) if arrays else 0
+
+
+def _make_directory(path):
+    """The directory the store ``path`` goes into, made if missing (a full disk: OutOfSpace; any other
+    refusal: UserError, before anything is written)."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        fault = write_fault(exc, path.parent, "creating the output directory")
+        if fault is not None and fault.out_of_space:
+            raise fault from None
+        raise UserError(f"cannot create the directory of {str(path)!r}: {exc.strerror or exc}") from None
 
 
 def _now() -> str:

@@ -501,7 +501,7 @@ def test_spec_device_keys_give_their_own_ids(tmp_path):
     gpu = ids("{device: gpu}")
     assert set(gpu).isdisjoint(cpu)
     # the block's version is part of a GPU packing's identity: another block, other packings
-    import campaign.plan.spec as spec_module
+    import campaign.plan.parse as spec_module  # where a spec's identity keys are written
 
     block = spec_module.GPU_BLOCK
     try:

@@ -231,3 +231,33 @@ def test_a_configuration_without_network_draws_its_rattlers(tmp_path):
     assert _n(arts, "rattlers", "offsets") == 3 and _n(arts, "disks", "offsets") == 0
     assert _n(arts, "grains", "paths") == _n(arts, "network", "segments") == 0
     plt.close("all")
+
+
+def test_a_store_variant_is_drawn_with_its_own_potential(tmp_path):
+    """A variant that overrides the system's potential (Hertz, alpha = 2.5) is drawn with its own
+    exponent, not the spec's top-level one: the forces layer's widths are its pair forces and the
+    packing's E_G computed with the drawn exponent is the one the store holds."""
+    import h5py
+
+    spec = tmp_path / "hertz.yaml"
+    spec.write_text("name: hertzdraw\nseed: 7\ngrid:\n  N_G: [16]\n  E_G: [1.0e-4]\n  seeds: 1\n"
+                    "variants:\n  - name: hertz\n    system: {potential: {exponent: 2.5}}\n"
+                    "observables: [scalars]\nstore: {configurations: true}\n")
+    out = tmp_path / "hertz.h5"
+    assert cli.main(["run", str(spec), "--out", str(out), "--launcher", "inline", "--quiet"]) == 0
+    with h5py.File(out, "r") as f:
+        variant = f["tasks/variant"].asstr()[:]
+        stored = f["scalars/E_G"][:]
+    for name, alpha in (("default", 2.0), ("hertz", 2.5)):
+        row = int(np.flatnonzero(variant == name)[0])
+        src = draw.read_source(out, index=row)
+        assert src.exponent == alpha, name
+        a = kernels.analyze(src.positions, src.radii, src.box, [], exponent=src.exponent)
+        assert a.scalars["E_G"] == pytest.approx(stored[row], rel=1e-12), name
+        sc = draw.scene(src.positions, src.radii, src.box, src.species, exponent=src.exponent, layers=draw.LAYERS)
+        i, j = a.contacts[~a.rattler[a.contacts].any(axis=1)].T
+        d = src.positions[j] - src.positions[i]
+        d -= np.round(d / src.box[:2]) * src.box[:2]
+        sig = src.radii[i] + src.radii[j]
+        expected = (1 - np.hypot(d[:, 0], d[:, 1]) / sig) ** (alpha - 1) / sig
+        assert np.allclose(np.sort(sc.forces), np.sort(expected), rtol=1e-9, atol=0), name
