@@ -416,3 +416,19 @@ def cuda_missing(compiler=False):
     except Exception as exc:  # noqa: BLE001 - any reason it cannot be loaded
         return f"needs libNVVM (the cuda extra's CUDA compiler libraries): {exc}"
     return None
+
+
+def fit_cells(groups, n_boot, seed):
+    """The reducer's way on cells of one size: packings resampled within each cell
+    (``bootstrap.cell_moments``), each cell weighted by the within-cell variance pooled over the
+    cells, in the data and in every replica. ``groups``: per cell, its packings' (x, y) as (n, 2)."""
+    from campaign.results import bootstrap, fits
+
+    rng = bootstrap.generator(seed)
+    means, covs = zip(*(bootstrap.cell_moments(g, bootstrap.seed_weights(rng, len(g), n_boot)) for g in groups))
+    means, covs = np.stack(means, -1), np.stack(covs, -1)  # (1 + n_boot, 2, cells), (1 + n_boot, 2, 2, cells)
+    n = np.array([len(g) for g in groups], float)
+    pooled = (covs[:, 1, 1] * (n - 1)).sum(-1) / (n - 1).sum()  # (1 + n_boot,)
+    err = np.sqrt(pooled[:, None] / n)
+    return fits.fit_power_law(means[0, 0], means[0, 1], err[0], boot_x=means[1:, 0], boot_y=means[1:, 1],
+                              boot_err=err[1:])

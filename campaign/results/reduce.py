@@ -109,6 +109,9 @@ class Reduction:
     # section name -> its result (SECTIONS), also red.<name>: red.tradeoff (campaign.results.tradeoff's
     # records, summary.json's "variants"), red.systems, red.response, red.protocols (a Protocols)
     sections: dict = field(default_factory=dict)
+    # (variant, quantity, abscissa) -> N_G -> what the law's fits took at that size: the cells' means,
+    # the variance model's errors (the weights), the cells (Table.shared_in), or why it did not enter
+    fit_inputs: dict = field(default_factory=dict)
 
     def __getattr__(self, name):
         """A section's result by its name (``red.tradeoff``): ``sections[name]``."""
@@ -226,4 +229,4 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                      area_hist=area_hist, fits=fit_records, residuals=residuals,
                      width_scaling=width, rows=rows, extrapolated=extrapolated,
                      peaks={v: three_disk_peaks(vsys[v]) for v in sorted(set(g.cv))},
-                     notes=notes, meta=meta, sections=sections)
+                     notes=notes, meta=meta, sections=sections, fit_inputs=tab.shared_in)

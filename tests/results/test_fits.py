@@ -7,6 +7,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import curve_fit
 
+from helpers import fit_cells as _fit_cells
+
 from campaign.results import bootstrap, fits
 
 E_GRID = np.logspace(-15, -3, 13)
@@ -59,14 +61,6 @@ def _cells(rng, x_true, a, c, beta, n, noise):
     return groups
 
 
-def _fit_cells(groups, n_boot, seed):
-    x = np.array([g[:, 0].mean() for g in groups])
-    y = np.array([g[:, 1].mean() for g in groups])
-    ye = np.array([g[:, 1].std(ddof=1) / np.sqrt(len(g)) for g in groups])
-    boot = bootstrap.cell_means(groups, n_boot, seed=seed)
-    return fits.fit_power_law(x, y, ye, boot_x=boot[..., 0], boot_y=boot[..., 1])
-
-
 def test_noisy_cells_recover_truth_within_bootstrap_errors():
     rng = np.random.default_rng(11)
     f = _fit_cells(_cells(rng, E_GRID, 0.446, 0.5, 0.28, 40, 0.003), 400, seed=1)
@@ -91,18 +85,27 @@ def test_bootstrap_errors_cover_truth_at_the_stated_rate():
         assert abs(hits / M - 0.683) < band + 0.04, hits / M
 
 
-def test_bootstrap_cell_means_is_deterministic_and_matches_the_standard_error():
+def test_cell_moments_are_deterministic_and_scatter_as_a_cell_mean_does():
+    """A replica's mean, scaled by sqrt(n / (n - 1)), scatters by the standard error of the mean
+    (the sample's, n - 1 in the denominator), not the (n - 1) / n of it a plain resample gives;
+    its covariance is the sample covariance of the packings drawn."""
     rng = np.random.default_rng(5)
-    groups = [rng.normal(0, 1, (50, 2)), rng.normal(3, 2, (200, 2))]
-    b1 = bootstrap.cell_means(groups, 2000, seed=7)
-    b2 = bootstrap.cell_means(groups, 2000, seed=7)
-    assert b1.shape == (2000, 2, 2)
-    np.testing.assert_array_equal(b1, b2)
-    for k, g in enumerate(groups):
-        sem = g.std(ddof=0, axis=0) / np.sqrt(len(g))
-        np.testing.assert_allclose(b1[:, k].std(axis=0), sem, rtol=0.08)
-        assert np.all(np.abs(b1[:, k].mean(axis=0) - g.mean(axis=0)) < 4 * sem / np.sqrt(2000))
-    assert not np.array_equal(b1, bootstrap.cell_means(groups, 2000, seed=8))
+    for n in (4, 50, 200):
+        g = rng.normal([0, 3], [1, 2], (n, 2))
+        w = bootstrap.seed_weights(bootstrap.generator(7), n, 4000)
+        m1, c1 = bootstrap.cell_moments(g, w)
+        m2, c2 = bootstrap.cell_moments(g, w)
+        assert m1.shape == (4001, 2) and c1.shape == (4001, 2, 2)
+        np.testing.assert_array_equal(m1, m2)
+        np.testing.assert_array_equal(c1, c2)
+        np.testing.assert_array_equal(m1[0], g.mean(0))
+        np.testing.assert_allclose(c1[0], np.cov(g.T), rtol=1e-12)
+        sem = g.std(ddof=1, axis=0) / np.sqrt(n)
+        np.testing.assert_allclose(m1[1:].std(axis=0), sem, rtol=0.06)
+        k = 17  # one replica, computed by hand
+        drawn = np.repeat(g, w[k].astype(int), axis=0)
+        np.testing.assert_allclose(m1[k + 1], g.mean(0) + np.sqrt(n / (n - 1)) * (drawn.mean(0) - g.mean(0)))
+        np.testing.assert_allclose(c1[k + 1], np.cov(drawn.T), rtol=1e-9, atol=1e-12)
 
 
 @settings(max_examples=25, deadline=None)
@@ -211,30 +214,37 @@ def test_zero_abscissa_is_a_point_at_the_intercept():
         fits.fit_power_law(-x[::-1], y, np.full(x.size, 1e-4))
 
 
-def _ladder(rng, seeds, missing):
-    """Two cells of one size, every seed in the first, the second without the seeds ``missing``."""
-    a = rng.normal(0, 1, (seeds, 1))
-    keep = np.setdiff1d(np.arange(seeds), missing)
-    return [a, a[keep] + 1.0], [np.arange(seeds), keep]
+def _grid(cells, seeds):
+    """A ``Grid`` of ``cells`` ((variant, N, E) each) whose packings are the seeds ``seeds[i]``."""
+    from campaign.results.cells import Grid
+
+    seed_of = np.concatenate([np.asarray(s) for s in seeds])
+    bounds = np.concatenate([[0], np.cumsum([len(s) for s in seeds])])
+    C = len(cells)
+    z = np.zeros(C, np.int64)
+    g = Grid(cv=np.array([c[0] for c in cells]), cN=np.array([c[1] for c in cells]),
+             cE=np.array([c[2] for c in cells], float), cell=np.repeat(np.arange(C), np.diff(bounds)),
+             n_done=np.diff(bounds), n_excluded=z, n_failed=z, n_pending=z, order=np.arange(len(seed_of)),
+             bounds=bounds)
+    return g, seed_of
 
 
-def test_the_seed_bootstraps_differ_only_where_a_replica_misses_a_cells_seeds():
-    rng = np.random.default_rng(5)
-    for missing in ((), (0, 1, 2, 3, 4, 5, 6)):
-        groups, seeds = _ladder(rng, 8, list(missing))
-        means = bootstrap.seed_means(groups, seeds, 400, seed=3)
-        counts = np.zeros((8, 2))
-        sums = np.zeros((8, 2))
-        for c, (g, sd) in enumerate(zip(groups, seeds)):
-            np.add.at(counts[:, c], sd, 1.0)
-            np.add.at(sums[:, c], sd, g[:, 0])
-        nb, mb = bootstrap.seed_cell_means(counts, sums, 400, bootstrap.generator(3))
-        # the same seeds drawn in the same order: the replicas that hold every cell agree
-        full = bootstrap.seed_weights(bootstrap.generator(3), 8, 400) @ counts
-        held = np.all(full > 0, axis=1)
-        np.testing.assert_allclose(means[held, :, 0], mb, rtol=1e-12)
-        if not missing:
-            assert held.all()
-        else:  # a replica without seed 7 keeps the cell at its mean in one, and is dropped in the other
-            assert not held.all() and len(mb) == held.sum() < 400
-            np.testing.assert_array_equal(means[~held, 1, 0], groups[1].mean())
+def test_replica_weights_draw_seeds_jointly_across_variants_and_whole_seeds_along_a_ladder():
+    """The variants of one cell draw the same seeds (a paired bootstrap); a ladder's variant draws a
+    seed at every energy of its size together; a variant missing some seeds takes those it holds;
+    the same key, the same draws."""
+    cells = [("a", 64, 1e-3), ("b", 64, 1e-3), ("a", 64, 1e-5), ("b", 64, 1e-5), ("a", 128, 1e-3),
+             ("l", 64, 1e-3), ("l", 64, 1e-5)]
+    seeds = [np.arange(8), np.arange(8), np.arange(8), np.arange(2, 8), np.arange(8), np.arange(6), np.arange(6)]
+    g, seed_of = _grid(cells, seeds)
+    w = bootstrap.replica_weights(g, seed_of, range(len(cells)), {"l"}, 300, boot_seed=11)
+    assert [w[i].shape for i in range(len(cells))] == [(300, len(s)) for s in seeds]
+    np.testing.assert_array_equal(w[0], w[1])         # variants of one cell: the same seeds
+    np.testing.assert_array_equal(w[3], w[2][:, 2:])  # the variant without seeds 0 and 1 takes the rest
+    np.testing.assert_array_equal(w[5], w[6])         # a ladder: a seed at every energy
+    assert not np.array_equal(w[0], w[2]) and not np.array_equal(w[0], w[4])  # cells draw apart
+    assert np.all(w[0].sum(1) == 8)                   # a resample of the 8 seeds
+    again = bootstrap.replica_weights(g, seed_of, range(len(cells)), {"l"}, 300, boot_seed=11)
+    assert all(np.array_equal(w[i], again[i]) for i in w)
+    other = bootstrap.replica_weights(g, seed_of, range(len(cells)), {"l"}, 300, boot_seed=12)
+    assert not np.array_equal(w[0], other[0])
