@@ -239,7 +239,11 @@ def entries(fin, settings: Settings) -> dict:
         for _, _, key, bkey in LAWS:
             for k in (key, bkey):
                 out[f"{r['N_G']}:{k}"] = (r.get(k, np.nan), r.get(f"{k}_err", np.nan))
-    jam_rows, jam, _ = jamming_point(tab, settings)
+    try:
+        jam_rows, jam, _ = jamming_point(tab, settings)
+    except TypeError:  # the reducer before 0.4 (jamming_point(fin, grid, settings, exponents)): --compare's
+        jam_rows, jam = jamming_point(tab.fin, tab.grid, settings,
+                                      {v: d["exponent"] for v, d in tab.systems.items()})
     j = jam.get("default", {})
     out["phi_J"] = (j.get("phi_J", np.nan), j.get("phi_J_err", np.nan))
     for r in jam_rows:
@@ -252,7 +256,7 @@ def one(job):
     fin = campaign(TRUTHS[truth_name], form, rep)
     t0 = time.perf_counter()
     e = entries(fin, Settings(n_boot=boot))
-    return {"truth": truth_name, "form": form, "rep": rep, "seconds": time.perf_counter() - t0,
+    return {"truth": truth_name, "form": form, "rep": rep, "boot": boot, "seconds": time.perf_counter() - t0,
             "entries": {k: [float(v[0]), float(v[1])] for k, v in e.items()}}
 
 
@@ -301,6 +305,20 @@ def failing(summary) -> list:
             if not (lo <= s[name] <= hi)]
 
 
+def load_results(path) -> list:
+    """Campaigns' records from a --json file or a --results file (a torn last line left out)."""
+    text = Path(path).read_text() if Path(path).exists() else ""
+    if text.lstrip().startswith("{") and '"results"' in text[:2000] and "\n{" not in text.strip():
+        return json.loads(text)["results"]
+    out = []
+    for line in text.splitlines():
+        try:
+            out.append(json.loads(line))
+        except ValueError:
+            pass
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--reps", type=int, default=400)
@@ -311,8 +329,11 @@ def main(argv=None):
                     help="print the N_G -> inf row and phi_J (row), or every size's entries too (all)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--json", help="write every campaign's values and the summaries here")
-    ap.add_argument("--compare", help="a --json of another version of the reducer on the same campaigns: "
-                                      "the variance ratio (this / that) of value - truth per entry")
+    ap.add_argument("--results", help="a JSON-lines file every campaign's values are appended to as it is reduced; "
+                                      "run again with the same file, only the campaigns it lacks are reduced "
+                                      "(a long run in parts, or one cut short)")
+    ap.add_argument("--compare", help="a --json or --results file of another version of the reducer on the same "
+                                      "campaigns: the variance ratio (this / that) of value - truth per entry")
     a = ap.parse_args(argv)
     truths = list(TRUTHS) if a.truths == ["all"] else a.truths
     for name in truths + a.forms:
@@ -320,9 +341,26 @@ def main(argv=None):
             ap.error(f"unknown truth or form {name!r}")
     jobs = [(t, f, rep, a.boot) for t in truths for f in a.forms for rep in range(a.reps)]
     t0 = time.time()
-    with ProcessPoolExecutor(a.workers) as ex:
-        results = list(ex.map(one, jobs, chunksize=4))
-    other = json.loads(Path(a.compare).read_text()) if a.compare else None
+    done = {(r["truth"], r["form"], r["rep"]): r for r in (load_results(a.results) if a.results else [])
+            if r.get("boot") == a.boot}
+    todo = [j for j in jobs if j[:3] not in done]
+    if done:
+        print(f"{len(jobs) - len(todo)} of {len(jobs)} campaigns already in {a.results}", file=sys.stderr)
+    sink = open(a.results, "a") if a.results else None
+    try:
+        with ProcessPoolExecutor(a.workers) as ex:
+            for k, r in enumerate(ex.map(one, todo, chunksize=4), 1):
+                done[(r["truth"], r["form"], r["rep"])] = r
+                if sink:
+                    sink.write(json.dumps(r) + "\n")
+                    sink.flush()
+                if k % 50 == 0 or k == len(todo):
+                    print(f"  {k} of {len(todo)} campaigns, {time.time() - t0:.0f} s", file=sys.stderr)
+    finally:
+        if sink:
+            sink.close()
+    results = [done[j[:3]] for j in jobs]
+    other = {"results": load_results(a.compare)} if a.compare else None
     summaries = []
     print(f"{a.reps} campaigns per form and truth, bootstrap {a.boot}; {time.time() - t0:.0f} s")
     print("| truth | form | entry | median z | spread z | 1 sigma | 2 sigma | sd(value - truth) | no value |"
