@@ -3,40 +3,35 @@
 A bootstrap here resamples what is independent in a campaign and recomputes a statistic on every
 replica; the error is the spread of the replicas. What is resampled depends on the statistic:
 
-* ``cell_means``: packings within each cell (the scaling fits of packings that are independent);
-* ``seed_means`` and ``seed_cell_means``: whole seeds, a seed's packings at every energy together
-  (an energy ladder's packings of one seed share a history; ``seed_means`` serves the scaling fits
-  of a ladder, ``seed_cell_means`` the jamming point of ``campaign.results.protocols``);
+* ``replica_weights`` and ``cell_moments``: the one resampling of the finite-size table and the
+  jamming point (docs/REDUCED.md, "Error bars that hold"). The unit drawn is a seed: per cell
+  (N_G, E_G) its seeds, the same draw for every variant of the cell (variants made from the same
+  random starts are compared packing by packing: a paired bootstrap), and for an energy ladder's
+  variant its seeds whole, every energy of a size together (a seed's packings along a ladder share
+  a history). ``cell_moments`` turns a cell's draws into its means and covariances per replica, the
+  means scaled by ``sqrt(n / (n - 1))`` (a resample's mean scatters by ``(n - 1) / n`` of a cell
+  mean's variance); the scaling fits refit every replica with the variance model fitted again to
+  the replica (``campaign.results.variance``), so no cell's weight is held from the data.
 * ``clusters``: whole clusters of pairs (the variants compared packing by packing,
   ``campaign.results.tradeoff``: the (N, seed) chains);
 * ``resampled_sums``: the packings of a cell, their histograms summed (the exponents of
   ``campaign.results.response``).
 
-**A replica that draws none of a cell's seeds.** The two seed bootstraps differ here, and each keeps
-its own answer: ``seed_means`` gives that cell the mean of all its packings in that replica (the
-replica is kept; the cell's spread in it is 0, which makes a sparsely covered cell's error
-smaller), ``seed_cell_means`` drops the replica (the error is then the spread of the replicas that
-hold every cell). With every seed in every cell, as a fixed grid gives, neither case arises.
-
 **Streams.** Every generator is ``generator(key)``: PCG64 seeded by ``SeedSequence(key)``, the key a
 list of integers led by the reducer's ``--seed`` (``Settings.boot_seed``):
 
-* ``[boot_seed, g]``: the scaling fits of the g-th (variant, N_G) in sorted order
-  (``campaign.results.scaling``);
+* ``[boot_seed, 23, N_G, E_G's float64 bits]``: the seeds of cell (N_G, E_G), every variant's;
+* ``[boot_seed, 29, N_G]``: the seeds of an energy ladder's size, every energy's;
 * ``[boot_seed, 7]``: the variants against the reference, one stream the variants draw from in turn
   (``campaign.results.tradeoff``);
-* ``[boot_seed, 11, v, N_G]``: the jamming point of the v-th variant at N_G, each quantity from the
-  stream's start (``campaign.results.protocols``);
 * ``[boot_seed, c]``: the response exponents of the c-th cell; ``[boot_seed, 7, N_G]``: those
   pooled at N_G (``campaign.results.response``).
 
-Some streams coincide: the variants' ``[boot_seed, 7]`` is also that of the scaling fits of the
-(variant, N_G) of index 7 and of the response exponents of cell 7, and ``[boot_seed, g]`` with
-``g = c`` serves both the fits of (variant, N_G) ``g`` and the exponents of cell ``c`` (and
-``SeedSequence`` reads a key of fewer than four words as if padded with zeros, so ``[boot_seed, 7]``
-is ``[boot_seed, 7, 0]`` too). They resample different data, so each error alone is as it should be,
-but two such errors are not independent draws. The keys are kept as they were, so that every error
-stays bit for bit the same.
+The table's streams are keyed by what a cell is, not by where it falls in a list, so adding a size,
+an energy or a variant to a campaign leaves every other cell's draws as they were. The response's
+``[boot_seed, c]`` and ``[boot_seed, 7]`` coincide for c = 7 (and ``SeedSequence`` reads a key of
+fewer than four words as if padded with zeros): they resample different data, so each error alone
+is as it should be, but the two are not independent draws.
 """
 
 from __future__ import annotations
