@@ -107,6 +107,16 @@ def cell_moments(values, weights):
     return means, cov
 
 
+def cell_means(groups, n_boot, seed) -> np.ndarray:
+    """Packings resampled within each cell alone (no seeds shared between cells): ``groups`` per
+    cell its packings' values (n_c, q); returns the replicas' means (n_boot, cells, q), scaled as
+    ``cell_moments`` scales them. For studies of fits on cells of independent packings
+    (``experiments/``); the reducer draws ``replica_weights``."""
+    rng = generator(seed)
+    return np.stack([cell_moments(np.asarray(g, float), seed_weights(rng, len(g), n_boot))[0][1:]
+                     for g in groups], 1)
+
+
 def clusters(cluster, n_boot, rng):
     """The cluster bootstrap of a statistic of n items in K clusters (``cluster``: (n,) the cluster
     of each item, 0 .. K-1): returns ``stat(fn) -> (value, error)``, ``fn`` taking the indices of the

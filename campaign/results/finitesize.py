@@ -1,6 +1,7 @@
 """The N_G -> inf row of the finite-size table (docs/REDUCED.md, "The N_G -> inf row"): per
 variant and law, one fit over every size with the exponent shared (``fits.fit_shared_exponent``),
-its intercepts extrapolated in 1/N_G (``fits.fit_inverse_n``), from the per-size inputs that
+its intercepts extrapolated in 1/N_G (``fits.line_in_inverse_n``, with the rule for sizes off the
+line), from the per-size inputs that
 ``campaign.results.scaling.scaling_fits`` collects; and the notes naming the sizes that entered.
 """
 
@@ -43,6 +44,7 @@ def extrapolate(rows, shared_in, laws, notes, fitted=None) -> dict:
                 for k in (key, bkey):
                     out[k] = out[f"{k}_err"] = out[f"{k}_slope"] = out[f"{k}_chi2_dof"] = np.nan
                     out[f"{k}_n_sizes"] = 0
+                    out[f"{k}_p"] = np.nan
                 out[f"{key}_sizes"], out[f"{key}_limited"] = "", ""
                 continue
             r = fits.line_in_inverse_n(sizes, f.intercepts, f.intercept_replicas)

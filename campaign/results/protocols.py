@@ -286,7 +286,8 @@ def markdown(jamming_rows, jamming, comparison) -> str:
     the values side by side, the homogeneity tests and the differences from the reference."""
     lines = ["# The jamming point and the protocols compared", "",
              "phi_J and the rattler fraction N_R/N per size: a line in the typical overlap through the fit "
-             "range's cells, its intercept; errors from a bootstrap over seeds; N_G -> inf linear in 1/N_G.", "",
+             "range's cells, its intercept; errors from the table's bootstrap over seeds; N_G -> inf a line in 1/N_G "
+             "(the smallest sizes left out while it fails its chi^2 test).", "",
              "| variant | N_G | cells | packings | phi_J | chi2/dof | N_R/N | chi2/dof |", "|---|---|---|---|---|---|---|---|"]
     for r in jamming_rows:
         lines.append(f"| {r['variant']} | {r['N_G']} | {r['n_cells']} | {r['n_packings']} | "
@@ -304,13 +305,14 @@ def markdown(jamming_rows, jamming, comparison) -> str:
         lines.append(f"| {r['variant']}{' (ref)' if r['variant'] == ref else ''} | "
                      + " | ".join(_fmt(r[q], r[f'{q}_err']) for q in QUANTITIES) + " |")
     lines += ["", f"## Does it depend on the protocol? (family-wise error rate {comparison['alpha']:g}, Holm)", "",
-              "One test per quantity over all variants: chi^2 of the values about their weighted mean "
-              "(K - 1 degrees of freedom).", "",
+              "One test per quantity over all variants: chi^2 of the values about their weighted mean, "
+              "with the correlations their bootstrap replicas share (K - 1 degrees of freedom).", "",
               "| quantity | variants | chi2 / dof | p | p (Holm) | depends |", "|---|---|---|---|---|---|"]
     for h in comparison["homogeneity"]:
         lines.append(f"| {LABELS[h['quantity']]} | {h['n_variants']} | {_fmt(h['chi2'])} / {h['dof']} | "
                      f"{_p(h['p'])} | {_p(h['p_holm'])} | {'yes' if h['significant'] else 'no'} |")
-    lines += ["", f"Each variant minus `{ref}`: errors in quadrature, z, two-sided normal p, Holm over all "
+    lines += ["", f"Each variant minus `{ref}`: the error of the difference over the replicas drawn with the same seeds "
+              "(paired), z, two-sided normal p, Holm over all "
               f"{len(comparison['pairs'])} differences. corr: the correlation of paired packings' A_G "
               "(deviations from their cell means), near 0 when the ensembles are independent.", "",
               "| variant | corr | " + " | ".join(LABELS[q] for q in QUANTITIES) + " |",

@@ -5,7 +5,7 @@ A cell's mean enters a fit with the weight ``n_c / sigma_c^2``, ``n_c`` its pack
 the variance between them of what the fit measures: ``y - s x``, the quantity ``y`` less the
 abscissa's scatter carried through the law's local slope ``s = c beta x^(beta - 1)`` (for ``x =
 Delta Z`` most of a packing's ``A_G`` follows its own excess contacts). Each cell's own sample
-variance comes from a few packings (a quarter of them at 4 packings is below 0.35 of the truth), and
+variance comes from a few packings (at 4 packings a quarter of them fall below 0.40 of the truth), and
 a weight built on it makes the fit lean on the cells whose spread came out low, whose errors the same
 number makes small. So ``sigma_c^2`` is not a cell's own: it is a model fitted to all the cells of a
 variant's fit range,
@@ -19,7 +19,7 @@ range is ``gamma = 0.035``), by maximum likelihood: ``(n_c - 1) v_c / sigma_c^2`
 it starts from). Tens to hundreds of packings determine each parameter, so the weights hardly move
 with the noise of a few. The same model is fitted again in every bootstrap replica, from the
 replica's packings. ``homogeneity`` is Bartlett's test of equal variances over a size's cells, the
-check the notes report.
+check every fit records (``spread_p`` in fits.csv).
 """
 
 from __future__ import annotations
