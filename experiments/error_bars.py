@@ -322,7 +322,9 @@ def load_results(path) -> list:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--reps", type=int, default=400)
-    ap.add_argument("--boot", type=int, default=400, help="the reducer's bootstrap resamples (its default: 1000)")
+    ap.add_argument("--boot", type=int, default=Settings().n_boot,
+                    help="the reducer's bootstrap resamples (default: the reducer's own; fewer make the 1/N_G "
+                         "line's weights noisy and its errors a few per cent short, docs/REDUCED.md)")
     ap.add_argument("--forms", nargs="+", default=list(FORMS), help=f"of {list(FORMS)}")
     ap.add_argument("--truths", nargs="+", default=["base"], help=f"of {list(TRUTHS)}, or 'all'")
     ap.add_argument("--entries", choices=("row", "all"), default="row",

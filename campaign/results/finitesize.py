@@ -59,10 +59,14 @@ def extrapolate(rows, shared_in, laws, notes, fitted=None) -> dict:
             out[f"{bkey}_slope"], out[f"{bkey}_chi2_dof"], out[f"{bkey}_n_sizes"] = 0.0, f.chi2_dof, len(sizes)
             out[f"{bkey}_p"] = fits.chi2_p_value(f.chi2, f.dof)
             if r.left_out:
-                notes.append(f"{v}: {key} from the 1/N_G line through N_G = {', '.join(map(str, r.sizes))}: the "
-                             f"line through N_G = {', '.join(map(str, r.left_out))} too failed its chi^2 test "
-                             f"(p < {fits.LINE_P:g}), so the smallest size{'s were' if len(r.left_out) > 1 else ' was'} "
+                notes.append(f"{v}: {key} from N_G = {', '.join(map(str, r.sizes))}: with N_G = "
+                             f"{', '.join(map(str, r.left_out))} too, neither the line nor the parabola in 1/N_G passed "
+                             f"its chi^2 test (p < {fits.LINE_P:g}), so the smallest size{'s were' if len(r.left_out) > 1 else ' was'} "
                              "left out (a correction beyond 1/N_G is largest there)")
+            if r.parabola_weight >= 0.5:
+                notes.append(f"{v}: {key}: the sizes curve in 1/N_G: the parabola (a 1/N_G^2 term) carries Akaike "
+                             f"weight {r.parabola_weight:.2f} of the average with the line (docs/REDUCED.md, "
+                             "\"Sizes off the 1/N_G line\")")
             if r.limited:
                 notes.append(f"{v}: {key}: {out[f'{key}_limited']}")
         extrapolated[v] = out

@@ -403,41 +403,70 @@ def fit_inverse_n(N, y, yerr) -> LinearResult:
                         "" if dof > 0 else "two sizes: exact line, no goodness of fit")
 
 
-#: The 1/N_G line through a law's sizes is taken when its chi^2 has at least this p-value; below it
-#: the smallest size is left out and the line drawn again, down to three sizes (docs/REDUCED.md,
+#: Below this p-value of its chi^2 the best model of the sizes (line or parabola in 1/N_G) is off:
+#: the smallest size is left out and the models drawn again, down to three sizes (docs/REDUCED.md,
 #: "Sizes off the 1/N_G line")
 LINE_P = 0.05
 
 
 @dataclass
 class Line:
-    """``y = y_inf + b / N`` through the sizes' values, with what the rule of ``line_in_inverse_n``
-    did: the sizes it kept and left out, and whether the line is still off (``limited``)."""
+    """``y = y_inf + b / N (+ c / N^2)`` through the sizes' values, with what the rule of
+    ``line_in_inverse_n`` did: the sizes it kept and left out, the weight of the parabola, and
+    whether the sizes are still off (``limited``)."""
 
     value: float = np.nan
     err: float = np.nan
     slope: float = np.nan
     slope_err: float = np.nan
-    chi2_dof: float = np.nan
-    p: float = np.nan
+    chi2_dof: float = np.nan     # of the line through the sizes kept
+    p: float = np.nan            # its chi^2 p-value
     n_points: int = 0
     sizes: tuple = ()
     left_out: tuple = ()
-    limited: bool = False        # the line through the sizes kept still fails its chi^2 test
+    limited: bool = False        # the best model through the sizes kept still fails its chi^2 test
     inflation: float = 1.0       # sqrt(chi^2/dof) applied to err when limited
     replicas: np.ndarray = field(default_factory=lambda: np.zeros(0))  # the value in each replica
     message: str = ""
+    parabola_weight: float = 0.0  # the Akaike weight of the 1/N_G^2 term (0 with three sizes or fewer)
+
+
+def _polys_in_inverse_n(N, Y, Winv, degrees):
+    """Per row of ``Y`` (R, G) and per degree: the intercept, the 1/N coefficient and the Akaike
+    criterion ``chi^2 + 2 k`` of the generalised least-squares polynomial in 1/N (weights ``Winv``)."""
+    out = []
+    for deg in degrees:
+        X = np.column_stack([N ** -k for k in range(deg + 1)])
+        M = np.linalg.pinv(X.T @ Winv @ X) @ X.T @ Winv
+        C = Y @ M.T
+        r = Y - C @ X.T
+        out.append((C[:, 0], C[:, 1], np.einsum("bi,ij,bj->b", r, Winv, r), deg + 1))
+    return out
+
+
+def _averaged(fits_):
+    """Line and parabola averaged with their Akaike weights: value, slope, parabola weight."""
+    if len(fits_) == 1:
+        (v, b, _, _), = fits_
+        return v, b, np.zeros_like(v)
+    (v1, b1, c1, k1), (v2, b2, c2, k2) = fits_
+    w2 = 1.0 / (1.0 + np.exp(np.clip(((c2 + 2 * k2) - (c1 + 2 * k1)) / 2, -700, 700)))
+    return (1 - w2) * v1 + w2 * v2, (1 - w2) * b1 + w2 * b2, w2
 
 
 def line_in_inverse_n(sizes, values, replicas, p_min=LINE_P) -> Line:
     """The ``N_G -> inf`` value of per-size ``values`` (G,) from their bootstrap ``replicas`` (B, G)
-    (drawn together: a shared exponent correlates the sizes' intercepts): ``y = y_inf + b / N``
-    by generalised least squares with the replicas' covariance; its error the spread of the same
-    line through every replica. The rule for sizes off the line: while the line's chi^2 has a
-    p-value below ``p_min`` and more than three sizes remain, the smallest size is left out (a
-    correction beyond 1/N_G is largest there); if the line through the last three still fails,
-    the value is ``limited`` by its sizes and its error inflated by ``sqrt(chi^2/dof)``.
-    Without replicas (no bootstrap) the line is unweighted and has no error."""
+    (drawn together: a shared exponent correlates the sizes' intercepts). Two models by generalised
+    least squares with the replicas' covariance: the line ``y_inf + b / N`` and, with four sizes or
+    more, the parabola ``y_inf + b / N + c / N^2``; the value is their average with Akaike weights
+    (``exp(-(chi^2 + 2 k) / 2)``, k parameters), and every replica is averaged the same way with
+    its own weights, so its error, the spread of the replicas, holds the choice between them. Where
+    the sizes curve, the parabola takes the weight as seeds are added; where they lie on a line
+    it costs little. The rule for sizes off both: while the better model's chi^2 has a p-value
+    below ``p_min`` and more than three sizes remain, the smallest size is left out (a correction
+    beyond 1/N_G is largest there); if the line through the last three still fails, the value is
+    ``limited`` by its sizes and its error inflated by ``sqrt(chi^2/dof)``. Without replicas (no
+    bootstrap) the line is unweighted and has no error."""
     N = np.asarray(sizes, float)
     y = np.asarray(values, float)
     R = np.asarray(replicas, float).reshape(-1, len(N)) if len(N) else np.zeros((0, 0))
@@ -452,28 +481,31 @@ def line_in_inverse_n(sizes, values, replicas, p_min=LINE_P) -> Line:
         if G < 2:
             return Line(n_points=G, left_out=tuple(int(n) for n in dropped),
                         message=f"needs at least 2 sizes with a value, has {G}")
-        X = np.column_stack([np.ones(G), 1.0 / N[idx]])
         boot = len(R) > 2
-        cov = np.atleast_2d(np.cov(R[:, idx].T)) if boot else np.eye(G)
-        Winv = np.linalg.pinv(cov)
-        M = np.linalg.pinv(X.T @ Winv @ X) @ X.T @ Winv          # (2, G): the line of any values
-        coef = M @ y[idx]
-        r = y[idx] - X @ coef
-        dof = G - 2
-        chi2 = float(r @ Winv @ r) if (dof > 0 and boot) else np.nan
-        p = chi2_p_value(chi2, dof)
-        if np.isfinite(p) and p < p_min and G > 3:
+        Winv = np.linalg.pinv(np.atleast_2d(np.cov(R[:, idx].T))) if boot else np.eye(G)
+        degrees = (1, 2) if (boot and G >= 4) else (1,)
+        data = _polys_in_inverse_n(N[idx], y[idx][None, :], Winv, degrees)
+        chi2s = [float(f[2][0]) for f in data]
+        dofs = [G - f[3] for f in data]
+        best = int(np.argmin([c + 2 * f[3] for c, f in zip(chi2s, data)]))
+        p_best = chi2_p_value(chi2s[best], dofs[best]) if boot else np.nan
+        if np.isfinite(p_best) and p_best < p_min and G > 3:
             dropped.append(N[idx[0]])
             keep[idx[0]] = False
             continue
-        limited = bool(np.isfinite(p) and p < p_min)
-        inflation = float(np.sqrt(chi2 / dof)) if limited else 1.0
-        reps = R[:, idx] @ M[0] if boot else np.zeros(0)
-        slopes = R[:, idx] @ M[1] if boot else np.zeros(0)
-        return Line(float(coef[0]), spread(reps) * inflation if boot else np.nan, float(coef[1]),
-                    spread(slopes) * inflation if boot else np.nan, chi2 / dof if dof > 0 else np.nan, p, G,
-                    tuple(int(n) for n in N[idx]), tuple(int(n) for n in dropped), limited, inflation, reps,
-                    "" if dof > 0 else "two sizes: exact line, no goodness of fit")
+        value, slope, w2 = (float(a[0]) for a in _averaged(data))
+        chi2, dof = chi2s[0], dofs[0]
+        p = chi2_p_value(chi2, dof) if (dof > 0 and boot) else np.nan
+        limited = bool(np.isfinite(p_best) and p_best < p_min)
+        inflation = float(np.sqrt(chi2s[best] / dofs[best])) if limited else 1.0
+        if boot:
+            reps, slopes, _ = _averaged(_polys_in_inverse_n(N[idx], R[:, idx], Winv, degrees))
+        else:
+            reps = slopes = np.zeros(0)
+        return Line(value, spread(reps) * inflation if boot else np.nan, slope,
+                    spread(slopes) * inflation if boot else np.nan, chi2 / dof if dof > 0 and boot else np.nan, p,
+                    G, tuple(int(n) for n in N[idx]), tuple(int(n) for n in dropped), limited, inflation, reps,
+                    "" if dof > 0 else "two sizes: exact line, no goodness of fit", w2)
 
 
 def gaussian_mle(values):

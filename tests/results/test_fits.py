@@ -127,6 +127,76 @@ def test_fit_refuses_too_few_points():
     assert not f.ok and "at least 4" in f.message
 
 
+SIZES5 = np.array([64, 128, 256, 512, 1024], float)
+
+
+def _sizes_draw(rng, truth, sd, boot=400):
+    """One campaign's per-size values about ``truth`` (G,) with errors ``sd`` (G,), and bootstrap
+    replicas about those values drawn with the same errors (what a bootstrap of the packings gives)."""
+    y = truth + sd * rng.normal(size=len(sd))
+    return y, y + sd * rng.normal(size=(boot, len(sd)))
+
+
+def test_the_n_inf_value_of_exact_sizes_on_a_line_or_a_parabola_is_exact():
+    """Without noise the average of line and parabola is the truth whichever carries the weight:
+    the line through sizes on a line, the parabola (weight 1) through sizes that curve."""
+    rng = np.random.default_rng(3)
+    sd = 1e-4 * np.sqrt(64 / SIZES5)
+    noise = sd * rng.normal(size=(400, 5))
+    line = 0.446 - 0.6 / SIZES5
+    r = fits.line_in_inverse_n(SIZES5, line, line + noise)
+    assert r.value == pytest.approx(0.446, abs=1e-12) and r.slope == pytest.approx(-0.6, rel=1e-9)
+    assert r.parabola_weight < 0.5 and not r.left_out and not r.limited
+    curved = line - 40.0 / SIZES5**2
+    r = fits.line_in_inverse_n(SIZES5, curved, curved + noise)
+    assert r.parabola_weight > 0.999 and r.value == pytest.approx(0.446, abs=1e-9)
+    assert r.chi2_dof > 10 and not r.left_out   # the line is off; the parabola holds them
+
+
+@pytest.mark.parametrize("a_2", [0.0, -40.0])
+def test_the_n_inf_error_covers_the_truth_with_and_without_a_correction_beyond_1_over_n(a_2):
+    """Over many campaigns (sizes 64..1024, errors falling like 1/sqrt(N)): with intercepts on a line,
+    and with a 1/N^2 term (1e-2 at N 64, 6e-4 at 256, a few errors at the small sizes), the
+    2-sigma intervals hold the truth about 95% of the time and the values are unbiased. The line
+    alone (the parabola's weight held at 0) misses the curved truth."""
+    rng = np.random.default_rng(11 if a_2 else 12)
+    sd = 4e-4 * np.sqrt(64 / SIZES5)
+    truth = 0.446 - 0.6 / SIZES5 + a_2 / SIZES5**2
+    z, z_line = [], []
+    for _ in range(300):
+        y, R = _sizes_draw(rng, truth, sd)
+        r = fits.line_in_inverse_n(SIZES5, y, R)
+        z.append((r.value - 0.446) / r.err)
+        X = np.column_stack([np.ones(5), 1 / SIZES5])
+        W = np.linalg.inv(np.cov(R.T))
+        M = np.linalg.solve(X.T @ W @ X, X.T @ W)
+        z_line.append(((M @ y)[0] - 0.446) / fits.spread(R @ M[0]))
+    z, z_line = np.array(z), np.array(z_line)
+    assert 0.92 <= np.mean(np.abs(z) <= 2) <= 0.99, np.mean(np.abs(z) <= 2)
+    assert abs(np.median(z)) < 0.2
+    if a_2:
+        assert np.mean(np.abs(z_line) <= 2) < 0.8   # the mutation: no parabola
+
+
+def test_sizes_off_every_model_leave_out_the_smallest_then_limit_the_value():
+    """A smallest size far off both models is left out and named; three sizes that still do not lie
+    on a line make the value limited, its error inflated by sqrt(chi^2/dof)."""
+    rng = np.random.default_rng(5)
+    sd = 1e-4 * np.ones(5)
+    noise = sd * rng.normal(size=(400, 5))
+    y = 0.446 - 0.6 / SIZES5
+    y[0] += 0.01                                # N 64 off everything
+    y[1] += 0.003 * (-1)                        # N 128 off too, the other way
+    r = fits.line_in_inverse_n(SIZES5, y, y + noise)
+    assert r.left_out == (64,) or r.left_out == (64, 128)
+    assert 64 not in r.sizes
+    zig = 0.446 - 0.6 / SIZES5[2:] + np.array([0.0, 0.002, 0.0])
+    r3 = fits.line_in_inverse_n(SIZES5[2:], zig, zig + noise[:, :3])
+    assert r3.limited and r3.inflation > 3 and r3.parabola_weight == 0
+    plain = fits.spread(r3.replicas)
+    assert r3.err == pytest.approx(plain * r3.inflation)
+
+
 def test_inverse_n_extrapolation_recovers_a_known_law():
     N = np.array([64, 128, 256, 512, 1024], float)
     exact = fits.fit_inverse_n(N, 0.446 - 0.6 / N, np.full(5, 1e-4))

@@ -1,0 +1,143 @@
+"""Rules for the N_G -> inf line compared on the same intercepts (docs/REDUCED.md, "Sizes off the
+1/N_G line"): the coverage harness's campaigns (``experiments/error_bars.py``) are reduced once by
+the reducer, each 1/N_G extrapolation's inputs kept (the sizes, their intercepts and the intercepts'
+bootstrap replicas, one file per campaign), and every rule is then applied to those inputs in
+seconds: the line alone, and the Akaike average of line and parabola with a penalty per parameter
+of 2 (Akaike's, the reducer's), 4, 6 and 10.
+
+    python experiments/line_rules.py dump lines/ --reps 200 base:uniform-12 base:uniform-40 \\
+        base:unequal base:ladder 1/N^2:uniform-12 1/N^2:uniform-40     # ~2 s a campaign; resumes
+    python experiments/line_rules.py table lines/
+
+Per rule and entry: the root-mean-square of value - truth, the spread of (value - truth) / error
+(``error_bars._trimmed_sd``), 1- and 2-sigma coverage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import error_bars as H  # noqa: E402
+
+from campaign.results import fits  # noqa: E402
+from campaign.results.reduce import Settings  # noqa: E402
+
+#: the four intercepts in the order the reducer extrapolates them (campaign.plan.targets.FITS)
+KEYS = ("A_G_star_E", "A_G_star_Z", "psi_O_star", "psi_O_star_Z")
+PENALTIES = (None, 2.0, 4.0, 6.0, 10.0)   # None: the line alone
+
+
+def _file_name(truth, form, rep):
+    return f"{truth.replace('/', '').replace('^', '')}_{form}_{rep}.npz"
+
+
+def dump(out: Path, jobs, reps: int, boot: int):
+    """Reduce each (truth, form) campaign ``0 .. reps - 1`` and keep its extrapolations' inputs."""
+    calls = []
+    original = fits.line_in_inverse_n
+
+    def spy(sizes, values, replicas, *a, **k):
+        calls.append((np.array(sizes), np.array(values, float), np.array(replicas, float)))
+        return original(sizes, values, replicas, *a, **k)
+
+    fits.line_in_inverse_n = spy
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        for rep in range(reps):
+            for truth, form in jobs:
+                name = out / _file_name(truth, form, rep)
+                if name.exists():
+                    continue
+                calls.clear()
+                e = H.entries(H.campaign(H.TRUTHS[truth], form, rep), Settings(n_boot=boot))
+                arr = {"truth": np.array(truth), "form": np.array(form),
+                       "entries": np.array(json.dumps({k: [float(x[0]), float(x[1])] for k, x in e.items()}))}
+                for j, (s, v, R) in enumerate(calls[:len(KEYS)]):
+                    arr[f"s{j}"], arr[f"v{j}"], arr[f"R{j}"] = s, v, R
+                tmp = name.with_suffix(".tmp.npz")
+                np.savez(tmp, **arr)
+                os.replace(tmp, name)
+            print(f"  campaign {rep + 1} of {reps} of each", file=sys.stderr)
+    finally:
+        fits.line_in_inverse_n = original
+
+
+def averaged(sizes, values, replicas, penalty):
+    """The value and error of the line alone (``penalty`` None) or of the Akaike-weighted average of
+    line and parabola with ``penalty`` per parameter, every replica averaged with its own weights."""
+    N = np.asarray(sizes, float)
+    Y = np.vstack([np.asarray(values, float)[None], np.asarray(replicas, float)])
+    Winv = np.linalg.pinv(np.cov(Y[1:].T))
+    out = []
+    for deg in (1, 2):
+        X = np.column_stack([N ** -k for k in range(deg + 1)])
+        M = np.linalg.pinv(X.T @ Winv @ X) @ X.T @ Winv
+        C = Y @ M.T
+        r = Y - C @ X.T
+        out.append((C[:, 0], np.einsum("bi,ij,bj->b", r, Winv, r) + (penalty or 0.0) * (deg + 1)))
+    (v1, a1), (v2, a2) = out
+    if penalty is None or len(N) < 4:
+        v = v1
+    else:
+        w2 = 1.0 / (1.0 + np.exp(np.clip((a2 - a1) / 2, -700, 700)))
+        v = (1 - w2) * v1 + w2 * v2
+    return float(v[0]), fits.spread(v[1:])
+
+
+def table(folder: Path, keys=("A_G_star_E", "psi_O_star")):
+    by = collections.defaultdict(list)
+    for f in sorted(folder.glob("*.npz")):
+        d = np.load(f)
+        by[(str(d["truth"]), str(d["form"]))].append(d)
+    lines = ["| truth, form, entry (campaigns) | " + " | ".join("line" if p is None else f"penalty {p:g}"
+                                                              for p in PENALTIES) + " |",
+             "|---" * (len(PENALTIES) + 1) + "|"]
+    for (truth, form), L in sorted(by.items()):
+        want = H.TRUTHS[truth].values(H.SIZES)
+        for key in keys:
+            j = KEYS.index(key)
+            cells = []
+            for pen in PENALTIES:
+                vr = np.array([averaged(d[f"s{j}"], d[f"v{j}"], d[f"R{j}"], pen) for d in L])
+                dev = vr[:, 0] - want[key]
+                z = dev / vr[:, 1]
+                cells.append(f"{np.sqrt(np.mean(dev ** 2)) * 1e4:.2f}, {H._trimmed_sd(z):.2f}, "
+                             f"{np.mean(np.abs(z) <= 1):.2f} / {np.mean(np.abs(z) <= 2):.2f}")
+            lines.append(f"| {truth}, {form}, {key} ({len(L)}) | " + " | ".join(cells) + " |")
+    print("\n".join(lines))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    d = sub.add_parser("dump", help="reduce the campaigns, keep each extrapolation's inputs")
+    d.add_argument("folder", type=Path)
+    d.add_argument("jobs", nargs="+", help="truth:form pairs, e.g. base:uniform-12 '1/N^2:uniform-40'")
+    d.add_argument("--reps", type=int, default=200)
+    d.add_argument("--boot", type=int, default=Settings().n_boot)
+    t = sub.add_parser("table", help="every rule on the kept inputs: a markdown table")
+    t.add_argument("folder", type=Path)
+    t.add_argument("--keys", nargs="+", default=["A_G_star_E", "psi_O_star"], choices=KEYS)
+    args = ap.parse_args(argv)
+    if args.cmd == "dump":
+        jobs = [tuple(j.split(":", 1)) for j in args.jobs]
+        bad = [j for j in jobs if len(j) != 2 or j[0] not in H.TRUTHS or j[1] not in H.FORMS]
+        if bad:
+            ap.error(f"jobs: expected truth:form with a truth of {list(H.TRUTHS)} and a form of {list(H.FORMS)}, "
+                     f"got {bad}")
+        dump(args.folder, jobs, args.reps, args.boot)
+    else:
+        table(args.folder, tuple(args.keys))
+
+
+if __name__ == "__main__":
+    main()
