@@ -1,0 +1,50 @@
+"""The stores shipped in data/ are complete and sound, and give the numbers the docs quote from them
+(the commands the docs print, run as a user runs them)."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _campaign(*args, **kw):
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+    return subprocess.run([sys.executable, "-m", "campaign", *map(str, args)], env=env, capture_output=True,
+                          text=True, timeout=600, **kw)
+
+
+def _row(text: str, n: int) -> list:
+    """The cells of the table row of size ``n`` in a markdown ``text`` (the first such row)."""
+    line = next(ln for ln in text.splitlines() if ln.startswith(f"| {n} |"))
+    return [c.strip() for c in line.split("|")[2:-1]]
+
+
+@pytest.mark.slow
+def test_the_8192_store_is_complete_sound_and_gives_the_documented_row(tmp_path):
+    """data/paper-8192-cpu.h5 (the chain of docs/CLUSTERS.md): every task done, `campaign verify`
+    clean, and `campaign reduce` (default range and --fit-all) gives docs/PAPER.md's 8192 row, entry
+    for entry as printed, and the README's."""
+    store = ROOT / "data" / "paper-8192-cpu.h5"
+    status = json.loads(_campaign("status", store, "--json", check=True).stdout)
+    assert (status["done"], status["failed"], status["remaining"]) == (104, 0, 0)
+    verify = _campaign("verify", store)
+    assert verify.returncode == 0 and "no damage" in verify.stdout + verify.stderr, verify.stdout + verify.stderr
+    got = {}
+    for name, extra in (("default", ()), ("all", ("--fit-all",))):
+        _campaign("reduce", store, *extra, "--out", tmp_path / name, check=True)
+        got[name] = _row((tmp_path / name / "table.md").read_text(), 8192)   # A_G*(E), beta_E, A_G*(Z), beta_Z, Psi_O*, range
+    d, a = got["default"], got["all"]
+    text = (ROOT / "docs" / "PAPER.md").read_text()
+    section = text[text.index("### N_G = 8192, on CPUs"):]
+    doc = _row(section, 8192)
+    assert doc == ["0.4461(4)", f"{d[0]} [{a[0]}]", "0.284(4)", f"{d[1]} [{a[1]}]", "0.4460(3)",
+                   f"{d[2]} [{a[2]}]", "1.001(3)", f"{d[3]} [{a[3]}]", f"{d[4]} [{a[4]}]"]
+    readme = _row((ROOT / "README.md").read_text(), 8192)
+    assert readme == ["0.4461(4)", d[0], "0.284(4)", f"{d[1]} [{a[1]}]", "1.001(3)", f"{d[3]} [{a[3]}]", "-", d[4]]
+
