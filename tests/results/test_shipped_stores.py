@@ -48,3 +48,27 @@ def test_the_8192_store_is_complete_sound_and_gives_the_documented_row(tmp_path)
     readme = _row((ROOT / "README.md").read_text(), 8192)
     assert readme == ["0.4461(4)", d[0], "0.284(4)", f"{d[1]} [{a[1]}]", "1.001(3)", f"{d[3]} [{a[3]}]", "-", d[4]]
 
+
+
+def _bare(cell: str) -> str:
+    """A table cell's value as printed: bold and the reducer's undetermined mark dropped, a remark after it too."""
+    return cell.replace("**", "").replace("*", "").split(" ")[0]
+
+
+@pytest.mark.slow
+def test_paper_small_store_gives_the_finite_size_table(tmp_path):
+    """data/paper-small.h5 (campaigns/paper-small.yaml, no configurations) is complete and sound, and
+    docs/PAPER.md's finite-size table (N_G 64..1024 and N_G -> inf, the default range) is what
+    `campaign reduce data/paper-small.h5` gives, entry for entry."""
+    store = ROOT / "data" / "paper-small.h5"
+    status = json.loads(_campaign("status", store, "--json", check=True).stdout)
+    assert (status["done"], status["failed"], status["remaining"]) == (1300, 0, 0)
+    assert _campaign("verify", store).returncode == 0
+    _campaign("reduce", store, "--out", tmp_path / "red", check=True)
+    table = (tmp_path / "red" / "table.md").read_text()
+    text = (ROOT / "docs" / "PAPER.md").read_text()
+    doc = text[text.index("## The finite-size table"):text.index("### To N_G = 4096")]
+    for n in (64, 128, 256, 512, 1024, "N_G -> inf"):
+        got = [_bare(c) for c in _row(table, n)]          # A_G*(E), beta_E, A_G*(Z), beta_Z, Psi_O*, range
+        cells = [_bare(c) for c in _row(doc, n)]         # paper, ours per entry; Psi_O* ours alone
+        assert [cells[1], cells[3], cells[5], cells[7], cells[8]] == got[:5], n
