@@ -84,6 +84,49 @@ def _chi2_at(beta, lu, y, w, a, c, f):
 
 
 @njit(cache=True)
+def _grid_argmin(lu, y, w, lo, step, n_grid, F, E):
+    """The index of the smallest chi^2 on the grid ``lo + step * i``, i < ``n_grid``: ``_chi2_at`` at
+    every point, its powers ``x**beta`` stepped by one multiplication each (``F`` *= ``E`` =
+    ``x**step``; relative drift ~ n_grid * 1e-16, nothing beside the chi^2 differences the grid
+    resolves) instead of an exponential: the grid is 3/4 of a fit's evaluations. ``F``, ``E``
+    (G, K) scratch."""
+    G, K = lu.shape
+    for g in range(G):
+        for k in range(K):
+            if w[g, k] != 0.0 and lu[g, k] > -math.inf:
+                F[g, k] = math.exp(lo * lu[g, k])
+                E[g, k] = math.exp(step * lu[g, k])
+            else:
+                F[g, k] = 0.0
+                E[g, k] = 0.0
+    best = math.inf
+    kbest = 0
+    for i in range(n_grid):
+        total = 0.0
+        for g in range(G):
+            S = Sf = Sff = Sy = Sfy = 0.0
+            for k in range(K):
+                wk = w[g, k]
+                fk = F[g, k]
+                S += wk
+                Sf += wk * fk
+                Sff += wk * fk * fk
+                Sy += wk * y[g, k]
+                Sfy += wk * fk * y[g, k]
+            cg = (S * Sfy - Sf * Sy) / (S * Sff - Sf * Sf)
+            ag = (Sy - cg * Sf) / S
+            for k in range(K):
+                if w[g, k] != 0.0:
+                    r = y[g, k] - ag - cg * F[g, k]
+                    total += w[g, k] * r * r
+                F[g, k] *= E[g, k]
+        if total < best:  # a NaN or infinite chi^2 never wins
+            best = total
+            kbest = i
+    return kbest
+
+
+@njit(cache=True)
 def _profile_fits(lu, y, w, lo, hi, n_grid, n_golden):
     """For each data set r of ``lu``, ``y``, ``w`` (R, G, K): the exponent minimising chi^2 (a grid of
     ``n_grid`` points over [lo, hi], then golden section in the bracket around the grid's minimum),
@@ -96,17 +139,13 @@ def _profile_fits(lu, y, w, lo, hi, n_grid, n_golden):
     a = np.empty(G)
     c = np.empty(G)
     f = np.empty(K)
+    F = np.empty((G, K))
+    E = np.empty((G, K))
     gr = (math.sqrt(5.0) - 1.0) / 2.0
     step = (hi - lo) / (n_grid - 1)
     for r in range(R):
         lur, yr, wr = lu[r], y[r], w[r]
-        best = math.inf
-        kbest = 0
-        for i in range(n_grid):
-            v = _chi2_at(lo + step * i, lur, yr, wr, a, c, f)
-            if v < best:  # a NaN or infinite chi^2 never wins
-                best = v
-                kbest = i
+        kbest = _grid_argmin(lur, yr, wr, lo, step, n_grid, F, E)
         left = lo + step * max(kbest - 1, 0)
         right = lo + step * min(kbest + 1, n_grid - 1)
         p = right - gr * (right - left)
