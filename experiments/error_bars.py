@@ -31,8 +31,10 @@ Per entry (the eight of the N_G -> inf row, each size's intercept and exponent o
 ``phi_J``): ``z = (value - truth) / error`` over the campaigns; its median, its spread (the standard
 deviation of ``z`` with the 1% most extreme on each side left out: a few campaigns with a tiny error
 would otherwise decide it), the share of 1- and 2-sigma intervals holding the truth (nominal 0.683 and
-0.954), the standard deviation of ``value - truth`` (what the estimator's precision is), and the
-share of campaigns without a value. The same campaigns' packings are reproducible (``numpy`` generators
+0.954), the standard deviation of ``value - truth`` (what the estimator's precision is), the
+campaigns without a value, and those whose size's fit the reducer marks undetermined (``*`` in the
+table: an exponent at a search bound, or too many of its bootstrap refits there; its value and error
+are reported as not a measurement, so they are counted apart and not in ``z``). The same campaigns' packings are reproducible (``numpy`` generators
 keyed by truth, form and repetition), so two versions of the reducer are compared on the same data
 (``--json`` then ``--compare OLD.json``: variance ratios per entry).
 """
@@ -234,20 +236,21 @@ def entries(fin, settings: Settings) -> dict:
     out = {}
     x = tab.extrapolated.get("default", {})
     for k in ROW:
-        out[k] = (x.get(k, np.nan), x.get(f"{k}_err", np.nan))
+        out[k] = (x.get(k, np.nan), x.get(f"{k}_err", np.nan), 0.0)
     for r in tab.rows:
         for _, _, key, bkey in LAWS:
+            undetermined = float(bool(r.get(f"{bkey}_undetermined")))   # marked * in the table
             for k in (key, bkey):
-                out[f"{r['N_G']}:{k}"] = (r.get(k, np.nan), r.get(f"{k}_err", np.nan))
+                out[f"{r['N_G']}:{k}"] = (r.get(k, np.nan), r.get(f"{k}_err", np.nan), undetermined)
     try:
         jam_rows, jam, _ = jamming_point(tab, settings)
     except TypeError:  # the reducer before 0.4 (jamming_point(fin, grid, settings, exponents)): --compare's
         jam_rows, jam = jamming_point(tab.fin, tab.grid, settings,
                                       {v: d["exponent"] for v, d in tab.systems.items()})
     j = jam.get("default", {})
-    out["phi_J"] = (j.get("phi_J", np.nan), j.get("phi_J_err", np.nan))
+    out["phi_J"] = (j.get("phi_J", np.nan), j.get("phi_J_err", np.nan), 0.0)
     for r in jam_rows:
-        out[f"{r['N_G']}:phi_J"] = (r.get("phi_J", np.nan), r.get("phi_J_err", np.nan))
+        out[f"{r['N_G']}:phi_J"] = (r.get("phi_J", np.nan), r.get("phi_J_err", np.nan), 0.0)
     return out
 
 
@@ -257,7 +260,7 @@ def one(job):
     t0 = time.perf_counter()
     e = entries(fin, Settings(n_boot=boot))
     return {"truth": truth_name, "form": form, "rep": rep, "boot": boot, "seconds": time.perf_counter() - t0,
-            "entries": {k: [float(v[0]), float(v[1])] for k, v in e.items()}}
+            "entries": {k: [float(x) for x in v] for k, v in e.items()}}
 
 
 def summarise(results, truth: Truth, keys=None, sizes=SIZES) -> list:
@@ -266,12 +269,13 @@ def summarise(results, truth: Truth, keys=None, sizes=SIZES) -> list:
     keys = keys or sorted({k for r in results for k in r["entries"]}, key=_order)
     out = []
     for k in keys:
-        ve = np.array([r["entries"].get(k, [np.nan, np.nan]) for r in results], float)
-        ok = np.all(np.isfinite(ve), axis=1) & (ve[:, 1] > 0)
+        ve = np.array([(r["entries"].get(k, [np.nan, np.nan]) + [0.0])[:3] for r in results], float)
+        marked = ve[:, 2] > 0
+        ok = np.all(np.isfinite(ve[:, :2]), axis=1) & (ve[:, 1] > 0) & ~marked
         v, e = ve[ok, 0], ve[ok, 1]
         d = v - values[k.partition("~")[0]]
         z = d / e
-        out.append({"key": k, "n": int(ok.sum()), "missing": int((~ok).sum()),
+        out.append({"key": k, "n": int(ok.sum()), "missing": int((~ok & ~marked).sum()), "undetermined": int(marked.sum()),
                     "median_z": float(np.median(z)) if len(z) else np.nan, "spread_z": _trimmed_sd(z),
                     "cover_1": float(np.mean(np.abs(z) <= 1)) if len(z) else np.nan,
                     "cover_2": float(np.mean(np.abs(z) <= 2)) if len(z) else np.nan,
@@ -365,9 +369,9 @@ def main(argv=None):
     other = {"results": load_results(a.compare)} if a.compare else None
     summaries = []
     print(f"{a.reps} campaigns per form and truth, bootstrap {a.boot}; {time.time() - t0:.0f} s")
-    print("| truth | form | entry | median z | spread z | 1 sigma | 2 sigma | sd(value - truth) | no value |"
+    print("| truth | form | entry | median z | spread z | 1 sigma | 2 sigma | sd(value - truth) | no value | marked * |"
           + (" variance ratio |" if other else ""))
-    print("|---|---|---|---|---|---|---|---|---|" + ("---|" if other else ""))
+    print("|---|---|---|---|---|---|---|---|---|---|" + ("---|" if other else ""))
     for t in truths:
         for f in a.forms:
             res = [r for r in results if r["truth"] == t and r["form"] == f]
@@ -382,7 +386,7 @@ def main(argv=None):
             for s in summ:
                 ratio = (s["sd"] / old[s["key"]]["sd"]) ** 2 if s["key"] in old else np.nan
                 print(f"| {t} | {f} | {s['key']} | {s['median_z']:+.2f} | {s['spread_z']:.2f} | {s['cover_1']:.2f} | "
-                      f"{s['cover_2']:.2f} | {s['sd']:.2g} | {s['missing']} |" + (f" {ratio:.2f} |" if other else ""))
+                      f"{s['cover_2']:.2f} | {s['sd']:.2g} | {s['missing']} | {s['undetermined']} |" + (f" {ratio:.2f} |" if other else ""))
     bad = [(s["truth"], s["form"], *x) for s in summaries for x in failing(s["entries"])]
     print(f"{len(bad)} (truth, form, entry, statistic) outside the bounds {BOUNDS}")
     for b in bad:
