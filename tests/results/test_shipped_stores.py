@@ -25,16 +25,21 @@ def _row(text: str, n: int) -> list:
     return [c.strip() for c in line.split("|")[2:-1]]
 
 
+def _complete_and_sound(store: Path, tasks: int):
+    """`campaign status`: every one of ``tasks`` done; `campaign verify`: no damage."""
+    status = json.loads(_campaign("status", store, "--json", check=True).stdout)
+    assert (status["done"], status["failed"], status["remaining"]) == (tasks, 0, 0)
+    verify = _campaign("verify", store)
+    assert verify.returncode == 0 and "no damage" in verify.stdout + verify.stderr, verify.stdout + verify.stderr
+
+
 @pytest.mark.slow
 def test_the_8192_store_is_complete_sound_and_gives_the_documented_row(tmp_path):
     """data/paper-8192-cpu.h5 (the chain of docs/CLUSTERS.md): every task done, `campaign verify`
     clean, and `campaign reduce` (default range and --fit-all) gives docs/PAPER.md's 8192 row, entry
     for entry as printed, and the README's."""
     store = ROOT / "data" / "paper-8192-cpu.h5"
-    status = json.loads(_campaign("status", store, "--json", check=True).stdout)
-    assert (status["done"], status["failed"], status["remaining"]) == (104, 0, 0)
-    verify = _campaign("verify", store)
-    assert verify.returncode == 0 and "no damage" in verify.stdout + verify.stderr, verify.stdout + verify.stderr
+    _complete_and_sound(store, 104)
     got = {}
     for name, extra in (("default", ()), ("all", ("--fit-all",))):
         _campaign("reduce", store, *extra, "--out", tmp_path / name, check=True)
@@ -49,7 +54,6 @@ def test_the_8192_store_is_complete_sound_and_gives_the_documented_row(tmp_path)
     assert readme == ["0.4461(4)", d[0], "0.284(4)", f"{d[1]} [{a[1]}]", "1.001(3)", f"{d[3]} [{a[3]}]", "-", d[4]]
 
 
-
 def _bare(cell: str) -> str:
     """A table cell's value as printed: bold and the reducer's undetermined mark dropped, a remark after it too."""
     return cell.replace("**", "").replace("*", "").split(" ")[0]
@@ -61,9 +65,7 @@ def test_paper_small_store_gives_the_finite_size_table(tmp_path):
     docs/PAPER.md's finite-size table (N_G 64..1024 and N_G -> inf, the default range) is what
     `campaign reduce data/paper-small.h5` gives, entry for entry."""
     store = ROOT / "data" / "paper-small.h5"
-    status = json.loads(_campaign("status", store, "--json", check=True).stdout)
-    assert (status["done"], status["failed"], status["remaining"]) == (1300, 0, 0)
-    assert _campaign("verify", store).returncode == 0
+    _complete_and_sound(store, 1300)
     _campaign("reduce", store, "--out", tmp_path / "red", check=True)
     table = (tmp_path / "red" / "table.md").read_text()
     text = (ROOT / "docs" / "PAPER.md").read_text()
