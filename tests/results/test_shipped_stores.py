@@ -25,16 +25,21 @@ def _row(text: str, n: int) -> list:
     return [c.strip() for c in line.split("|")[2:-1]]
 
 
+def _complete_and_sound(store: Path, tasks: int):
+    """`campaign status`: every one of ``tasks`` done; `campaign verify`: no damage."""
+    status = json.loads(_campaign("status", store, "--json", check=True).stdout)
+    assert (status["done"], status["failed"], status["remaining"]) == (tasks, 0, 0)
+    verify = _campaign("verify", store)
+    assert verify.returncode == 0 and "no damage" in verify.stdout + verify.stderr, verify.stdout + verify.stderr
+
+
 @pytest.mark.slow
 def test_the_8192_store_is_complete_sound_and_gives_the_documented_row(tmp_path):
     """data/paper-8192-cpu.h5 (the chain of docs/CLUSTERS.md): every task done, `campaign verify`
     clean, and `campaign reduce` (default range and --fit-all) gives docs/PAPER.md's 8192 row, entry
-    for entry as printed, and the README's."""
+    for entry as printed."""
     store = ROOT / "data" / "paper-8192-cpu.h5"
-    status = json.loads(_campaign("status", store, "--json", check=True).stdout)
-    assert (status["done"], status["failed"], status["remaining"]) == (104, 0, 0)
-    verify = _campaign("verify", store)
-    assert verify.returncode == 0 and "no damage" in verify.stdout + verify.stderr, verify.stdout + verify.stderr
+    _complete_and_sound(store, 104)
     got = {}
     for name, extra in (("default", ()), ("all", ("--fit-all",))):
         _campaign("reduce", store, *extra, "--out", tmp_path / name, check=True)
@@ -45,9 +50,6 @@ def test_the_8192_store_is_complete_sound_and_gives_the_documented_row(tmp_path)
     doc = _row(section, 8192)
     assert doc == ["0.4461(4)", f"{d[0]} [{a[0]}]", "0.284(4)", f"{d[1]} [{a[1]}]", "0.4460(3)",
                    f"{d[2]} [{a[2]}]", "1.001(3)", f"{d[3]} [{a[3]}]", f"{d[4]} [{a[4]}]"]
-    readme = _row((ROOT / "README.md").read_text(), 8192)
-    assert readme == ["0.4461(4)", d[0], "0.284(4)", f"{d[1]} [{a[1]}]", "1.001(3)", f"{d[3]} [{a[3]}]", "-", d[4]]
-
 
 
 def _bare(cell: str) -> str:
@@ -61,9 +63,7 @@ def test_paper_small_store_gives_the_finite_size_table(tmp_path):
     docs/PAPER.md's finite-size table (N_G 64..1024 and N_G -> inf, the default range) is what
     `campaign reduce data/paper-small.h5` gives, entry for entry."""
     store = ROOT / "data" / "paper-small.h5"
-    status = json.loads(_campaign("status", store, "--json", check=True).stdout)
-    assert (status["done"], status["failed"], status["remaining"]) == (1300, 0, 0)
-    assert _campaign("verify", store).returncode == 0
+    _complete_and_sound(store, 1300)
     _campaign("reduce", store, "--out", tmp_path / "red", check=True)
     table = (tmp_path / "red" / "table.md").read_text()
     text = (ROOT / "docs" / "PAPER.md").read_text()
@@ -72,3 +72,53 @@ def test_paper_small_store_gives_the_finite_size_table(tmp_path):
         got = [_bare(c) for c in _row(table, n)]          # A_G*(E), beta_E, A_G*(Z), beta_Z, Psi_O*, range
         cells = [_bare(c) for c in _row(doc, n)]         # paper, ours per entry; Psi_O* ours alone
         assert [cells[1], cells[3], cells[5], cells[7], cells[8]] == got[:5], n
+
+
+def _reduced_rows(tmp_path, name, stores, sizes):
+    """`campaign reduce STORES` with the default range and with --fit-all: per size of ``sizes``, the
+    table's cells (A_G*(E), beta_E, A_G*(Z), beta_Z, Psi_O*) as printed, bold and marks dropped."""
+    out = {}
+    for fit, extra in (("default", ()), ("all", ("--fit-all",))):
+        _campaign("reduce", *stores, *extra, "--out", tmp_path / f"{name}-{fit}", check=True)
+        table = (tmp_path / f"{name}-{fit}" / "table.md").read_text()
+        out[fit] = {n: [_bare(c) for c in _row(table, n)[:5]] for n in sizes}
+    return out
+
+
+@pytest.mark.slow
+def test_paper_large_store_gives_the_table_to_4096(tmp_path):
+    """data/paper-large.h5 (campaigns/paper-large.yaml, no configurations) is complete and sound, and
+    docs/PAPER.md's table "To N_G = 4096" (1024, 2048, 4096 and N_G -> inf; default range and every
+    energy) is what `campaign reduce data/paper-small.h5 data/paper-large.h5` gives, entry for entry."""
+    _complete_and_sound(ROOT / "data" / "paper-large.h5", 624)
+    sizes = (1024, 2048, 4096, "N_G -> inf")
+    got = _reduced_rows(tmp_path, "to4096", [ROOT / "data" / "paper-small.h5", ROOT / "data" / "paper-large.h5"], sizes)
+    text = (ROOT / "docs" / "PAPER.md").read_text()
+    doc = text[text.index("### To N_G = 4096"):text.index("### N_G = 8192, on CPUs")]
+    for n in sizes:
+        c = [_bare(x) for x in _row(doc, n)]   # paper, default, every energy for A_G*(E), beta_E, beta_Z; Psi_O* default, every
+        d, a = got["default"][n], got["all"][n]
+        assert [c[1], c[2], c[4], c[5], c[7], c[8], c[9], c[10]] == [d[0], a[0], d[1], a[1], d[3], a[3], d[4], a[4]], n
+
+
+@pytest.mark.slow
+def test_the_row_to_infinity_with_8192(tmp_path):
+    """The N_G -> inf row with the eighth size (docs/PAPER.md "N_G = 8192, on CPUs") and the README's
+    table (1024, 4096, 8192 and N_G -> inf) are what `campaign reduce data/paper-small.h5
+    data/paper-large.h5 data/paper-8192-cpu.h5` gives (default range, --fit-all in brackets)."""
+    stores = [ROOT / "data" / f"{s}.h5" for s in ("paper-small", "paper-large", "paper-8192-cpu")]
+    inf = "N_G -> inf"
+    got = _reduced_rows(tmp_path, "to8192", stores, (1024, 4096, 8192, inf))
+    d, a = got["default"][inf], got["all"][inf]
+    text = (ROOT / "docs" / "PAPER.md").read_text()
+    section = text[text.index("### N_G = 8192, on CPUs"):]
+    doc = [x.replace("**", "") for x in _row(section, inf)]
+    assert doc == ["0.446(1)", f"{d[0]} [{a[0]}]", "0.28(2)", f"{d[1]} [{a[1]}]", "0.446(1)",
+                   f"{d[2]} [{a[2]}]", "1.00(1)", f"{d[3]} [{a[3]}]", f"{d[4]} [{a[4]}] (paper 0.369(1))"]
+    readme = (ROOT / "README.md").read_text()
+    paper = {1024: ("0.4454(2)", "0.284(3)", "1.001(2)", "-"), 4096: ("0.4461(2)", "0.284(3)", "1.001(2)", "-"),
+             8192: ("0.4461(4)", "0.284(4)", "1.001(3)", "-"), inf: ("0.446(1)", "0.28(2)", "1.00(1)", "0.369(1)")}
+    for n, p in paper.items():
+        d, a = got["default"][n], got["all"][n]
+        row = [x.replace("**", "") for x in _row(readme, n)]
+        assert row == [p[0], d[0], p[1], f"{d[1]} [{a[1]}]", p[2], f"{d[3]} [{a[3]}]", p[3], d[4]], n
