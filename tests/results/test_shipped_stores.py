@@ -122,3 +122,12 @@ def test_the_row_to_infinity_with_8192(tmp_path):
         d, a = got["default"][n], got["all"][n]
         row = [x.replace("**", "") for x in _row(readme, n)]
         assert row == [p[0], d[0], p[1], f"{d[1]} [{a[1]}]", p[2], f"{d[3]} [{a[3]}]", p[3], d[4]], n
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("store", sorted(p.name for p in (ROOT / "data").glob("*.h5")))
+def test_every_shipped_store_verifies_sound(store):
+    """`campaign verify` finds no damage in any store in data/ (a store of an older version
+    included: data/gpu-equivalence-large.h5 was written by 0.2.7)."""
+    verify = _campaign("verify", ROOT / "data" / store)
+    assert verify.returncode == 0 and "no damage" in verify.stdout + verify.stderr, verify.stdout + verify.stderr
