@@ -155,3 +155,10 @@ def test_paper_protocol_store_gives_the_protocol_table(tmp_path):
         assert cells[3] == ", ".join(g[n][1] for n in (64, 128, 256)), variant
         assert cells[4] == ", ".join(g[n][3] for n in (64, 128, 256)), variant
         assert cells[5] == g["N_G -> inf"][0], variant
+@pytest.mark.slow
+@pytest.mark.parametrize("store", sorted(p.name for p in (ROOT / "data").glob("*.h5")))
+def test_every_shipped_store_verifies_sound(store):
+    """`campaign verify` finds no damage in any store in data/ (a store of an older version
+    included: data/gpu-equivalence-large.h5 was written by 0.2.7)."""
+    verify = _campaign("verify", ROOT / "data" / store)
+    assert verify.returncode == 0 and "no damage" in verify.stdout + verify.stderr, verify.stdout + verify.stderr

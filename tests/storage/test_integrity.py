@@ -422,3 +422,26 @@ def test_real_campaign_damaged_found_by_every_reader_and_repaired(tmp_path):
     assert code == 0 and "this run: 4 done" in err
     assert _campaign("verify", path, cwd=tmp_path)[0] == 0
     assert_same_contents(store_contents(path), store_contents(ref))
+
+
+def test_a_gpu_store_written_before_0_3_hashes_to_its_own_spec():
+    """A store of 0.2.x with a `device: gpu` variant holds the first GPU block, which no protocol key
+    named: its stored spec is read without the `gpu_block` key the present parser adds (else every
+    such store verified as DAMAGED, data/gpu-equivalence-large.h5 among them), and a store of 0.3.0
+    or later with it, so the two blocks' packings keep apart task ids."""
+    from campaign.plan.parse import parse_spec
+    from campaign.plan.spec import GPU_BLOCK
+    from campaign.storage.layout import stored_spec
+
+    text = ("name: g\nseed: 1\ngrid: {N_G: [64], E_G: [1.0e-6], seeds: 1}\n"
+            "variants:\n  - {name: gpu, device: gpu}\n")
+    old = parse_spec(text, gpu_block=None)
+    new = parse_spec(text)
+    assert old.hash != new.hash
+    protocols = {name: p for name, p in (v[:2] for v in new.canonical()["variants"])}
+    assert protocols["gpu"]["gpu_block"] == GPU_BLOCK
+    assert "gpu_block" not in dict(v[:2] for v in old.canonical()["variants"])["gpu"]
+    for version, want in (("0.2.7", old.hash), ("0.1.0", old.hash), ("0.3.0", new.hash), ("0.4.0", new.hash),
+                          (None, new.hash)):
+        attrs = {"spec_yaml": text} | ({"package_version": version} if version else {})
+        assert stored_spec(attrs).hash == want, version
