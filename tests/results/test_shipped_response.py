@@ -4,35 +4,18 @@ data/response.h5 data/response-1024.h5`, run as a user runs it, its response_*.c
 page prints them."""
 
 import csv
-import json
 import math
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+
+from helpers import campaign_cli as _campaign, complete_and_sound as _complete_and_sound
 
 from campaign.results.tables import fmt_err
 
 ROOT = Path(__file__).resolve().parents[2]
 STORES = (ROOT / "data" / "response.h5", ROOT / "data" / "response-1024.h5")
 SIZES = (64, 128, 256, 512)
-
-
-def _campaign(*args, **kw):
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
-    return subprocess.run([sys.executable, "-m", "campaign", *map(str, args)], env=env, capture_output=True,
-                          text=True, timeout=600, **kw)
-
-
-def _complete_and_sound(store: Path, tasks: int):
-    """`campaign status`: every one of ``tasks`` done; `campaign verify`: no damage."""
-    status = json.loads(_campaign("status", store, "--json", check=True).stdout)
-    assert (status["done"], status["failed"], status["remaining"]) == (tasks, 0, 0)
-    verify = _campaign("verify", store)
-    assert verify.returncode == 0 and "no damage" in verify.stdout + verify.stderr, verify.stdout + verify.stderr
 
 
 @pytest.fixture(scope="module")
