@@ -208,11 +208,11 @@ def _screen(text: str, source: str):
             depth -= 1
 
 
-def parse_spec(text: str, source: str = "<spec>", gpu_block: int = GPU_BLOCK) -> Spec:
+def parse_spec(text: str, source: str = "<spec>", first_gpu_block: bool = False) -> Spec:
     """Validate the YAML text of a spec completely; raise UserError naming every problem.
-    ``gpu_block``: the GPU block version a ``device: gpu`` variant's packings are made with (the
-    present one; None for the first block, which no key named: a store written before 0.3.0,
-    ``campaign.storage.layout.stored_spec``)."""
+    ``first_gpu_block``: a ``device: gpu`` variant's packings are the first GPU block's, which no
+    protocol key named (a store written before 0.3.0, ``campaign.storage.layout.stored_spec``);
+    else the present block's, ``gpu_block = GPU_BLOCK``."""
     if len(text) > MAX_SPEC_BYTES:
         raise UserError(f"{source}: the spec is larger than {MAX_SPEC_BYTES // 1024} KiB; a campaign spec "
                         "is a few kilobytes")
@@ -232,7 +232,7 @@ def parse_spec(text: str, source: str = "<spec>", gpu_block: int = GPU_BLOCK) ->
         raise UserError(f"{source}: nested too deeply") from None
     lines, dups = _line_map(node) if node is not None else ({}, [])
     c = _Checker(source, lines)
-    c.gpu_block = gpu_block
+    c.first_gpu_block = first_gpu_block
     for path, line in dups:
         c.errors.append(f"{source}:{line}: {_fmt_path(path)}: duplicate key")
     if data is None:
@@ -516,8 +516,8 @@ def _protocol(c, value, path, allow, base=None):
         if t == GPU_THREADS_DEFAULT:
             del out["gpu_threads"]  # the default block: its packings keep their ids
     if out.get("device") == "gpu":
-        if getattr(c, "gpu_block", GPU_BLOCK) is not None:
-            out["gpu_block"] = getattr(c, "gpu_block", GPU_BLOCK)
+        if not getattr(c, "first_gpu_block", False):
+            out["gpu_block"] = GPU_BLOCK
     if out.get("device") == "gpu" and any(k in out for k in ("stop", "route", "endgame", "cell", "start")) \
             or out.get("device") == "gpu" and out.get("minimizer", "fire") != "fire":
         c.err(path + ("device",), "device 'gpu' runs FIRE on the O'Hern route in a fixed cell from random "

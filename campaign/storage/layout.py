@@ -26,7 +26,6 @@ import numpy as np
 
 from campaign.errors import UserError
 from campaign.plan.parse import parse_spec
-from campaign.plan.spec import GPU_BLOCK
 from campaign.storage.checksums import (PROTECTION_ATTR, _text, block_sums, checksums_on, create_fill_sums,
                                         create_sums, protection_text, write_sums)
 from campaign.storage.faults import GuardedFile, release, reserve, write_fault
@@ -201,18 +200,16 @@ def format_problem(attrs, path) -> str | None:
             f"(this one reads format {FORMAT_VERSION}); upgrade jamming-campaign to read it")
 
 
-def _gpu_block_of(attrs):
-    """The GPU block version of a store's ``device: gpu`` packings: None (the first block, which no
-    protocol key named) in a store written before 0.3.0 (its ``package_version``; the block was
-    rewritten then and named ``gpu_block``, ``campaign.plan.spec.GPU_BLOCK``), else the present one. A
-    store without a readable version is taken as the present one's."""
+def _before_gpu_block(attrs) -> bool:
+    """Whether a store's ``device: gpu`` packings are the first GPU block's, which no protocol key
+    named: a store written before 0.3.0 (its ``package_version``; the block was rewritten then and
+    named ``gpu_block``, ``campaign.plan.spec.GPU_BLOCK``). A store without a readable version is
+    taken as the present one's."""
     version = _text(attrs.get("package_version")) or ""
     try:
-        if tuple(int(p) for p in version.split(".")[:3]) < (0, 3, 0):
-            return None
+        return tuple(int(p) for p in version.split(".")[:3]) < (0, 3, 0)
     except ValueError:
-        pass
-    return GPU_BLOCK
+        return False
 
 
 def stored_spec(source, *, verified=False, strict=False, name="the stored spec"):
@@ -230,7 +227,7 @@ def stored_spec(source, *, verified=False, strict=False, name="the stored spec")
     if text is None:
         return None
     try:
-        spec = parse_spec(text, name, gpu_block=_gpu_block_of(attrs))
+        spec = parse_spec(text, name, first_gpu_block=_before_gpu_block(attrs))
     except UserError:
         if strict:
             raise

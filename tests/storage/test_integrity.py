@@ -435,7 +435,7 @@ def test_a_gpu_store_written_before_0_3_hashes_to_its_own_spec():
 
     text = ("name: g\nseed: 1\ngrid: {N_G: [64], E_G: [1.0e-6], seeds: 1}\n"
             "variants:\n  - {name: gpu, device: gpu}\n")
-    old = parse_spec(text, gpu_block=None)
+    old = parse_spec(text, first_gpu_block=True)
     new = parse_spec(text)
     assert old.hash != new.hash
     protocols = {name: p for name, p in (v[:2] for v in new.canonical()["variants"])}
