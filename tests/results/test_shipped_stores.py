@@ -25,12 +25,17 @@ def _row(text: str, n: int) -> list:
     return [c.strip() for c in line.split("|")[2:-1]]
 
 
+def _sound(store: Path):
+    """`campaign verify`: no damage."""
+    verify = _campaign("verify", store)
+    assert verify.returncode == 0 and "no damage" in verify.stdout + verify.stderr, verify.stdout + verify.stderr
+
+
 def _complete_and_sound(store: Path, tasks: int):
     """`campaign status`: every one of ``tasks`` done; `campaign verify`: no damage."""
     status = json.loads(_campaign("status", store, "--json", check=True).stdout)
     assert (status["done"], status["failed"], status["remaining"]) == (tasks, 0, 0)
-    verify = _campaign("verify", store)
-    assert verify.returncode == 0 and "no damage" in verify.stdout + verify.stderr, verify.stdout + verify.stderr
+    _sound(store)
 
 
 @pytest.mark.slow
@@ -129,5 +134,4 @@ def test_the_row_to_infinity_with_8192(tmp_path):
 def test_every_shipped_store_verifies_sound(store):
     """`campaign verify` finds no damage in any store in data/ (a store of an older version
     included: data/gpu-equivalence-large.h5 was written by 0.2.7)."""
-    verify = _campaign("verify", ROOT / "data" / store)
-    assert verify.returncode == 0 and "no damage" in verify.stdout + verify.stderr, verify.stdout + verify.stderr
+    _sound(ROOT / "data" / store)
