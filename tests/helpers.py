@@ -451,11 +451,16 @@ def campaign_cli(*args, **kw):
                           text=True, timeout=600, **kw)
 
 
+def sound(store):
+    """`campaign verify`: no damage."""
+    verify = campaign_cli("verify", store)
+    assert verify.returncode == 0 and "no damage" in verify.stdout + verify.stderr, verify.stdout + verify.stderr
+
+
 def complete_and_sound(store, tasks: int):
     """`campaign status`: every one of ``tasks`` done; `campaign verify`: no damage."""
     import json
 
     status = json.loads(campaign_cli("status", store, "--json", check=True).stdout)
     assert (status["done"], status["failed"], status["remaining"]) == (tasks, 0, 0)
-    verify = campaign_cli("verify", store)
-    assert verify.returncode == 0 and "no damage" in verify.stdout + verify.stderr, verify.stdout + verify.stderr
+    sound(store)

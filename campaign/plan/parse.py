@@ -94,8 +94,9 @@ def _fmt_path(path) -> str:
 
 
 class _Checker:
-    def __init__(self, source, lines):
+    def __init__(self, source, lines, first_gpu_block=False):
         self.source, self.lines, self.errors = source, lines, []
+        self.first_gpu_block = first_gpu_block  # parse_spec's: a device: gpu variant without gpu_block
 
     def err(self, path, message):
         line = None
@@ -231,8 +232,7 @@ def parse_spec(text: str, source: str = "<spec>", first_gpu_block: bool = False)
     except RecursionError:
         raise UserError(f"{source}: nested too deeply") from None
     lines, dups = _line_map(node) if node is not None else ({}, [])
-    c = _Checker(source, lines)
-    c.first_gpu_block = first_gpu_block
+    c = _Checker(source, lines, first_gpu_block)
     for path, line in dups:
         c.errors.append(f"{source}:{line}: {_fmt_path(path)}: duplicate key")
     if data is None:
@@ -516,7 +516,7 @@ def _protocol(c, value, path, allow, base=None):
         if t == GPU_THREADS_DEFAULT:
             del out["gpu_threads"]  # the default block: its packings keep their ids
     if out.get("device") == "gpu":
-        if not getattr(c, "first_gpu_block", False):
+        if not c.first_gpu_block:
             out["gpu_block"] = GPU_BLOCK
     if out.get("device") == "gpu" and any(k in out for k in ("stop", "route", "endgame", "cell", "start")) \
             or out.get("device") == "gpu" and out.get("minimizer", "fire") != "fire":

@@ -438,8 +438,7 @@ def test_a_gpu_store_written_before_0_3_hashes_to_its_own_spec():
     old = parse_spec(text, first_gpu_block=True)
     new = parse_spec(text)
     assert old.hash != new.hash
-    protocols = {name: p for name, p in (v[:2] for v in new.canonical()["variants"])}
-    assert protocols["gpu"]["gpu_block"] == GPU_BLOCK
+    assert dict(v[:2] for v in new.canonical()["variants"])["gpu"]["gpu_block"] == GPU_BLOCK
     assert "gpu_block" not in dict(v[:2] for v in old.canonical()["variants"])["gpu"]
     for version, want in (("0.2.7", old.hash), ("0.1.0", old.hash), ("0.3.0", new.hash), ("0.4.0", new.hash),
                           (None, new.hash)):
