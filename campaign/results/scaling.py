@@ -104,9 +104,13 @@ def _law(moments, cells_by_size, qi, xi, n_done, logE, bounds_fit, per_size):
     u = np.where(valid, u - u[valid].mean(), 0.0)
     size_of = np.nonzero(valid)[0]
 
+    # a cell's packings cannot agree better than their values' last bit: a spread floored there keeps
+    # the weights of a size whose packings are alike finite (1/0 would overflow the fits' sums)
+    floor = (np.finfo(float).eps * np.abs(Y[:, valid])) ** 2
+
     def errors(v):
         err = np.full(v.shape, np.inf)
-        err[:, valid] = np.sqrt(variance.pooled_model(np.maximum(v[:, valid], 0.0), n[valid], size_of, u[valid], G)
+        err[:, valid] = np.sqrt(variance.pooled_model(np.maximum(v[:, valid], floor), n[valid], size_of, u[valid], G)
                                 / n[valid])
         return err
 

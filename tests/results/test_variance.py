@@ -73,3 +73,26 @@ def test_bartletts_test_holds_its_level_and_finds_unequal_spreads():
     p_alt = [p(gamma=0.35) for _ in range(200)]  # a 23-fold spread across the cells
     assert np.mean(np.array(p_alt) < 0.05) > 0.8
     assert np.isnan(variance.homogeneity([1e-4], [5])) and np.isnan(variance.homogeneity([0.0, 0.0], [4, 4]))
+
+
+def test_packings_alike_to_the_last_bit_still_fit_their_law():
+    """Every packing of a cell the same (no spread between them: the model's variance would be
+    zero and the weights infinite) and the cells exactly on y = 0.369 + 0.6 E^0.27 at two sizes: the
+    law's fit still returns the law (the weights are floored at the values' last bit; unfloored,
+    the fits' weighted sums overflow and the exponent ends at the search bound)."""
+    from campaign.results import scaling
+
+    energies = 10.0 ** -np.arange(8.0, 12.0)
+    R1, moments, cells_by_size, n_done, logE = 21, {}, {}, {}, {}
+    for g, N in enumerate((16, 32)):
+        for k, E in enumerate(energies):
+            c = 10 * g + k
+            means = np.tile([0.369 + 0.6 * E ** 0.27, E], (R1, 1))
+            moments[c] = (means, np.zeros((R1, 2, 2)))
+            cells_by_size.setdefault(N, []).append(c)
+            n_done[c], logE[c] = 4, np.log10(E)
+    law = scaling._law(moments, cells_by_size, 0, 1, n_done, logE, (0.02, 3.0), per_size=True)
+    assert law.shared.exponent == pytest.approx(0.27, abs=1e-6) and not law.shared.at_bound
+    assert np.allclose(law.shared.intercepts, 0.369, atol=1e-9)
+    for N in (16, 32):
+        assert law.per_size[N].exponent == pytest.approx(0.27, abs=1e-6)
