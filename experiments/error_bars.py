@@ -309,6 +309,49 @@ def failing(summary) -> list:
             if not (lo <= s[name] <= hi)]
 
 
+def _cell(s) -> str:
+    return f"{s['cover_1']:.2f} / {s['cover_2']:.2f}, {s['median_z']:+.2f}, {s['spread_z']:.2f}"
+
+
+def doc_tables(summaries, old=None) -> str:
+    """The docs' compact tables from ``summaries`` (``main``'s, ``--entries all``): per truth and
+    form, each entry of the N_G -> inf row and ``phi_J`` as "1-sigma / 2-sigma, median z, spread
+    z"; the same for ``old`` (the other reducer's summaries keyed by (truth, form)) and the variance
+    ratios of value - truth, this / that; then every size's entries outside ``BOUNDS``, split by the
+    share of campaigns whose fit at that size is marked undetermined (a tenth or more: the
+    determined ones are a selected sample)."""
+    keys = ROW + ("phi_J",)
+    head = "| truth, form (campaigns) | " + " | ".join(keys) + " |\n|---|" + "---|" * len(keys) + "\n"
+    lines = []
+
+    def table(title, cell, rows):
+        lines.append(f"{title}\n\n" + head + "".join(
+            f"| {t}, {f} ({reps}) | " + " | ".join(cell(by.get(k), t, f, k) for k in keys) + " |\n"
+            for t, f, reps, by in rows))
+
+    rows = [(s["truth"], s["form"], s["reps"], {e["key"]: e for e in s["entries"]}) for s in summaries]
+    table("This reducer: 1-sigma / 2-sigma coverage, median z, spread of z", lambda e, *_: _cell(e) if e else "", rows)
+    if old:
+        olds = {k: {e["key"]: e for e in v["entries"]} for k, v in old.items()}
+        table("The reducer before 0.4, the same campaigns", lambda e, t, f, k: _cell(olds[(t, f)][k])
+              if k in olds.get((t, f), {}) else "", rows)
+        table("Variance of value - truth, this reducer / before 0.4",
+              lambda e, t, f, k: f"{(e['sd'] / olds[(t, f)][k]['sd']) ** 2:.2f}"
+              if e and k in olds.get((t, f), {}) else "", rows)
+    per_size = ("Every size's entries (intercept and exponent of the four laws, phi_J) outside the bounds\n\n"
+                "| truth, form | outside, fit determined in 90% of campaigns or more | outside, "
+                "undetermined in a tenth or more |\n|---|---|---|\n")
+    for t, f, reps, by in rows:
+        per = [e for k, e in by.items() if ":" in k]
+        bad = failing(per)
+        names = sorted({k for k, *_ in bad}, key=_order)
+        sel = [k for k in names if by[k]["undetermined"] >= 0.1 * reps]
+        rest = [k for k in names if k not in sel]
+        per_size += (f"| {t}, {f} | {len(rest)} of {len(per)}" + (f": {', '.join(rest)}" if rest else "")
+                     + f" | {len(sel)}" + (f": {', '.join(sel)}" if sel else "") + " |\n")
+    return "\n".join(lines + [per_size])
+
+
 def load_results(path) -> list:
     """Campaigns' records from a --json file or a --results file (a torn last line left out)."""
     text = Path(path).read_text() if Path(path).exists() else ""
@@ -338,6 +381,7 @@ def main(argv=None):
     ap.add_argument("--results", help="a JSON-lines file every campaign's values are appended to as it is reduced; "
                                       "run again with the same file, only the campaigns it lacks are reduced "
                                       "(a long run in parts, or one cut short)")
+    ap.add_argument("--doc", help="write the docs' compact tables (doc_tables) to this file")
     ap.add_argument("--compare", help="a --json or --results file of another version of the reducer on the same "
                                       "campaigns: the variance ratio (this / that) of value - truth per entry")
     a = ap.parse_args(argv)
@@ -391,6 +435,16 @@ def main(argv=None):
     print(f"{len(bad)} (truth, form, entry, statistic) outside the bounds {BOUNDS}")
     for b in bad:
         print("   ", b)
+    if a.doc:
+        olds = None
+        if other:
+            olds = {}
+            for t in truths:
+                for f in a.forms:
+                    res = [r for r in other["results"] if r["truth"] == t and r["form"] == f]
+                    if res:
+                        olds[(t, f)] = {"entries": summarise(res, TRUTHS[t], None)}
+        Path(a.doc).write_text(doc_tables(summaries, olds))
     if a.json:
         Path(a.json).write_text(json.dumps({"reps": a.reps, "boot": a.boot, "truths": {t: asdict(TRUTHS[t]) for t in truths},
                                             "summaries": summaries, "results": results}))
