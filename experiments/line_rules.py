@@ -61,8 +61,9 @@ def dump(out: Path, jobs, reps: int, boot: int):
                 e = H.entries(H.campaign(H.TRUTHS[truth], form, rep), Settings(n_boot=boot))
                 arr = {"truth": np.array(truth), "form": np.array(form),
                        "entries": np.array(json.dumps({k: [float(x[0]), float(x[1])] for k, x in e.items()}))}
-                for j, (s, v, R) in enumerate(calls[:len(KEYS)]):
+                for j, (s, v, R) in enumerate(calls):  # the four intercepts, then phi_J and the rest
                     arr[f"s{j}"], arr[f"v{j}"], arr[f"R{j}"] = s, v, R
+                arr["calls"] = np.array(len(calls))
                 tmp = name.with_suffix(".tmp.npz")
                 np.savez(tmp, **arr)
                 os.replace(tmp, name)
@@ -116,6 +117,48 @@ def table(folder: Path, keys=("A_G_star_E", "psi_O_star")):
     print("\n".join(lines))
 
 
+def _call_of(d, key):
+    """The index of the dumped extrapolation that made entry ``key`` (the four intercepts in order;
+    ``phi_J``: the call whose average is the reducer's value)."""
+    if key in KEYS:
+        return KEYS.index(key)
+    want = json.loads(str(d["entries"])).get(key, [np.nan])[0]
+    for j in range(len(KEYS), int(d["calls"]) if "calls" in d else 0):
+        if np.isclose(averaged(d[f"s{j}"], d[f"v{j}"], d[f"R{j}"], 2.0)[0], want, rtol=0, atol=1e-12):
+            return j
+    return None
+
+
+def ratios(folder: Path, before: Path, keys=KEYS + ("phi_J",)):
+    """The variance of value - truth of the line alone and of the reducer's average, each over the
+    reducer before 0.4's on the same campaigns (``before``: its error_bars.py results): what the
+    weights change, apart from what the line's rule changes."""
+    old = collections.defaultdict(dict)
+    for r in H.load_results(before):
+        old[(r["truth"], r["form"])][r["rep"]] = r["entries"]
+    by = collections.defaultdict(list)
+    for f in sorted(folder.glob("*.npz")):
+        d = np.load(f)
+        by[(str(d["truth"]), str(d["form"]))].append((int(f.stem.rsplit("_", 1)[1]), d))
+    print("| truth, form (campaigns) | " + " | ".join(keys) + " |\n|---|" + "---|" * len(keys))
+    for (truth, form), L in sorted(by.items()):
+        want = H.TRUTHS[truth].values(H.SIZES)
+        cells = []
+        for key in keys:
+            dev = {"line": [], "average": [], "before": []}
+            for rep, d in L:
+                j = _call_of(d, key)
+                o = old[(truth, form)].get(rep, {}).get(key)
+                if j is None or o is None or not np.isfinite(o[0]):
+                    continue
+                dev["line"].append(averaged(d[f"s{j}"], d[f"v{j}"], d[f"R{j}"], None)[0] - want[key])
+                dev["average"].append(averaged(d[f"s{j}"], d[f"v{j}"], d[f"R{j}"], 2.0)[0] - want[key])
+                dev["before"].append(o[0] - want[key])
+            var = {k: np.var(v, ddof=1) if len(v) > 2 else np.nan for k, v in dev.items()}
+            cells.append(f"{var['line'] / var['before']:.2f}, {var['average'] / var['before']:.2f}")
+        print(f"| {truth}, {form} ({len(L)}) | " + " | ".join(cells) + " |")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -127,6 +170,9 @@ def main(argv=None):
     t = sub.add_parser("table", help="every rule on the kept inputs: a markdown table")
     t.add_argument("folder", type=Path)
     t.add_argument("--keys", nargs="+", default=["A_G_star_E", "psi_O_star"], choices=KEYS)
+    r = sub.add_parser("ratios", help="variance ratios against the reducer before 0.4: the line alone, the average")
+    r.add_argument("folder", type=Path)
+    r.add_argument("before", type=Path, help="error_bars.py --results of the reducer before 0.4, the same campaigns")
     args = ap.parse_args(argv)
     if args.cmd == "dump":
         jobs = [tuple(j.split(":", 1)) for j in args.jobs]
@@ -135,6 +181,8 @@ def main(argv=None):
             ap.error(f"jobs: expected truth:form with a truth of {list(H.TRUTHS)} and a form of {list(H.FORMS)}, "
                      f"got {bad}")
         dump(args.folder, jobs, args.reps, args.boot)
+    elif args.cmd == "ratios":
+        ratios(args.folder, args.before)
     else:
         table(args.folder, tuple(args.keys))
 
