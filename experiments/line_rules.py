@@ -130,9 +130,10 @@ def _call_of(d, key):
 
 
 def ratios(folder: Path, before: Path, keys=KEYS + ("phi_J",)):
-    """The variance of value - truth of the line alone and of the reducer's average, each over the
-    reducer before 0.4's on the same campaigns (``before``: its error_bars.py results): what the
-    weights change, apart from what the line's rule changes."""
+    """The variance of value - truth of the line alone through the reducer's intercepts and of the
+    reducer's own value (the average, with its rule for sizes off the line), each over the reducer
+    before 0.4's on the same campaigns (``before``: its error_bars.py results): what the weights
+    change, apart from what the line's rule changes."""
     old = collections.defaultdict(dict)
     for r in H.load_results(before):
         old[(r["truth"], r["form"])][r["rep"]] = r["entries"]
@@ -145,17 +146,17 @@ def ratios(folder: Path, before: Path, keys=KEYS + ("phi_J",)):
         want = H.TRUTHS[truth].values(H.SIZES)
         cells = []
         for key in keys:
-            dev = {"line": [], "average": [], "before": []}
+            dev = {"line": [], "reducer": [], "before": []}
             for rep, d in L:
                 j = _call_of(d, key)
                 o = old[(truth, form)].get(rep, {}).get(key)
                 if j is None or o is None or not np.isfinite(o[0]):
                     continue
                 dev["line"].append(averaged(d[f"s{j}"], d[f"v{j}"], d[f"R{j}"], None)[0] - want[key])
-                dev["average"].append(averaged(d[f"s{j}"], d[f"v{j}"], d[f"R{j}"], 2.0)[0] - want[key])
+                dev["reducer"].append(json.loads(str(d["entries"]))[key][0] - want[key])
                 dev["before"].append(o[0] - want[key])
             var = {k: np.var(v, ddof=1) if len(v) > 2 else np.nan for k, v in dev.items()}
-            cells.append(f"{var['line'] / var['before']:.2f}, {var['average'] / var['before']:.2f}")
+            cells.append(f"{var['line'] / var['before']:.2f}, {var['reducer'] / var['before']:.2f}")
         print(f"| {truth}, {form} ({len(L)}) | " + " | ".join(cells) + " |")
 
 
@@ -170,7 +171,7 @@ def main(argv=None):
     t = sub.add_parser("table", help="every rule on the kept inputs: a markdown table")
     t.add_argument("folder", type=Path)
     t.add_argument("--keys", nargs="+", default=["A_G_star_E", "psi_O_star"], choices=KEYS)
-    r = sub.add_parser("ratios", help="variance ratios against the reducer before 0.4: the line alone, the average")
+    r = sub.add_parser("ratios", help="variance ratios against the reducer before 0.4: the line alone, the reducer")
     r.add_argument("folder", type=Path)
     r.add_argument("before", type=Path, help="error_bars.py --results of the reducer before 0.4, the same campaigns")
     args = ap.parse_args(argv)
