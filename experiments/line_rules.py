@@ -2,8 +2,9 @@
 1/N_G line"): the coverage harness's campaigns (``experiments/error_bars.py``) are reduced once by
 the reducer, each 1/N_G extrapolation's inputs kept (the sizes, their intercepts and the intercepts'
 bootstrap replicas, one file per campaign), and every rule is then applied to those inputs in
-seconds: the line alone, and the Akaike average of line and parabola with a penalty per parameter
-of 2 (Akaike's, the reducer's), 4, 6 and 10.
+seconds: the line alone, the Akaike average of line and parabola with a penalty per parameter
+of 2 (Akaike's), 4, 6 and 10, and the reducer's rule (penalty 2, the smallest sizes left out while
+both models fail their chi^2 test).
 
     python experiments/line_rules.py dump lines/ --reps 200 base:uniform-12 base:uniform-40 \\
         base:unequal base:ladder 1/N^2:uniform-12 1/N^2:uniform-40     # ~2 s a campaign; resumes
@@ -100,15 +101,19 @@ def table(folder: Path, keys=("A_G_star_E", "psi_O_star")):
         d = np.load(f)
         by[(str(d["truth"]), str(d["form"]))].append(d)
     lines = ["| truth, form, entry (campaigns) | " + " | ".join("line" if p is None else f"penalty {p:g}"
-                                                              for p in PENALTIES) + " |",
-             "|---" * (len(PENALTIES) + 1) + "|"]
+                                                              for p in PENALTIES) + " | the reducer |",
+             "|---" * (len(PENALTIES) + 2) + "|"]
     for (truth, form), L in sorted(by.items()):
         want = H.TRUTHS[truth].values(H.SIZES)
         for key in keys:
             j = KEYS.index(key)
             cells = []
-            for pen in PENALTIES:
-                vr = np.array([averaged(d[f"s{j}"], d[f"v{j}"], d[f"R{j}"], pen) for d in L])
+            for pen in PENALTIES + ("reducer",):
+                if pen == "reducer":  # penalty 2 and the smallest sizes left out while both fail
+                    vr = np.array([(r.value, r.err) for r in (fits.line_in_inverse_n(d[f"s{j}"], d[f"v{j}"],
+                                                                                      d[f"R{j}"]) for d in L)])
+                else:
+                    vr = np.array([averaged(d[f"s{j}"], d[f"v{j}"], d[f"R{j}"], pen) for d in L])
                 dev = vr[:, 0] - want[key]
                 z = dev / vr[:, 1]
                 cells.append(f"{np.sqrt(np.mean(dev ** 2)) * 1e4:.2f}, {H._trimmed_sd(z):.2f}, "
