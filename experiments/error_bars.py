@@ -316,7 +316,7 @@ def _cell(s) -> str:
 def doc_tables(summaries, old=None) -> str:
     """The docs' compact tables from ``summaries`` (``main``'s, ``--entries all``): per truth and
     form, each entry of the N_G -> inf row and ``phi_J`` as "1-sigma / 2-sigma, median z, spread
-    z"; the same for ``old`` (the other reducer's summaries keyed by (truth, form)) and the variance
+    z"; the same for ``old`` (the other reducer's summaries per (truth, form), entry -> summary) and the variance
     ratios of value - truth, this / that; then every size's entries outside ``BOUNDS``, split by the
     share of campaigns whose fit at that size is marked undetermined (a tenth or more: the
     determined ones are a selected sample)."""
@@ -332,12 +332,11 @@ def doc_tables(summaries, old=None) -> str:
     rows = [(s["truth"], s["form"], s["reps"], {e["key"]: e for e in s["entries"]}) for s in summaries]
     table("This reducer: 1-sigma / 2-sigma coverage, median z, spread of z", lambda e, *_: _cell(e) if e else "", rows)
     if old:
-        olds = {k: {e["key"]: e for e in v["entries"]} for k, v in old.items()}
-        table("The reducer before 0.4, the same campaigns", lambda e, t, f, k: _cell(olds[(t, f)][k])
-              if k in olds.get((t, f), {}) else "", rows)
+        table("The reducer before 0.4, the same campaigns", lambda e, t, f, k: _cell(old[(t, f)][k])
+              if k in old.get((t, f), {}) else "", rows)
         table("Variance of value - truth, this reducer / before 0.4",
-              lambda e, t, f, k: f"{(e['sd'] / olds[(t, f)][k]['sd']) ** 2:.2f}"
-              if e and k in olds.get((t, f), {}) else "", rows)
+              lambda e, t, f, k: f"{(e['sd'] / old[(t, f)][k]['sd']) ** 2:.2f}"
+              if e and k in old.get((t, f), {}) else "", rows)
     per_size = ("Every size's entries (intercept and exponent of the four laws, phi_J) outside the bounds\n\n"
                 "| truth, form | outside, fit determined in 90% of campaigns or more | outside, "
                 "undetermined in a tenth or more |\n|---|---|---|\n")
@@ -411,7 +410,7 @@ def main(argv=None):
             sink.close()
     results = [done[j[:3]] for j in jobs]
     other = {"results": load_results(a.compare)} if a.compare else None
-    summaries = []
+    summaries, olds = [], {}
     print(f"{a.reps} campaigns per form and truth, bootstrap {a.boot}; {time.time() - t0:.0f} s")
     print("| truth | form | entry | median z | spread z | 1 sigma | 2 sigma | sd(value - truth) | no value | marked * |"
           + (" variance ratio |" if other else ""))
@@ -426,7 +425,7 @@ def main(argv=None):
             old = {}
             if other:
                 old_res = [r for r in other["results"] if r["truth"] == t and r["form"] == f]
-                old = {s["key"]: s for s in summarise(old_res, TRUTHS[t], keys)}
+                old = olds[(t, f)] = {s["key"]: s for s in summarise(old_res, TRUTHS[t], keys)}
             for s in summ:
                 ratio = (s["sd"] / old[s["key"]]["sd"]) ** 2 if s["key"] in old else np.nan
                 print(f"| {t} | {f} | {s['key']} | {s['median_z']:+.2f} | {s['spread_z']:.2f} | {s['cover_1']:.2f} | "
@@ -436,14 +435,6 @@ def main(argv=None):
     for b in bad:
         print("   ", b)
     if a.doc:
-        olds = None
-        if other:
-            olds = {}
-            for t in truths:
-                for f in a.forms:
-                    res = [r for r in other["results"] if r["truth"] == t and r["form"] == f]
-                    if res:
-                        olds[(t, f)] = {"entries": summarise(res, TRUTHS[t], None)}
         Path(a.doc).write_text(doc_tables(summaries, olds))
     if a.json:
         Path(a.json).write_text(json.dumps({"reps": a.reps, "boot": a.boot, "truths": {t: asdict(TRUTHS[t]) for t in truths},
