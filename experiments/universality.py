@@ -111,6 +111,7 @@ def main(argv=None):
 
     everything = load_finished(args.store)
     out = {}
+    summary, shared = [], []
     for dmax in WINDOWS:
         red = reduce_campaign(args.store, Settings(n_boot=args.boot, fit_overlap=dmax), distributions=False)
         systems = {r["variant"]: r for r in red.systems}
@@ -137,6 +138,10 @@ def main(argv=None):
                   + (fmt_err(xi["beta"], xi["beta_err"]) if xi else "-")
                   + f" | {fmt_err(bzx, bzx_err)} | {fmt_err(r['beta_Z_over_2alpha'], r['beta_Z_over_2alpha_err'])} |")
             win[v] = {"system": r, "x": x, "rows": rows}
+            summary.append(f"| {label if v == order[0] else ''} | {v} | {fmt_err(r['A_G_star_E'], r['A_G_star_E_err'])} | "
+                           f"{fmt_err(r['beta_E'], r['beta_E_err'])} | {fmt_err(r['beta_Z'], r['beta_Z_err'])} | "
+                           + (fmt_err(xi["beta"], xi["beta_err"]) if xi else "-")
+                           + f" | {fmt_err(bzx, bzx_err)} | {fmt_err(r['beta_Z_over_2alpha'], r['beta_Z_over_2alpha_err'])} |")
         val = np.array([systems[v]["beta_Z"] for v in order])
         err = np.array([systems[v]["beta_Z_err"] for v in order])
         ok = np.isfinite(val) & np.isfinite(err) & (err > 0)
@@ -152,6 +157,13 @@ def main(argv=None):
                   f"{fmt_err(common['mean'], common['err'])}, chi^2 = {chi2:.1f} for {dof} degrees of freedom, "
                   f"p = {common['p']:.2g}")
         out[str(dmax)] = {"systems": win, "common_beta_Z": common}
+        if common:
+            shared.append(f"| {label} | {fmt_err(common['mean'], common['err'])} | {common['chi2']:.1f} / {common['dof']} | "
+                          f"{common['p']:.2g} |")
+    print("\n## Every window\n\n| window | system | A_G* | beta_E | beta_Z | x | beta_Z x | beta_Z/(2 alpha) |\n"
+          "|---|---|---|---|---|---|---|---|\n" + "\n".join(summary))
+    print("\nOne beta_Z for the systems (N_G -> inf; weighted mean, chi^2 about it):\n\n"
+          "| window | common beta_Z | chi^2 / dof | p |\n|---|---|---|---|\n" + "\n".join(shared))
     if args.json:
         def clean(x):
             if isinstance(x, dict):
