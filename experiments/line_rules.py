@@ -3,8 +3,9 @@
 the reducer, each 1/N_G extrapolation's inputs kept (the sizes, their intercepts and the intercepts'
 bootstrap replicas, one file per campaign), and every rule is then applied to those inputs in
 seconds: the line alone, the Akaike average of line and parabola with a penalty per parameter
-of 2 (Akaike's), 4, 6 and 10, and the reducer's rule (penalty 2, the smallest sizes left out while
-both models fail their chi^2 test).
+of 2 (Akaike's), 4, 6 and 10, the reducer's rule (penalty 2, the smallest sizes left out while
+both models fail their chi^2 test), and penalty 2 with the replicas centred on the data's averaged
+model.
 
     python experiments/line_rules.py dump lines/ --reps 200 base:uniform-12 base:uniform-40 \\
         base:unequal base:ladder 1/N^2:uniform-12 1/N^2:uniform-40     # ~2 s a campaign; resumes
@@ -73,26 +74,38 @@ def dump(out: Path, jobs, reps: int, boot: int):
         fits.line_in_inverse_n = original
 
 
-def averaged(sizes, values, replicas, penalty):
-    """The value and error of the line alone (``penalty`` None) or of the Akaike-weighted average of
-    line and parabola with ``penalty`` per parameter, every replica averaged with its own weights."""
-    N = np.asarray(sizes, float)
-    Y = np.vstack([np.asarray(values, float)[None], np.asarray(replicas, float)])
-    Winv = np.linalg.pinv(np.cov(Y[1:].T))
+def _models(N, Y, Winv, penalty):
+    """Per row of ``Y``: the line's intercept, or (``penalty`` given, four sizes or more) the Akaike
+    average of line and parabola, and the averaged model's values at the sizes."""
     out = []
     for deg in (1, 2):
         X = np.column_stack([N ** -k for k in range(deg + 1)])
         M = np.linalg.pinv(X.T @ Winv @ X) @ X.T @ Winv
         C = Y @ M.T
-        r = Y - C @ X.T
-        out.append((C[:, 0], np.einsum("bi,ij,bj->b", r, Winv, r) + (penalty or 0.0) * (deg + 1)))
-    (v1, a1), (v2, a2) = out
+        F = C @ X.T
+        r = Y - F
+        out.append((C[:, 0], F, np.einsum("bi,ij,bj->b", r, Winv, r) + (penalty or 0.0) * (deg + 1)))
+    (v1, F1, a1), (v2, F2, a2) = out
     if penalty is None or len(N) < 4:
-        v = v1
-    else:
-        w2 = 1.0 / (1.0 + np.exp(np.clip((a2 - a1) / 2, -700, 700)))
-        v = (1 - w2) * v1 + w2 * v2
-    return float(v[0]), fits.spread(v[1:])
+        return v1, F1
+    w2 = 1.0 / (1.0 + np.exp(np.clip((a2 - a1) / 2, -700, 700)))
+    return (1 - w2) * v1 + w2 * v2, (1 - w2)[:, None] * F1 + w2[:, None] * F2
+
+
+def averaged(sizes, values, replicas, penalty, centred=False):
+    """The value and error of the line alone (``penalty`` None) or of the Akaike-weighted average of
+    line and parabola with ``penalty`` per parameter, every replica averaged with its own weights.
+    ``centred``: the replicas' deviations from their mean put about the data's averaged model before
+    they are fitted, so that a replica's chi^2 holds its own noise and not the data's distance from
+    the line a second time."""
+    N = np.asarray(sizes, float)
+    y = np.asarray(values, float)[None]
+    R = np.asarray(replicas, float)
+    Winv = np.linalg.pinv(np.cov(R.T))
+    v, F = _models(N, y, Winv, penalty)
+    if centred:
+        R = F + (R - R.mean(0))
+    return float(v[0]), fits.spread(_models(N, R, Winv, penalty)[0])
 
 
 def table(folder: Path, keys=("A_G_star_E", "psi_O_star")):
@@ -101,17 +114,20 @@ def table(folder: Path, keys=("A_G_star_E", "psi_O_star")):
         d = np.load(f)
         by[(str(d["truth"]), str(d["form"]))].append(d)
     lines = ["| truth, form, entry (campaigns) | " + " | ".join("line" if p is None else f"penalty {p:g}"
-                                                              for p in PENALTIES) + " | the reducer |",
-             "|---" * (len(PENALTIES) + 2) + "|"]
+                                                              for p in PENALTIES) + " | the reducer | "
+             "penalty 2, replicas centred |",
+             "|---" * (len(PENALTIES) + 3) + "|"]
     for (truth, form), L in sorted(by.items()):
         want = H.TRUTHS[truth].values(H.SIZES)
         for key in keys:
             j = KEYS.index(key)
             cells = []
-            for pen in PENALTIES + ("reducer",):
+            for pen in PENALTIES + ("reducer", "centred"):
                 if pen == "reducer":  # penalty 2 and the smallest sizes left out while both fail
                     vr = np.array([(r.value, r.err) for r in (fits.line_in_inverse_n(d[f"s{j}"], d[f"v{j}"],
                                                                                       d[f"R{j}"]) for d in L)])
+                elif pen == "centred":
+                    vr = np.array([averaged(d[f"s{j}"], d[f"v{j}"], d[f"R{j}"], 2.0, centred=True) for d in L])
                 else:
                     vr = np.array([averaged(d[f"s{j}"], d[f"v{j}"], d[f"R{j}"], pen) for d in L])
                 dev = vr[:, 0] - want[key]
