@@ -6,8 +6,10 @@
 Reads the finished, usable packings of the store (converged jams whose identities hold,
 as `campaign reduce` does), groups them into (N_G, E_G) cells of the default variant and
 fits ``A_G = A* + c x^beta`` per N_G with the reducer's fitting code
-(``campaign.results.fits.fit_power_law``: weighted least squares on the cell means, errors from a
-bootstrap over packings), for these choices of the abscissa ``x`` and of the fit:
+(``campaign.results.fits.fit_power_law``: weighted least squares on the cell means, each cell
+weighted by its packings over the spread of the size's variance model, ``campaign.results.variance``,
+fitted again in every replica of a bootstrap over packings; the reducer's first stage: the spread of
+``A_G`` itself), for these choices of the abscissa ``x`` and of the fit:
 
 * ``E`` -- this project's E_G (sum over unordered pairs / all disks): the reducer's fit over
   every energy (``campaign reduce --fit-all``);
@@ -33,7 +35,7 @@ import sys
 
 import numpy as np
 
-from campaign.results.bootstrap import cell_means as bootstrap_cell_means
+from campaign.results import bootstrap, variance
 from campaign.results.fits import fit_power_law
 from campaign.results.finished import load_finished
 
@@ -51,7 +53,7 @@ def cells(fin, quantity, abscissa, keep=None):
             y = quantity[m]
             ok = np.isfinite(x) & np.isfinite(y)
             if ok.sum() >= 3:
-                groups.append(np.column_stack([x[ok], y[ok]]))
+                groups.append(np.column_stack([x[ok], y[ok], np.full(ok.sum(), np.log10(E))]))
         out[int(N)] = groups
     return out
 
@@ -60,19 +62,27 @@ def fit(groups, boot, loglog=False, weighted=True):
     if len(groups) < 4:
         return None
     xm = np.array([g[:, 0].mean() for g in groups])
-    ym = np.array([g[:, 1].mean() for g in groups])
-    ye = np.array([g[:, 1].std(ddof=1) / math.sqrt(len(g)) for g in groups])
     if np.any(xm < 0):
         keep = xm >= 0
         groups = [g for g, k in zip(groups, keep) if k]
         return fit(groups, boot, loglog, weighted) if len(groups) >= 4 else None
-    reps = bootstrap_cell_means(groups, boot, seed=1) if boot else None
+    rng = bootstrap.generator(1)
+    moments = [bootstrap.cell_moments(g[:, :2], bootstrap.seed_weights(rng, len(g), boot) if boot else None)
+               for g in groups]
+    means = np.stack([m for m, _ in moments], 1)            # (1 + boot, cells, 2), row 0 the data's
+    n = np.array([len(g) for g in groups], float)
+    u = np.array([g[0, 2] for g in groups])
+    ye_all = np.sqrt(variance.pooled_model(np.stack([c[:, 1, 1] for _, c in moments], 1), n,
+                                           np.zeros(len(n), int), u - u.mean(), 1) / n)
+    xm, ym, ye = means[0, :, 0], means[0, :, 1], ye_all[0]
+    reps = means[1:] if boot else None
     if not weighted:
-        ye = np.full_like(ye, ye.mean())
+        ye, ye_all = np.full_like(ye, ye.mean()), None
     if loglog:
         return _loglog(xm, ym, reps)
     f = fit_power_law(xm, ym, ye, boot_x=None if reps is None else reps[:, :, 0],
-                      boot_y=None if reps is None else reps[:, :, 1])
+                      boot_y=None if reps is None else reps[:, :, 1],
+                      boot_err=None if (reps is None or ye_all is None) else ye_all[1:])
     return dict(A_star=f.intercept, A_star_err=f.intercept_err, beta=f.exponent, beta_err=f.exponent_err,
                 chi2_dof=f.chi2_dof, cells=len(groups))
 

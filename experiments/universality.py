@@ -35,7 +35,8 @@ import numpy as np
 from scipy import stats
 
 from campaign.results.bootstrap import cell_means as bootstrap_cell_means
-from campaign.results.fits import fit_inverse_n
+from campaign.results import variance
+from campaign.results.fits import line_in_inverse_n, spread
 from campaign.results.reduce import Settings, reduce_campaign
 from campaign.results.scaling import typical_overlap
 from campaign.results.tables import fmt_err
@@ -45,28 +46,39 @@ WINDOWS = (math.inf, 1e-2, 3e-3, 1e-3)
 
 def loglog_exponent(groups, N, boot):
     """Slope of log <Delta Z> against log <E_G> over the cells (rows (E, Delta Z)) with
-    N Delta Z / 2 >= 4, weighted by the cells' relative errors; bootstrap error."""
+    N Delta Z / 2 >= 4, bootstrap error. A cell's weight is ``n_c / s_c^2`` with ``s_c^2`` its mean's
+    relative variance from the reducer's model of the spread over the size's cells
+    (``variance.pooled_model``: one amplitude and one trend with log10 E; docs/REDUCED.md, "Error bars
+    that hold"), not the cell's own few packings' spread; the model is fitted once, from the data
+    (40 packings a cell determine its two parameters), and the replicas refit the slope with it."""
     groups = [g for g in groups if g[:, 1].mean() * N / 2 >= 4]
     if len(groups) < 3:
         return None
 
-    def slope(xm, ym, rel):
-        return np.polyfit(np.log(xm), np.log(ym), 1, w=1 / rel)[0]
+    def slope(xm, ym, w):
+        return np.polyfit(np.log(xm), np.log(ym), 1, w=np.sqrt(w))[0]
 
     xm = np.array([g[:, 0].mean() for g in groups])
     ym = np.array([g[:, 1].mean() for g in groups])
-    rel = np.array([g[:, 1].std(ddof=1) / math.sqrt(len(g)) for g in groups]) / ym
-    x = slope(xm, ym, rel)
+    n = np.array([len(g) for g in groups], float)
+    v = np.array([g[:, 1].var(ddof=1) for g in groups]) / ym ** 2
+    u = np.log10(xm) - np.log10(xm).mean()
+    s2 = variance.pooled_model(v[None], n, np.zeros(len(groups), int), u, 1)[0]
+    w = n / s2
+    x = slope(xm, ym, w)
     reps = bootstrap_cell_means(groups, boot, seed=2)
-    err = float(np.std([slope(r[:, 0], r[:, 1], rel) for r in reps], ddof=1))
-    return {"beta": x, "beta_err": err, "cells": len(groups)}
+    replicas = np.array([slope(r[:, 0], r[:, 1], w) for r in reps])
+    return {"beta": x, "beta_err": spread(replicas), "cells": len(groups), "replicas": replicas}
 
 
 def extrapolate(per_n, key="beta"):
+    """The N_G -> inf value by the reducer's rule (``fits.line_in_inverse_n``: the line and the
+    parabola in 1/N_G averaged, from the sizes' replicas; the sizes' cells are independent)."""
     ok = [(n, r) for n, r in sorted(per_n.items()) if r is not None and np.isfinite(r[key + "_err"])]
     if len(ok) < 2:
         return None
-    res = fit_inverse_n([n for n, _ in ok], [r[key] for _, r in ok], [r[key + "_err"] for _, r in ok])
+    res = line_in_inverse_n([n for n, _ in ok], [r[key] for _, r in ok],
+                            np.column_stack([r["replicas"] for _, r in ok]))
     return {key: res.value, key + "_err": res.err, "chi2_dof": res.chi2_dof}
 
 
@@ -99,6 +111,7 @@ def main(argv=None):
 
     everything = load_finished(args.store)
     out = {}
+    summary, shared = [], []
     for dmax in WINDOWS:
         red = reduce_campaign(args.store, Settings(n_boot=args.boot, fit_overlap=dmax), distributions=False)
         systems = {r["variant"]: r for r in red.systems}
@@ -125,6 +138,10 @@ def main(argv=None):
                   + (fmt_err(xi["beta"], xi["beta_err"]) if xi else "-")
                   + f" | {fmt_err(bzx, bzx_err)} | {fmt_err(r['beta_Z_over_2alpha'], r['beta_Z_over_2alpha_err'])} |")
             win[v] = {"system": r, "x": x, "rows": rows}
+            summary.append(f"| {label if v == order[0] else ''} | {v} | {fmt_err(r['A_G_star_E'], r['A_G_star_E_err'])} | "
+                           f"{fmt_err(r['beta_E'], r['beta_E_err'])} | {fmt_err(r['beta_Z'], r['beta_Z_err'])} | "
+                           + (fmt_err(xi["beta"], xi["beta_err"]) if xi else "-")
+                           + f" | {fmt_err(bzx, bzx_err)} | {fmt_err(r['beta_Z_over_2alpha'], r['beta_Z_over_2alpha_err'])} |")
         val = np.array([systems[v]["beta_Z"] for v in order])
         err = np.array([systems[v]["beta_Z_err"] for v in order])
         ok = np.isfinite(val) & np.isfinite(err) & (err > 0)
@@ -140,10 +157,17 @@ def main(argv=None):
                   f"{fmt_err(common['mean'], common['err'])}, chi^2 = {chi2:.1f} for {dof} degrees of freedom, "
                   f"p = {common['p']:.2g}")
         out[str(dmax)] = {"systems": win, "common_beta_Z": common}
+        if common:
+            shared.append(f"| {label} | {fmt_err(common['mean'], common['err'])} | {common['chi2']:.1f} / {common['dof']} | "
+                          f"{common['p']:.2g} |")
+    print("\n## Every window\n\n| window | system | A_G* | beta_E | beta_Z | x | beta_Z x | beta_Z/(2 alpha) |\n"
+          "|---|---|---|---|---|---|---|---|\n" + "\n".join(summary))
+    print("\nOne beta_Z for the systems (N_G -> inf; weighted mean, chi^2 about it):\n\n"
+          "| window | common beta_Z | chi^2 / dof | p |\n|---|---|---|---|\n" + "\n".join(shared))
     if args.json:
         def clean(x):
             if isinstance(x, dict):
-                return {str(k): clean(y) for k, y in x.items()}
+                return {str(k): clean(y) for k, y in x.items() if k != "replicas"}
             if isinstance(x, (list, tuple)):
                 return [clean(y) for y in x]
             if isinstance(x, (float, np.floating)):

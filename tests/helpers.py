@@ -416,3 +416,51 @@ def cuda_missing(compiler=False):
     except Exception as exc:  # noqa: BLE001 - any reason it cannot be loaded
         return f"needs libNVVM (the cuda extra's CUDA compiler libraries): {exc}"
     return None
+
+
+def fit_cells(groups, n_boot, seed):
+    """The reducer's way on cells of one size: packings resampled within each cell
+    (``bootstrap.cell_moments``), each cell weighted by the within-cell variance pooled over the
+    cells, in the data and in every replica. ``groups``: per cell, its packings' (x, y) as (n, 2)."""
+    from campaign.results import bootstrap, fits
+
+    rng = bootstrap.generator(seed)
+    means, covs = zip(*(bootstrap.cell_moments(g, bootstrap.seed_weights(rng, len(g), n_boot)) for g in groups))
+    means, covs = np.stack(means, -1), np.stack(covs, -1)  # (1 + n_boot, 2, cells), (1 + n_boot, 2, 2, cells)
+    n = np.array([len(g) for g in groups], float)
+    pooled = (covs[:, 1, 1] * (n - 1)).sum(-1) / (n - 1).sum()  # (1 + n_boot,)
+    err = np.sqrt(pooled[:, None] / n)
+    return fits.fit_power_law(means[0, 0], means[0, 1], err[0], boot_x=means[1:, 0], boot_y=means[1:, 1],
+                              boot_err=err[1:])
+
+
+# --------------------------------------------------------------------------- the CLI, as a user runs it
+REPO = Path(__file__).resolve().parents[1]
+
+
+def campaign_cli(*args, **kw):
+    """``python -m campaign ARGS`` with this repository's package first on the path (a completed
+    process; ``check=True`` and the like pass through)."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+    return subprocess.run([sys.executable, "-m", "campaign", *map(str, args)], env=env, capture_output=True,
+                          text=True, timeout=600, **kw)
+
+
+def sound(store):
+    """`campaign verify`: no damage."""
+    verify = campaign_cli("verify", store)
+    assert verify.returncode == 0 and "no damage" in verify.stdout + verify.stderr, verify.stdout + verify.stderr
+
+
+def complete_and_sound(store, tasks: int):
+    """`campaign status`: every one of ``tasks`` done; `campaign verify`: no damage."""
+    import json
+
+    status = json.loads(campaign_cli("status", store, "--json", check=True).stdout)
+    assert (status["done"], status["failed"], status["remaining"]) == (tasks, 0, 0)
+    sound(store)

@@ -19,6 +19,7 @@ import numpy as np
 
 from campaign.errors import StoreDamaged
 from campaign.plan.costmodel import CostModel
+from campaign.run.rounds import STOPS
 from campaign.run.slurm import has_gpu_tasks
 from campaign.storage.checksums import check_identities, damaged_message, failure_problem, has_sums, read_rounds
 from campaign.storage.journal import task_indices
@@ -231,7 +232,8 @@ def precision_lines(rounds, totals) -> list:
              "met": f"ended after round {k - 1}: every target met",
              "budget": f"ended after round {k - 1}: budget spent",
              "max_seeds": f"ended after round {k - 1}: max_seeds reached",
-             "unreachable": f"ended after round {k - 1}: a target out of reach"}.get(action, action)
+             "unreachable": f"ended after round {k - 1}: a target out of reach",
+             "limited": f"ended after round {k - 1}: a target limited by its sizes"}.get(action, action)
     out = [f"precision targets: {state} ({len(rounds)} decision(s) kept)"]
     for t in last.get("targets", []):
         who = "" if t["variant"] == "default" else f" ({t['variant']})"
@@ -249,7 +251,7 @@ def precision_lines(rounds, totals) -> list:
     if to is not None and action == "continue":
         line += f"; projected to reach every target: {to:.3g} more"
     out.append(line)
-    if action in ("met", "budget", "max_seeds", "unreachable") and last.get("message"):
+    if action in STOPS and last.get("message"):
         out.append("  " + last["message"])
     return out
 

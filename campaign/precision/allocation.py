@@ -73,7 +73,13 @@ AIM = 1.0
 #: cost a decision each and gain little)
 MIN_ROUND = 0.05
 
-ACTIONS = ("pilot", "continue", "met", "budget", "max_seeds", "unreachable")
+#: A target the reducer finds limited by its sizes ends the rounds when two decisions in a row find it so
+#: with the line through the sizes kept at a p-value below this: the reducer's own flag (p < 0.05) is a
+#: false alarm in one campaign in twenty, and two decisions share most of their packings; a real
+#: crossover's p falls with every round (1e-19 on the test's 1/N_G^2 term)
+LIMITED_P = 1e-3
+
+ACTIONS = ("pilot", "continue", "met", "budget", "max_seeds", "unreachable", "limited")
 
 
 def seconds_per_disk_force_evaluation() -> float:
@@ -94,6 +100,7 @@ class Target:
     law: LawModel | None = None
     ratio: float = 1.0    # reducer's error / the model's
     v_now: float = np.nan  # the model's variance at the current allocation
+    limited: str = ""     # the reducer's paragraph when the sizes limit the value (``<key>_limited``)
 
     @property
     def met(self) -> bool:
@@ -148,7 +155,9 @@ def _targets(table, cells, settings) -> list:
             value, err = row.get(key, np.nan), row.get(f"{key}_err", np.nan)
             value = float(value) if value is not None else np.nan
             err = float(err) if err is not None and np.isfinite(value) else np.nan
-            out.append(Target(v, key, float(goal), value, err, laws[(v, q, x)]))
+            limited, p = row.get(f"{key}_limited") or "", row.get(f"{key}_p")
+            strong = isinstance(limited, str) and p is not None and np.isfinite(p) and p < LIMITED_P
+            out.append(Target(v, key, float(goal), value, err, laws[(v, q, x)], limited=limited if strong else ""))
     return out
 
 
@@ -232,7 +241,7 @@ def decide(k: int, table, cells: Cells, state: State, settings, previous=None) -
     def record(t, projected=np.nan):
         return {"variant": t.variant, "key": t.key, "goal": t.goal, "value": t.value, "error": t.error,
                 "met": t.met, "projected": float(np.sqrt(projected)) if np.isfinite(projected) else np.nan,
-                "out_of_reach": (t.variant, t.key) in doubt}
+                "out_of_reach": (t.variant, t.key) in doubt, "limited": bool(t.limited)}
 
     def decision(action, message, alloc=given, early=None, projected=None, round_cost=0.0, to_targets=np.nan):
         proj = projected or {}
@@ -261,6 +270,12 @@ def decide(k: int, table, cells: Cells, state: State, settings, previous=None) -
     for t, ok in zip(targets, model_met):
         if t.met and not ok:  # met by the reducer, not by the model: planned on the model's error
             t.ratio = 1.0
+    # limited by its sizes: the 1/N_G models fail through the largest sizes, and the inflated error does
+    # not fall with seeds; two decisions in a row (the first may be a few packings' chance)
+    was = {(r["variant"], r["key"]) for r in (previous or {}).get("targets", []) if r.get("limited")}
+    stuck = [t for t in targets if not t.met and t.limited and (t.variant, t.key) in was]
+    if stuck:
+        return decision("limited", " ".join(_limited_text(t) for t in stuck))
     # out of reach: with max_seeds in every cell of the fit range a target stays above its goal, by
     # the model alone (not scaled to the bootstrap's error, which a few packings per cell inflate
     # where the fit is far from linear: the model is what the fit reaches once its cells are full)
@@ -539,6 +554,11 @@ def _cost_text(seconds) -> str:
     if not np.isfinite(seconds):
         return ""
     return f"; reaching every target: about {seconds / 3600:.3g} more core-hours"
+
+
+def _limited_text(t) -> str:
+    who = f" of variant {t.variant!r}" if t.variant != "default" else ""
+    return (f"{t.key}{who} cannot reach its goal {t.goal:g} with more seeds (error {t.error:.2g}): {t.limited}.")
 
 
 def _unreachable_text(t, v_max, m) -> str:

@@ -3,40 +3,35 @@
 A bootstrap here resamples what is independent in a campaign and recomputes a statistic on every
 replica; the error is the spread of the replicas. What is resampled depends on the statistic:
 
-* ``cell_means``: packings within each cell (the scaling fits of packings that are independent);
-* ``seed_means`` and ``seed_cell_means``: whole seeds, a seed's packings at every energy together
-  (an energy ladder's packings of one seed share a history; ``seed_means`` serves the scaling fits
-  of a ladder, ``seed_cell_means`` the jamming point of ``campaign.results.protocols``);
+* ``replica_weights`` and ``cell_moments``: the one resampling of the finite-size table and the
+  jamming point (docs/REDUCED.md, "Error bars that hold"). The unit drawn is a seed: per cell
+  (N_G, E_G) its seeds, the same draw for every variant of the cell (variants made from the same
+  random starts are compared packing by packing: a paired bootstrap), and for an energy ladder's
+  variant its seeds whole, every energy of a size together (a seed's packings along a ladder share
+  a history). ``cell_moments`` turns a cell's draws into its means and covariances per replica, the
+  means scaled by ``sqrt(n / (n - 1))`` (a resample's mean scatters by ``(n - 1) / n`` of a cell
+  mean's variance); the scaling fits refit every replica with the variance model fitted again to
+  the replica (``campaign.results.variance``), so no cell's weight is held from the data.
 * ``clusters``: whole clusters of pairs (the variants compared packing by packing,
   ``campaign.results.tradeoff``: the (N, seed) chains);
 * ``resampled_sums``: the packings of a cell, their histograms summed (the exponents of
   ``campaign.results.response``).
 
-**A replica that draws none of a cell's seeds.** The two seed bootstraps differ here, and each keeps
-its own answer: ``seed_means`` gives that cell the mean of all its packings in that replica (the
-replica is kept; the cell's spread in it is 0, which makes a sparsely covered cell's error
-smaller), ``seed_cell_means`` drops the replica (the error is then the spread of the replicas that
-hold every cell). With every seed in every cell, as a fixed grid gives, neither case arises.
-
 **Streams.** Every generator is ``generator(key)``: PCG64 seeded by ``SeedSequence(key)``, the key a
 list of integers led by the reducer's ``--seed`` (``Settings.boot_seed``):
 
-* ``[boot_seed, g]``: the scaling fits of the g-th (variant, N_G) in sorted order
-  (``campaign.results.scaling``);
+* ``[boot_seed, 23, N_G, E_G's float64 bits]``: the seeds of cell (N_G, E_G), every variant's;
+* ``[boot_seed, 29, N_G]``: the seeds of an energy ladder's size, every energy's;
 * ``[boot_seed, 7]``: the variants against the reference, one stream the variants draw from in turn
   (``campaign.results.tradeoff``);
-* ``[boot_seed, 11, v, N_G]``: the jamming point of the v-th variant at N_G, each quantity from the
-  stream's start (``campaign.results.protocols``);
 * ``[boot_seed, c]``: the response exponents of the c-th cell; ``[boot_seed, 7, N_G]``: those
   pooled at N_G (``campaign.results.response``).
 
-Some streams coincide: the variants' ``[boot_seed, 7]`` is also that of the scaling fits of the
-(variant, N_G) of index 7 and of the response exponents of cell 7, and ``[boot_seed, g]`` with
-``g = c`` serves both the fits of (variant, N_G) ``g`` and the exponents of cell ``c`` (and
-``SeedSequence`` reads a key of fewer than four words as if padded with zeros, so ``[boot_seed, 7]``
-is ``[boot_seed, 7, 0]`` too). They resample different data, so each error alone is as it should be,
-but two such errors are not independent draws. The keys are kept as they were, so that every error
-stays bit for bit the same.
+The table's streams are keyed by what a cell is, not by where it falls in a list, so adding a size,
+an energy or a variant to a campaign leaves every other cell's draws as they were. The response's
+``[boot_seed, c]`` and ``[boot_seed, 7]`` coincide for c = 7 (and ``SeedSequence`` reads a key of
+fewer than four words as if padded with zeros): they resample different data, so each error alone
+is as it should be, but the two are not independent draws.
 """
 
 from __future__ import annotations
@@ -50,75 +45,87 @@ def generator(key) -> np.random.Generator:
     return np.random.Generator(np.random.PCG64(np.random.SeedSequence(key)))
 
 
-def cell_means(groups, n_boot, seed=0):
-    """Resample packings within each cell and return the replicas' cell means.
-
-    ``groups``: list of K arrays of shape (n_k, q) (n_k packings, q quantities).
-    Returns an array (n_boot, K, q). Deterministic for a given ``seed`` (the generator's key).
-    """
-    rng = generator(seed)
-    K = len(groups)
-    q = groups[0].shape[1] if K else 0
-    out = np.empty((n_boot, K, q))
-    for k, g in enumerate(groups):
-        g = np.asarray(g, float)
-        n = g.shape[0]
-        step = max(1, min(n_boot, (4_000_000 // max(n, 1))))
-        for s in range(0, n_boot, step):
-            b = min(step, n_boot - s)
-            idx = rng.integers(0, n, size=(b, n))
-            # how often each packing is drawn in each replica, then one matrix product
-            flat = (idx + n * np.arange(b)[:, None]).ravel()
-            counts = np.bincount(flat, minlength=b * n).reshape(b, n)
-            out[s:s + b, k] = (counts @ g) / n
-    return out
-
-
 def seed_weights(rng, n_seeds, n_boot) -> np.ndarray:
     """How often each of ``n_seeds`` seeds is drawn in each of ``n_boot`` replicas (a multinomial
-    draw of ``n_seeds`` seeds with replacement): (n_boot, n_seeds) floats."""
-    return rng.multinomial(n_seeds, np.full(n_seeds, 1.0 / n_seeds), size=n_boot).astype(float)
+    draw of ``n_seeds`` seeds with replacement): (n_boot, n_seeds) counts, in the smallest unsigned
+    integer type that holds ``n_seeds`` (a reduction keeps one such array per cell: a thousand
+    replicas of every packing, 8 times less memory than floats; ``cell_moments`` computes in
+    float64, exactly). The draws are counted (one ``bincount`` over every replica):
+    ``Generator.multinomial`` with as many categories as draws costs a binomial draw per category,
+    20 times more at a thousand seeds."""
+    kind = np.min_scalar_type(max(n_seeds, 1))
+    if n_seeds == 0 or n_boot == 0:
+        return np.zeros((n_boot, n_seeds), kind)
+    drawn = rng.integers(0, n_seeds, size=(n_boot, n_seeds))
+    drawn += np.arange(n_boot)[:, None] * n_seeds
+    return np.bincount(drawn.ravel(), minlength=n_boot * n_seeds).reshape(n_boot, n_seeds).astype(kind)
 
 
-def seed_means(groups, seeds, n_boot, seed=0):
-    """Resample whole seeds and return the replicas' cell means, (n_boot, K, q): each replica draws
-    the size's seeds with replacement and every cell takes the packings of the seeds drawn, so a
-    seed's packings at every energy go together. For packings that share a history along a seed (an
-    energy ladder), where resampling within cells (``cell_means``) would count correlated cells as
-    independent. ``seeds``: per group, the (n_k,) seed of each packing. A replica that draws none of
-    a cell's seeds (a cell missing packings of most seeds) takes the cell's mean (the module
-    docstring: ``seed_cell_means`` drops such a replica instead)."""
-    rng = generator(seed)
-    every = np.unique(np.concatenate([np.asarray(x) for x in seeds])) if len(seeds) else np.zeros(0)
-    S = len(every)
-    W = seed_weights(rng, S, n_boot) if S else np.zeros((n_boot, 0))
-    K = len(groups)
-    q = groups[0].shape[1] if K else 0
-    out = np.empty((n_boot, K, q))
-    for k, (g, sd) in enumerate(zip(groups, seeds)):
-        g = np.asarray(g, float)
-        M = np.zeros((S, len(g)))
-        M[np.searchsorted(every, sd), np.arange(len(g))] = 1.0
-        w = W @ M                                   # (n_boot, n_k): how often each packing is drawn
-        tot = w.sum(1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            out[:, k] = (w @ g) / tot[:, None]
-        out[tot == 0, k] = g.mean(0)
+def _energy_word(E) -> int:
+    """A cell's energy as a stream key word: its float64 bits (the same energy, the same word)."""
+    return int(np.float64(E).view(np.int64)) & 0x7FFFFFFFFFFFFFFF
+
+
+def replica_weights(grid, seed_of, cells, ladders, n_boot, boot_seed) -> dict:
+    """The one resampling of the finite-size table and the jamming point: per cell of ``cells``
+    (indices into ``grid``, a ``campaign.results.cells.Grid``), an (n_boot, n_c) array of how often
+    each of its packings (in ``grid.packings`` order) is drawn in each replica.
+
+    The unit drawn is a seed: packings of one seed are resampled together wherever they depend on
+    each other, and every variant of a cell draws the same seeds, so that variants made from the
+    same random starts are compared packing by packing (a paired bootstrap;
+    ``campaign.results.protocols``). A cell (N_G, E_G) of independent packings draws its seeds
+    (the union over its variants) with replacement; the variants in ``ladders`` (an energy ladder:
+    a seed's packings at every energy share one history) draw whole seeds of their size, every
+    energy together. Streams: ``[boot_seed, 23, N_G, E_G's bits]`` per cell, ``[boot_seed, 29,
+    N_G]`` per ladder size. A variant holding only some of the seeds drawn takes those it holds
+    (a replica holding none of its seeds of a cell takes the cell's packings once each)."""
+    groups = {}
+    for i in cells:
+        key = (29, int(grid.cN[i])) if str(grid.cv[i]) in ladders else (23, int(grid.cN[i]), _energy_word(grid.cE[i]))
+        groups.setdefault(key, []).append(i)
+    out = {}
+    for key, members in sorted(groups.items()):
+        seeds = np.unique(np.concatenate([seed_of[grid.packings(i)] for i in members]))
+        W = seed_weights(generator([boot_seed, *key]), len(seeds), n_boot)
+        for i in members:
+            w = W[:, np.searchsorted(seeds, seed_of[grid.packings(i)])]
+            w[w.sum(1) == 0] = 1.0
+            out[i] = w
     return out
 
 
-def seed_cell_means(counts, sums, n_boot, rng):
-    """Resample whole seeds of one size from its packings summed per (seed, cell): ``counts``,
-    ``sums`` (S, C) (packings and the sum of one quantity over them). Returns the replicas' packing
-    counts and cell means, (B, C) each, of the replicas that hold a packing in every cell: a
-    replica that draws none of a cell's seeds is dropped (the module docstring: ``seed_means`` keeps
-    it with the cell's mean), so B <= ``n_boot``."""
-    K = seed_weights(rng, len(counts), n_boot)  # seed weights per replica
-    nb = K @ counts
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mb = (K @ sums) / nb
-    good = np.all(nb > 0, axis=1)
-    return nb[good], mb[good]
+def cell_moments(values, weights):
+    """A cell's means and covariance in the data and in every replica: ``values`` (n, q) its packings,
+    ``weights`` (n_boot, n) from ``replica_weights`` (or None). Returns ``means`` (1 + n_boot, q) and
+    ``cov`` (1 + n_boot, q, q) (the sample covariance, n - 1 in the denominator), row 0 the data's.
+
+    A replica's mean is moved from the data's by ``sqrt(n / (n - 1))`` times its deviation: a
+    resample's mean scatters by ``(n - 1) / n`` of the variance a cell mean has (13% short in standard
+    deviation at 4 packings), which this undoes, so that cells of few packings are not under-weighted
+    in the spread of what is fitted to them."""
+    n = len(values)
+    mean = values.mean(0)
+    d = values - mean
+    W = np.ones((1, n)) if weights is None else np.vstack([np.ones((1, n)), weights])
+    sw = W.sum(1)
+    m = (W @ d) / sw[:, None]
+    q = d.shape[1]
+    m2 = (W @ (d[:, :, None] * d[:, None, :]).reshape(n, q * q)).reshape(-1, q, q) / sw[:, None, None]
+    cov = (m2 - m[:, :, None] * m[:, None, :]) * (sw / np.maximum(sw - 1.0, 1.0))[:, None, None]
+    means = mean + (np.sqrt(n / (n - 1.0)) if n > 1 else 1.0) * m
+    means[0] = mean
+    return means, cov
+
+
+def cell_means(groups, n_boot, seed) -> np.ndarray:
+    """Packings resampled within each cell alone (no seeds shared between cells): ``groups`` per
+    cell its packings' values (n_c, q); returns the replicas' means (n_boot, cells, q), scaled as
+    ``cell_moments`` scales them. For studies of fits on cells of independent packings
+    (``experiments/``); the reducer draws ``replica_weights``."""
+    rng = generator(seed)
+    return np.stack([cell_moments(np.asarray(g, float), seed_weights(rng, len(g), n_boot))[0][1:]
+                     for g in groups], 1)
 
 
 def clusters(cluster, n_boot, rng):

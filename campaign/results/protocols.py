@@ -6,20 +6,20 @@
 by a line in that overlap ``x``: ``q = q_J + b x``. At harmonic contacts ``phi - phi_J`` is
 proportional to the overlap near jamming (O'Hern et al., PRE 68, 011306 (2003)), so the intercept is
 ``phi_J(N_G)``; for the rattler fraction the line is a low-order description, judged by its chi^2.
-The cells are weighted by their packing counts over the size's pooled within-cell variance. Errors:
-a bootstrap over seeds, each replica drawing whole seeds of the size (a seed's packings at every
-energy together), which keeps the correlations of an energy ladder, whose packings of one seed
-share a history, and holds for independent packings too (``bootstrap.seed_cell_means``: a replica
-that draws no seed of some cell is dropped). ``phi_J`` and the rattler fraction are
-then extrapolated linearly in 1/N_G (``fits.fit_inverse_n``), the convention of the rest of the
-``N_G -> inf`` row.
+The cells are weighted by their packing counts (the size's pooled within-cell variance, the same
+for every cell, cancels). Errors: the scaling fits' bootstrap (``bootstrap.replica_weights``: seeds
+within each cell, every variant drawing the same seeds, whole seeds along an energy ladder), the
+line refitted in every replica. ``phi_J`` and the rattler fraction are then extrapolated in 1/N_G
+(``fits.line_in_inverse_n``), the rule of the rest of the ``N_G -> inf`` row.
 
 **Protocols compared.** For each quantity of ``QUANTITIES`` (the ``N_G -> inf`` row's entries and
 the two above), every variant of the reference's system against the reference: the difference, its
-error (the two errors in quadrature: the variants' packings are separate ensembles; the correlation
-of paired packings is reported to check it), ``z`` and its two-sided normal p-value; and one
-homogeneity test per quantity over all the variants (chi^2 of the values about their weighted mean,
-K - 1 degrees of freedom). Multiple comparisons: Holm's step-down adjustment, over the pairwise tests
+error from the paired bootstrap (the difference in every replica: the variants' packings of one seed
+are drawn together, so a protocol whose packings follow the reference's from the same random start
+has the smaller error of their difference), ``z`` and its two-sided normal p-value; beside them the
+errors in quadrature and their ``z`` (separate ensembles, the check), and the correlation of paired
+packings; and one homogeneity test per quantity over all the variants (chi^2 of the values about
+their mean, both with the replicas' covariance, K - 1 degrees of freedom). Multiple comparisons: Holm's step-down adjustment, over the pairwise tests
 together and over the homogeneity tests together; a difference is called significant when its
 adjusted p-value is below ``ALPHA`` (the family-wise error rate).
 
@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from campaign.plan.targets import in_fit_range, typical_overlap
+from campaign.plan.targets import FITS, in_fit_range, typical_overlap
 from campaign.results import bootstrap, fits
 from campaign.results.sections import Group, Section
 from campaign.results.tables import fmt_err, records_csv
@@ -57,102 +57,81 @@ def _columns(fin):
     return {"phi_J": s.get("phi", nan), "rattler_fraction": rat}
 
 
-def _line_fits(x, Y, w):
-    """Weighted lines ``y = a + b x`` for many ``y``: Y (R, C), weights w (R, C) or (C,): the
-    intercepts, slopes (R,)."""
-    w = np.broadcast_to(w, Y.shape)
-    S = w.sum(1)
-    Sx = (w * x).sum(1)
-    Sxx = (w * x * x).sum(1)
-    Sy = (w * Y).sum(1)
-    Sxy = (w * x * Y).sum(1)
-    det = S * Sxx - Sx * Sx
-    with np.errstate(invalid="ignore", divide="ignore"):
-        a = (Sxx * Sy - Sx * Sxy) / det
-        b = (S * Sxy - Sx * Sy) / det
-    return a, b
-
-
-def size_fit(E, seed, values, alpha, n_boot, rng):
-    """The jamming-point fit of one (variant, N_G): ``E``, ``seed``, ``values`` per packing (the fit
-    range's cells only). Returns a dict: ``value``, ``err`` (bootstrap over seeds), ``slope``,
-    ``chi2``, ``dof``, ``n_cells``, ``n_packings``; the value NaN with a ``note`` when the cells
-    cannot give it."""
-    ok = np.isfinite(values)
-    E, seed, values = E[ok], seed[ok], values[ok]
-    energies = np.unique(E)
-    seeds = np.unique(seed)
-    out = {"n_cells": len(energies), "n_packings": len(values), "value": np.nan, "err": np.nan,
-           "slope": np.nan, "chi2": np.nan, "dof": 0, "note": ""}
-    if len(energies) < 3:
-        out["note"] = f"{len(energies)} cell(s) in the fit range (3 needed: a line and a degree of freedom)"
+def size_fit(x, values, weights) -> dict:
+    """The jamming-point fit of one (variant, N_G): a line ``q = q_J + b x`` through the fit range's
+    cells, ``x`` (K,) their typical overlaps, ``values`` their packings' values (K arrays), ``weights``
+    their replica weights (K arrays (B, n_c) of ``bootstrap.replica_weights``, or None). The cells are
+    weighted by their packings. Returns ``value``, ``err`` (the replicas' spread), ``replicas`` (B,),
+    ``slope``, ``chi2`` (with the size's pooled within-cell variance), ``dof``, ``n_cells``,
+    ``n_packings``; the value NaN with a ``note`` when the cells cannot give it."""
+    cells = [(xk, np.asarray(v, float), w) for xk, v, w in zip(x, values, weights)]
+    cells = [(xk, v[np.isfinite(v)], None if w is None else w[:, np.isfinite(v)]) for xk, v, w in cells]
+    cells = [c for c in cells if len(c[1]) >= 2]
+    out = {"n_cells": len(cells), "n_packings": int(sum(len(c[1]) for c in cells)), "value": np.nan, "err": np.nan,
+           "replicas": np.zeros(0), "slope": np.nan, "chi2": np.nan, "dof": 0, "note": ""}
+    if len(cells) < 3:
+        out["note"] = f"{len(cells)} cell(s) in the fit range (3 needed: a line and a degree of freedom)"
         return out
-    ci = np.searchsorted(energies, E)
-    si = np.searchsorted(seeds, seed)
-    S, C = len(seeds), len(energies)
-    M = np.zeros((S, C))
-    V = np.zeros((S, C))
-    np.add.at(M, (si, ci), 1.0)
-    np.add.at(V, (si, ci), values)
-    n = M.sum(0)
-    mean = V.sum(0) / n
-    resid = values - mean[ci]
-    dof_w = len(values) - C
-    pooled = float(np.sum(resid ** 2) / dof_w) if dof_w > 0 else np.nan
-    x = typical_overlap(energies, alpha)
-    if not (pooled > 0):  # every packing of each cell alike: weights by counts alone
-        pooled = np.nan
-    w = n / (pooled if np.isfinite(pooled) else 1.0)
-    a, b = _line_fits(x, mean[None, :], w[None, :])
-    out["value"], out["slope"] = float(a[0]), float(b[0])
-    if np.isfinite(pooled):
-        out["chi2"] = float(np.sum(w * (mean - a[0] - b[0] * x) ** 2))
-    out["dof"] = C - 2
-    if n_boot > 1 and S >= 2:
-        nb, mb = bootstrap.seed_cell_means(M, V, n_boot, rng)
-        if len(nb) >= 2:
-            ab, _ = _line_fits(x, mb, nb)
-            out["err"] = float(np.std(ab, ddof=1))
+    xs = np.array([c[0] for c in cells])
+    n = np.array([len(c[1]) for c in cells], float)
+    boot = all(c[2] is not None and len(c[2]) > 1 for c in cells)
+    means = np.column_stack([bootstrap.cell_moments(c[1][:, None], c[2] if boot else None)[0][:, 0] for c in cells])
+    X = np.column_stack([np.ones(len(xs)), xs])
+    coef = np.linalg.solve((X.T * n) @ X, (X.T * n) @ means.T).T    # (1 + B, 2)
+    resid = means[0] - X @ coef[0]
+    pooled = sum(float(np.sum((c[1] - c[1].mean()) ** 2)) for c in cells) / float(np.sum(n - 1))
+    out["value"], out["slope"], out["dof"] = float(coef[0, 0]), float(coef[0, 1]), len(cells) - 2
+    if pooled > 0:  # every packing of each cell alike: no goodness of fit
+        out["chi2"] = float(np.sum(n * resid ** 2) / pooled)
+    if boot:
+        out["replicas"] = coef[1:, 0]
+        out["err"] = fits.spread(coef[1:, 0])
     if not np.isfinite(out["err"]):
-        out["note"] = "no bootstrap error (fewer than 2 seeds)"
+        out["note"] = "no bootstrap error (fewer than 2 resamples)"
     return out
 
 
-def jamming_point(fin, g, s, exponents) -> tuple[list, dict]:
-    """Per (variant, N_G) the fits of ``phi_J`` and the rattler fraction (records), and per variant
-    their ``N_G -> inf`` values (``{variant: {key, key_err, key_slope, key_chi2_dof, key_sizes}}``).
-    ``fin``: the usable packings, ``g`` their grid, ``s`` the reducer's settings."""
+def jamming_point(table, s) -> tuple[list, dict, dict]:
+    """Per (variant, N_G) the fits of ``phi_J`` and the rattler fraction (records), per variant
+    their ``N_G -> inf`` values (``{variant: {key, key_err, key_slope, key_chi2_dof, key_sizes,
+    key_limited}}``), and their lines (``(variant, key) -> fits.Line``, with the replicas). ``table``: the reducer's
+    (``campaign.results.reduce.Table``), whose usable packings, grid, systems and replica weights it
+    takes; ``s`` the reducer's settings."""
+    fin, g = table.fin, table.grid
     cols = _columns(fin)
-    cell = g.cell
-    E_pack = g.cE[cell]
-    rows, out = [], {}
-    for vi, v in enumerate(sorted(set(g.cv))):
-        alpha = (exponents or {}).get(v, 2.0)
+    rows, out, lines = [], {}, {}
+    for v in sorted(set(g.cv)):
+        alpha = table.systems.get(v, {}).get("exponent", 2.0)
         # the fit range's cells of this variant, with enough packings
         in_range = (g.cv == v) & (g.n_done >= s.min_packings) & in_fit_range(g.cE, alpha, s.fit_overlap, s.fit_energies)
         per = {k: [] for k in cols}
         for n in sorted({int(x) for x in g.cN[g.cv == v]}):
-            pick = in_range[cell] & (g.cN[cell] == n)
+            here = np.flatnonzero(in_range & (g.cN == n))
             rec = {"variant": v, "N_G": n}
             for k, val in cols.items():
-                rng = bootstrap.generator([s.boot_seed, 11, vi, n])
-                f = size_fit(E_pack[pick], fin.seed[pick], np.asarray(val, float)[pick], alpha, s.n_boot, rng)
+                val = np.asarray(val, float)
+                f = size_fit(typical_overlap(g.cE[here], alpha), [val[g.packings(c)] for c in here],
+                             [table.replica_weights.get(c) for c in here])
                 rec[k], rec[f"{k}_err"], rec[f"{k}_slope"] = f["value"], f["err"], f["slope"]
                 rec[f"{k}_chi2_dof"] = f["chi2"] / f["dof"] if f["dof"] > 0 else np.nan
                 rec[f"{k}_p"] = fits.chi2_p_value(f["chi2"], f["dof"])
                 rec["n_cells"], rec["n_packings"] = f["n_cells"], f["n_packings"]
                 rec[f"{k}_note"] = f["note"]
-                per[k].append((n, f["value"], f["err"]))
+                per[k].append((n, f["value"], f["replicas"]))
             rows.append(rec)
         ex = {}
         for k, pts in per.items():
-            pts = [p for p in pts if np.isfinite(p[1]) and np.isfinite(p[2]) and p[2] > 0]
-            r = fits.fit_inverse_n([p[0] for p in pts], [p[1] for p in pts], [p[2] for p in pts])
+            pts = [p for p in pts if np.isfinite(p[1])]
+            B = min((len(p[2]) for p in pts), default=0)
+            r = fits.line_in_inverse_n([p[0] for p in pts], [p[1] for p in pts],
+                                       np.column_stack([p[2][:B] for p in pts]) if pts and B else np.zeros((0, len(pts))))
             ex[k], ex[f"{k}_err"], ex[f"{k}_slope"] = r.value, r.err, r.slope
             ex[f"{k}_chi2_dof"], ex[f"{k}_n_sizes"] = r.chi2_dof, r.n_points
-            ex[f"{k}_sizes"] = " ".join(str(p[0]) for p in pts)
+            ex[f"{k}_sizes"] = " ".join(str(n) for n in r.sizes)
+            ex[f"{k}_limited"] = "limited by its sizes" if r.limited else ""
+            lines[(v, k)] = r
         out[v] = ex
-    return rows, out
+    return rows, out, lines
 
 
 def holm(p) -> np.ndarray:
@@ -198,10 +177,36 @@ def _pair_correlation(fin, usable, variant, reference, q="A_G"):
     return float(np.corrcoef(a, b)[0, 1])
 
 
-def compare(extrapolated, jamming, reference, variants, fin=None, usable=None) -> dict:
+def replicas_of(table, lines) -> dict:
+    """``(variant, quantity) -> (replicas, inflation)`` of every quantity of ``QUANTITIES``: the
+    ``N_G -> inf`` value in each bootstrap replica (the table's laws and the jamming point's
+    ``lines``), drawn with the same seeds for every variant, and the factor its error carries."""
+    out = {}
+    for (v, quantity, absc), (_, shared, line) in table.shared_fits.items():
+        key, bkey = next((k, b) for q, a, k, b in FITS if (q, a) == (quantity, absc))
+        out[(v, key)] = (line.replicas, line.inflation)
+        out[(v, bkey)] = (shared.exponent_replicas, 1.0)
+    for (v, k), line in lines.items():
+        out[(v, k)] = (line.replicas, line.inflation)
+    return out
+
+
+def _paired(replicas, a, b):
+    """The paired bootstrap error of ``a - b`` (variants' keys into ``replicas``): the spread of the
+    difference over the replicas, times the larger of the two values' inflations (NaN without)."""
+    ra, ia = replicas.get(a, (np.zeros(0), 1.0))
+    rb, ib = replicas.get(b, (np.zeros(0), 1.0))
+    if len(ra) < 2 or len(ra) != len(rb):
+        return np.nan
+    return fits.spread(np.asarray(ra) - np.asarray(rb)) * max(ia, ib)
+
+
+def compare(extrapolated, jamming, reference, variants, fin=None, usable=None, replicas=None) -> dict:
     """The protocols compared (see the module docstring): ``{"values": [per variant], "pairs": [per
     (variant, quantity)], "homogeneity": [per quantity], "reference", "alpha"}``; empty lists with
-    fewer than two variants. ``variants``: the variants of the reference's system, in order."""
+    fewer than two variants. ``variants``: the variants of the reference's system, in order;
+    ``replicas``: ``replicas_of``'s (without it, the errors in quadrature decide)."""
+    replicas = replicas or {}
     vals = []
     for v in variants:
         rec = {"variant": v}
@@ -220,11 +225,14 @@ def compare(extrapolated, jamming, reference, variants, fin=None, usable=None) -
         corr = _pair_correlation(fin, usable, rec["variant"], reference) if fin is not None else np.nan
         for q in QUANTITIES:
             d = rec[q] - ref[q]
-            e = float(np.hypot(rec[f"{q}_err"], ref[f"{q}_err"]))
+            eq = float(np.hypot(rec[f"{q}_err"], ref[f"{q}_err"]))
+            ep = _paired(replicas, (rec["variant"], q), (reference, q))
+            e = ep if np.isfinite(ep) and ep > 0 else eq
             z = d / e if e > 0 else np.nan
+            zq = d / eq if eq > 0 else np.nan
             pairs.append({"variant": rec["variant"], "reference": reference, "quantity": q, "difference": d,
-                          "error": e, "z": z, "p": fits.normal_p_value(z),
-                          "pair_correlation_A_G": corr})
+                          "error": e, "z": z, "p": fits.normal_p_value(z), "error_quadrature": eq,
+                          "z_quadrature": zq, "pair_correlation_A_G": corr})
     for r, a in zip(pairs, holm([r["p"] for r in pairs])):
         r["p_holm"] = float(a)
         r["significant"] = bool(np.isfinite(a) and a < ALPHA)
@@ -235,9 +243,12 @@ def compare(extrapolated, jamming, reference, variants, fin=None, usable=None) -
         ok = np.isfinite(x) & np.isfinite(e) & (e > 0)
         rec = {"quantity": q, "n_variants": int(ok.sum()), "mean": np.nan, "chi2": np.nan, "dof": 0, "p": np.nan}
         if ok.sum() >= 2:
-            w = 1.0 / e[ok] ** 2
-            m = float(np.sum(w * x[ok]) / w.sum())
-            chi2 = float(np.sum(w * (x[ok] - m) ** 2))
+            cov = _covariance(replicas, [v for v, o in zip(variants, ok) if o], q, e[ok])
+            Winv = np.linalg.pinv(cov)
+            one = np.ones(int(ok.sum()))
+            m = float(one @ Winv @ x[ok] / (one @ Winv @ one))
+            r = x[ok] - m
+            chi2 = float(r @ Winv @ r)
             rec.update(mean=m, chi2=chi2, dof=int(ok.sum() - 1), p=fits.chi2_p_value(chi2, int(ok.sum() - 1)))
         hom.append(rec)
     for r, a in zip(hom, holm([r["p"] for r in hom])):
@@ -245,6 +256,19 @@ def compare(extrapolated, jamming, reference, variants, fin=None, usable=None) -
         r["significant"] = bool(np.isfinite(a) and a < ALPHA)
     out["pairs"], out["homogeneity"] = pairs, hom
     return out
+
+
+def _covariance(replicas, variants, q, errors):
+    """The covariance of the variants' values of ``q`` over the shared replicas, each scaled to its
+    reported error (the replicas' spread times any inflation); without replicas, the errors alone."""
+    reps = [replicas.get((v, q), (np.zeros(0), 1.0))[0] for v in variants]
+    B = min(len(r) for r in reps)
+    if B < 3 or any(len(r) != B for r in reps):
+        return np.diag(np.asarray(errors) ** 2)
+    R = np.column_stack(reps)
+    corr = np.atleast_2d(np.corrcoef(R.T))
+    corr = np.where(np.isfinite(corr), corr, np.eye(len(variants)))
+    return corr * np.outer(errors, errors)
 
 
 def _fmt(x, e=None):
@@ -262,7 +286,8 @@ def markdown(jamming_rows, jamming, comparison) -> str:
     the values side by side, the homogeneity tests and the differences from the reference."""
     lines = ["# The jamming point and the protocols compared", "",
              "phi_J and the rattler fraction N_R/N per size: a line in the typical overlap through the fit "
-             "range's cells, its intercept; errors from a bootstrap over seeds; N_G -> inf linear in 1/N_G.", "",
+             "range's cells, its intercept; errors from the table's bootstrap over seeds; N_G -> inf a line in 1/N_G "
+             "(the smallest sizes left out while it fails its chi^2 test).", "",
              "| variant | N_G | cells | packings | phi_J | chi2/dof | N_R/N | chi2/dof |", "|---|---|---|---|---|---|---|---|"]
     for r in jamming_rows:
         lines.append(f"| {r['variant']} | {r['N_G']} | {r['n_cells']} | {r['n_packings']} | "
@@ -280,13 +305,14 @@ def markdown(jamming_rows, jamming, comparison) -> str:
         lines.append(f"| {r['variant']}{' (ref)' if r['variant'] == ref else ''} | "
                      + " | ".join(_fmt(r[q], r[f'{q}_err']) for q in QUANTITIES) + " |")
     lines += ["", f"## Does it depend on the protocol? (family-wise error rate {comparison['alpha']:g}, Holm)", "",
-              "One test per quantity over all variants: chi^2 of the values about their weighted mean "
-              "(K - 1 degrees of freedom).", "",
+              "One test per quantity over all variants: chi^2 of the values about their weighted mean, "
+              "with the correlations their bootstrap replicas share (K - 1 degrees of freedom).", "",
               "| quantity | variants | chi2 / dof | p | p (Holm) | depends |", "|---|---|---|---|---|---|"]
     for h in comparison["homogeneity"]:
         lines.append(f"| {LABELS[h['quantity']]} | {h['n_variants']} | {_fmt(h['chi2'])} / {h['dof']} | "
                      f"{_p(h['p'])} | {_p(h['p_holm'])} | {'yes' if h['significant'] else 'no'} |")
-    lines += ["", f"Each variant minus `{ref}`: errors in quadrature, z, two-sided normal p, Holm over all "
+    lines += ["", f"Each variant minus `{ref}`: the error of the difference over the replicas drawn with the same seeds "
+              "(paired), z, two-sided normal p, Holm over all "
               f"{len(comparison['pairs'])} differences. corr: the correlation of paired packings' A_G "
               "(deviations from their cell means), near 0 when the ensembles are independent.", "",
               "| variant | corr | " + " | ".join(LABELS[q] for q in QUANTITIES) + " |",
@@ -320,10 +346,11 @@ def compute(table, s, distributions) -> Protocols:
     """The reducer's step: the jamming point of every variant, then the variants of the reference's
     system compared (in the order of the cells), each value with its variant's potential exponent."""
     vsys, g = table.systems, table.grid
-    sizes, limits = jamming_point(table.fin, g, s, {v: d["exponent"] for v, d in vsys.items()})
+    sizes, limits, lines = jamming_point(table, s)
     ref_sys = vsys.get(s.reference)
     same_sys = [v for v in sorted(set(g.cv), key=list(g.cv).index) if ref_sys is None or vsys.get(v) == ref_sys]
-    comparison = compare(table.extrapolated, limits, s.reference, same_sys, fin=table.everything, usable=table.good)
+    comparison = compare(table.extrapolated, limits, s.reference, same_sys, fin=table.everything, usable=table.good,
+                         replicas=replicas_of(table, lines))
     for rec in comparison["values"]:
         rec["exponent"] = float(vsys[rec["variant"]]["exponent"])  # the potential's alpha
     return Protocols(sizes, limits, comparison)

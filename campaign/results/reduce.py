@@ -109,6 +109,9 @@ class Reduction:
     # section name -> its result (SECTIONS), also red.<name>: red.tradeoff (campaign.results.tradeoff's
     # records, summary.json's "variants"), red.systems, red.response, red.protocols (a Protocols)
     sections: dict = field(default_factory=dict)
+    # (variant, quantity, abscissa) -> N_G -> what the law's fits took at that size: the cells' means,
+    # the variance model's errors (the weights), the cells (Table.shared_in), or why it did not enter
+    fit_inputs: dict = field(default_factory=dict)
 
     def __getattr__(self, name):
         """A section's result by its name (``red.tradeoff``): ``sections[name]``."""
@@ -166,6 +169,7 @@ class Table:
     shared_in: dict
     extrapolated: dict
     shared_fits: dict = field(default_factory=dict)  # (variant, quantity, abscissa) -> (sizes, SharedFit, 1/N line)
+    replica_weights: dict = field(default_factory=dict)  # cell -> (n_boot, packings): bootstrap.replica_weights
 
 
 def reduce_table(everything, s: Settings, per_size=True) -> Table:
@@ -186,14 +190,14 @@ def reduce_table(everything, s: Settings, per_size=True) -> Table:
     cells = cell_table(fin, g)
     notes = count_notes(fin, g, reasons)
     vsys = variant_systems(fin.attrs, variants=g.cv)
-    fit_records, residuals, rows, shared_in = scaling_fits(fin, g, s, cells, notes,
-                                                           {v: d["exponent"] for v, d in vsys.items()}, per_size,
-                                                           chains=ladder_variants(fin.attrs))
+    fit_records, residuals, rows, shared_in, laws, weights = scaling_fits(fin, g, s, cells, notes,
+                                                                 {v: d["exponent"] for v, d in vsys.items()},
+                                                                 per_size, chains=ladder_variants(fin.attrs))
     shared_fits = {}
-    extrapolated = extrapolate(rows, shared_in, notes, shared_fits)
+    extrapolated = extrapolate(rows, shared_in, laws, notes, shared_fits)
     return Table(everything=everything, good=good, reasons=reasons, fin=fin, grid=g, cells=cells, notes=notes,
                  systems=vsys, fit_records=fit_records, residuals=residuals, rows=rows, shared_in=shared_in,
-                 extrapolated=extrapolated, shared_fits=shared_fits)
+                 extrapolated=extrapolated, shared_fits=shared_fits, replica_weights=weights)
 
 
 def reduce_campaign(paths, settings: Settings | None = None, *, distributions=True) -> Reduction:
@@ -225,4 +229,4 @@ def reduce_campaign(paths, settings: Settings | None = None, *, distributions=Tr
                      area_hist=area_hist, fits=fit_records, residuals=residuals,
                      width_scaling=width, rows=rows, extrapolated=extrapolated,
                      peaks={v: three_disk_peaks(vsys[v]) for v in sorted(set(g.cv))},
-                     notes=notes, meta=meta, sections=sections)
+                     notes=notes, meta=meta, sections=sections, fit_inputs=tab.shared_in)

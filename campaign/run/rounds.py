@@ -26,7 +26,7 @@ import numpy as np
 from campaign.storage.layout import PENDING
 
 #: decisions that end a campaign (``campaign.precision.allocation.ACTIONS``, the others go on)
-STOPS = ("met", "budget", "max_seeds", "unreachable")
+STOPS = ("met", "budget", "max_seeds", "unreachable", "limited")
 
 
 class Rounds:

@@ -442,7 +442,7 @@ class SyntheticTask:
 
 #: the known laws of ``SyntheticLawsTask`` (docs/PRECISION.md's checks): A_G and psi_O against E_G and
 #: Delta Z, with finite-size corrections and a spread between packings falling like 1/sqrt(N)
-SYNTHETIC_LAWS = {"A_inf": 0.446, "a_N": -0.6, "c_A": 0.5, "beta_A": 0.28, "sigma_A": 0.08,
+SYNTHETIC_LAWS = {"A_inf": 0.446, "a_N": -0.6, "a_N2": 0.0, "c_A": 0.5, "beta_A": 0.28, "sigma_A": 0.08,
                   "P_inf": 0.369, "p_N": -0.4, "c_P": 0.6, "beta_P": 0.27, "sigma_P": 0.12,
                   "c_Z": 3.0, "sigma_Z": 0.3, "fe0": 400.0}
 
@@ -450,7 +450,8 @@ SYNTHETIC_LAWS = {"A_inf": 0.446, "a_N": -0.6, "c_A": 0.5, "beta_A": 0.28, "sigm
 def synthetic_laws(N, E, entropy, laws=None) -> dict:
     """The scalars of a synthetic packing that follows known laws (``SYNTHETIC_LAWS``), a pure function
     of (N, E, the task's seed entropy): ``E_G`` in [E, 1.1 E]; ``delta_Z = c_Z E_G^(1/4) (1 + noise)``;
-    ``A_G = A_inf + a_N / N + c_A E_G^beta_A + noise / sqrt(N)``, ``psi_O`` alike (so ``beta_E`` and
+    ``A_G = A_inf + a_N / N + a_N2 / N^2 + c_A E_G^beta_A + noise / sqrt(N)``, ``psi_O`` alike (without
+    the ``1/N^2`` term) (so ``beta_E`` and
     ``psi_beta_E`` are known, and ``beta_Z = 4 beta_A``); ``force_evaluations`` growing with N and with
     every decade closer to jamming, as the kernels' do."""
     t = dict(SYNTHETIC_LAWS, **(laws or {}))
@@ -461,7 +462,7 @@ def synthetic_laws(N, E, entropy, laws=None) -> dict:
     dz = t["c_Z"] * e ** 0.25 * max(0.0, 1.0 + t["sigma_Z"] * z[0])
     decades = max(0.0, math.log10(1e-3 / E))
     return {"E_G": e, "delta_Z": dz,
-            "A_G": t["A_inf"] + t["a_N"] / N + t["c_A"] * e ** t["beta_A"] + t["sigma_A"] * z[1] / math.sqrt(N),
+            "A_G": t["A_inf"] + t["a_N"] / N + t["a_N2"] / N ** 2 + t["c_A"] * e ** t["beta_A"] + t["sigma_A"] * z[1] / math.sqrt(N),
             "psi_O": t["P_inf"] + t["p_N"] / N + t["c_P"] * e ** t["beta_P"] + t["sigma_P"] * z[2] / math.sqrt(N),
             "force_evaluations": float(int(t["fe0"] * (1.0 + decades) ** 1.5 * (N / 64.0) ** 0.5
                                            * (1.0 + 0.3 * rng.random())))}

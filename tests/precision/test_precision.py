@@ -430,3 +430,29 @@ def test_readers_count_only_the_seeds_given_out(reference, tmp_path):
     got = json.loads(r.stdout)
     assert got["tasks"] == sum(recs[-1]["early"]) and got["remaining"] == 0
     assert sum(g["pending"] for g in got["groups"]) == 0
+
+
+def test_a_target_limited_by_its_sizes_ends_the_run(tmp_path):
+    """A_G with a 1/N_G^2 term that three sizes cannot follow (a_N2 = -300: 0.07 at N_G = 64): the line
+    through them fails its chi^2 test once the cells fill, the reducer says the value is limited by its
+    sizes, and two decisions in a row finding it so end the run with the reducer's paragraph (more
+    seeds would not shrink an error inflated by sqrt(chi^2/dof)) instead of running to max_seeds."""
+    spec = SPEC.replace("A_G_star_E: 1.5e-3, psi_O_star: 3.0e-3", "A_G_star_E: 1.0e-4")
+    out = tmp_path / "l.h5"
+    laws = _env(CAMPAIGN_SYNTHETIC_LAWS=json.dumps({"a_N2": -300.0}))
+    r = _run(tmp_path, out, "--launcher", "inline", spec=spec, env=laws)
+    assert r.returncode == 0, r.stderr
+    recs = _records(out)
+    assert recs[-1]["action"] == "limited", [x["action"] for x in recs]
+    assert recs[-2]["targets"][0]["limited"] and recs[-1]["targets"][0]["limited"]
+    assert "A_G_star_E cannot reach its goal 0.0001 with more seeds" in r.stderr
+    assert "limited by its sizes: the 1/N_G line through N_G = 64, 128, 256" in r.stderr
+    assert sum(recs[-1]["allocated"]) < 0.5 * 40 * len(recs[-1]["allocated"])  # far from max_seeds
+    st = subprocess.run([sys.executable, "-m", "campaign", "status", str(out)], capture_output=True, text=True,
+                        env=laws)
+    assert "a target limited by its sizes" in st.stdout + st.stderr
+    # the same law without the 1/N_G^2 term: no decision finds it limited
+    r = _run(tmp_path, tmp_path / "n.h5", "--launcher", "inline", spec=spec.replace("max_seeds: 40", "max_seeds: 12"),
+             env=_env())
+    assert r.returncode == 0, r.stderr
+    assert not any(t["limited"] for x in _records(tmp_path / "n.h5") for t in x.get("targets", []))

@@ -195,9 +195,12 @@ def test_the_row_is_the_shared_fit_of_the_cells_not_the_per_size_fits(tmp_path):
     xs, ys, es, Ns = [], [], [], []
     for N in SIZES:
         m = (np.asarray(c["N"]) == N) & (np.sqrt(np.asarray(c["E"], float)) <= 0.001 * (1 + 1e-9))
-        xs.append(c["mean_E_G"][m])
-        ys.append(c["mean_A_G"][m])
-        es.append(c["sem_A_G"][m])
+        x, y, e, *_ = red.fit_inputs[("default", "A_G", "E_G")][N]
+        np.testing.assert_array_equal(x, c["mean_E_G"][m])  # the range's cells, their own means
+        np.testing.assert_array_equal(y, c["mean_A_G"][m])
+        xs.append(x)
+        ys.append(y)
+        es.append(e)  # the variance model's errors (docs/REDUCED.md, "Error bars that hold")
         Ns.append(N)
     f = fits.fit_shared_exponent(xs, ys, es)
     ex = red.extrapolated["default"]

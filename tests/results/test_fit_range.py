@@ -10,11 +10,12 @@ import math
 import h5py
 import numpy as np
 import pytest
+from helpers import fit_cells
 from synthetic_store import SyntheticCampaign, Truth, write_store
 
 from campaign import cli
 
-from campaign.results import bootstrap, fits
+from campaign.results import fits
 from campaign.results import reduce as R
 from campaign.plan.targets import in_fit_range
 from campaign.results.scaling import DEFAULT_FIT_OVERLAP, typical_overlap
@@ -48,12 +49,7 @@ def _cells(rng, N, k, n=20):
 
 
 def _fit(groups, keep, seed):
-    g = [x for x, k in zip(groups, keep) if k]
-    x = np.array([c[:, 0].mean() for c in g])
-    y = np.array([c[:, 1].mean() for c in g])
-    ye = np.array([c[:, 1].std(ddof=1) / np.sqrt(len(c)) for c in g])
-    boot = bootstrap.cell_means(g, 100, seed=seed)
-    return fits.fit_power_law(x, y, ye, boot_x=boot[..., 0], boot_y=boot[..., 1])
+    return fit_cells([x for x, k in zip(groups, keep) if k], 100, seed)
 
 
 @pytest.mark.parametrize("k", [0.0, K], ids=["no correction", "correction like paper-small"])
@@ -156,9 +152,13 @@ def test_fit_all_is_the_fit_over_every_energy(small, tmp_path, capsys):
     obj = json.loads(capsys.readouterr().out)
     red = R.reduce_campaign(small, R.Settings(n_boot=0), distributions=False)
     c = red.cells
+    every = R.reduce_campaign(small, R.Settings(n_boot=0, fit_overlap=np.inf), distributions=False)
     for row in obj["rows"]:
         m = c["N"] == row["N_G"]
-        f = fits.fit_power_law(c["mean_E_G"][m], c["mean_A_G"][m], c["sem_A_G"][m])
+        x, y, ye, *_ = every.fit_inputs[("default", "A_G", "E_G")][row["N_G"]]
+        np.testing.assert_array_equal(x, c["mean_E_G"][m])  # every cell of the size, in order
+        np.testing.assert_array_equal(y, c["mean_A_G"][m])
+        f = fits.fit_power_law(x, y, ye)
         assert row["beta_E"] == pytest.approx(f.exponent, rel=1e-9)
         assert row["n_cells"] == m.sum() and row["fit_E_max"] == pytest.approx(1e-3)
     assert obj["fit_rule"]["name"] == "every energy" and obj["fit_rule"]["default"] is False

@@ -7,6 +7,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import curve_fit
 
+from helpers import fit_cells as _fit_cells
+
 from campaign.results import bootstrap, fits
 
 E_GRID = np.logspace(-15, -3, 13)
@@ -59,14 +61,6 @@ def _cells(rng, x_true, a, c, beta, n, noise):
     return groups
 
 
-def _fit_cells(groups, n_boot, seed):
-    x = np.array([g[:, 0].mean() for g in groups])
-    y = np.array([g[:, 1].mean() for g in groups])
-    ye = np.array([g[:, 1].std(ddof=1) / np.sqrt(len(g)) for g in groups])
-    boot = bootstrap.cell_means(groups, n_boot, seed=seed)
-    return fits.fit_power_law(x, y, ye, boot_x=boot[..., 0], boot_y=boot[..., 1])
-
-
 def test_noisy_cells_recover_truth_within_bootstrap_errors():
     rng = np.random.default_rng(11)
     f = _fit_cells(_cells(rng, E_GRID, 0.446, 0.5, 0.28, 40, 0.003), 400, seed=1)
@@ -91,18 +85,27 @@ def test_bootstrap_errors_cover_truth_at_the_stated_rate():
         assert abs(hits / M - 0.683) < band + 0.04, hits / M
 
 
-def test_bootstrap_cell_means_is_deterministic_and_matches_the_standard_error():
+def test_cell_moments_are_deterministic_and_scatter_as_a_cell_mean_does():
+    """A replica's mean, scaled by sqrt(n / (n - 1)), scatters by the standard error of the mean
+    (the sample's, n - 1 in the denominator), not the (n - 1) / n of it a plain resample gives;
+    its covariance is the sample covariance of the packings drawn."""
     rng = np.random.default_rng(5)
-    groups = [rng.normal(0, 1, (50, 2)), rng.normal(3, 2, (200, 2))]
-    b1 = bootstrap.cell_means(groups, 2000, seed=7)
-    b2 = bootstrap.cell_means(groups, 2000, seed=7)
-    assert b1.shape == (2000, 2, 2)
-    np.testing.assert_array_equal(b1, b2)
-    for k, g in enumerate(groups):
-        sem = g.std(ddof=0, axis=0) / np.sqrt(len(g))
-        np.testing.assert_allclose(b1[:, k].std(axis=0), sem, rtol=0.08)
-        assert np.all(np.abs(b1[:, k].mean(axis=0) - g.mean(axis=0)) < 4 * sem / np.sqrt(2000))
-    assert not np.array_equal(b1, bootstrap.cell_means(groups, 2000, seed=8))
+    for n in (4, 50, 200):
+        g = rng.normal([0, 3], [1, 2], (n, 2))
+        w = bootstrap.seed_weights(bootstrap.generator(7), n, 4000)
+        m1, c1 = bootstrap.cell_moments(g, w)
+        m2, c2 = bootstrap.cell_moments(g, w)
+        assert m1.shape == (4001, 2) and c1.shape == (4001, 2, 2)
+        np.testing.assert_array_equal(m1, m2)
+        np.testing.assert_array_equal(c1, c2)
+        np.testing.assert_array_equal(m1[0], g.mean(0))
+        np.testing.assert_allclose(c1[0], np.cov(g.T), rtol=1e-12)
+        sem = g.std(ddof=1, axis=0) / np.sqrt(n)
+        np.testing.assert_allclose(m1[1:].std(axis=0), sem, rtol=0.06)
+        k = 17  # one replica, computed by hand
+        drawn = np.repeat(g, w[k].astype(int), axis=0)
+        np.testing.assert_allclose(m1[k + 1], g.mean(0) + np.sqrt(n / (n - 1)) * (drawn.mean(0) - g.mean(0)))
+        np.testing.assert_allclose(c1[k + 1], np.cov(drawn.T), rtol=1e-9, atol=1e-12)
 
 
 @settings(max_examples=25, deadline=None)
@@ -122,6 +125,76 @@ def test_fit_is_covariant_under_shift_of_y_and_scale_of_x(shift, scale, beta):
 def test_fit_refuses_too_few_points():
     f = fits.fit_power_law([1e-3, 1e-5, 1e-7], [1, 2, 3], [0.1] * 3)
     assert not f.ok and "at least 4" in f.message
+
+
+SIZES5 = np.array([64, 128, 256, 512, 1024], float)
+
+
+def _sizes_draw(rng, truth, sd, boot=400):
+    """One campaign's per-size values about ``truth`` (G,) with errors ``sd`` (G,), and bootstrap
+    replicas about those values drawn with the same errors (what a bootstrap of the packings gives)."""
+    y = truth + sd * rng.normal(size=len(sd))
+    return y, y + sd * rng.normal(size=(boot, len(sd)))
+
+
+def test_the_n_inf_value_of_exact_sizes_on_a_line_or_a_parabola_is_exact():
+    """Without noise the average of line and parabola is the truth whichever carries the weight:
+    the line through sizes on a line, the parabola (weight 1) through sizes that curve."""
+    rng = np.random.default_rng(3)
+    sd = 1e-4 * np.sqrt(64 / SIZES5)
+    noise = sd * rng.normal(size=(400, 5))
+    line = 0.446 - 0.6 / SIZES5
+    r = fits.line_in_inverse_n(SIZES5, line, line + noise)
+    assert r.value == pytest.approx(0.446, abs=1e-12) and r.slope == pytest.approx(-0.6, rel=1e-9)
+    assert r.parabola_weight < 0.5 and not r.left_out and not r.limited
+    curved = line - 40.0 / SIZES5**2
+    r = fits.line_in_inverse_n(SIZES5, curved, curved + noise)
+    assert r.parabola_weight > 0.999 and r.value == pytest.approx(0.446, abs=1e-9)
+    assert r.chi2_dof > 10 and not r.left_out   # the line is off; the parabola holds them
+
+
+@pytest.mark.parametrize("a_2", [0.0, -40.0])
+def test_the_n_inf_error_covers_the_truth_with_and_without_a_correction_beyond_1_over_n(a_2):
+    """Over many campaigns (sizes 64..1024, errors falling like 1/sqrt(N)): with intercepts on a line,
+    and with a 1/N^2 term (1e-2 at N 64, 6e-4 at 256, a few errors at the small sizes), the
+    2-sigma intervals hold the truth about 95% of the time and the values are unbiased. The line
+    alone (the parabola's weight held at 0) misses the curved truth."""
+    rng = np.random.default_rng(11 if a_2 else 12)
+    sd = 4e-4 * np.sqrt(64 / SIZES5)
+    truth = 0.446 - 0.6 / SIZES5 + a_2 / SIZES5**2
+    z, z_line = [], []
+    for _ in range(300):
+        y, R = _sizes_draw(rng, truth, sd)
+        r = fits.line_in_inverse_n(SIZES5, y, R)
+        z.append((r.value - 0.446) / r.err)
+        X = np.column_stack([np.ones(5), 1 / SIZES5])
+        W = np.linalg.inv(np.cov(R.T))
+        M = np.linalg.solve(X.T @ W @ X, X.T @ W)
+        z_line.append(((M @ y)[0] - 0.446) / fits.spread(R @ M[0]))
+    z, z_line = np.array(z), np.array(z_line)
+    assert 0.92 <= np.mean(np.abs(z) <= 2) <= 0.99, np.mean(np.abs(z) <= 2)
+    assert abs(np.median(z)) < 0.2
+    if a_2:
+        assert np.mean(np.abs(z_line) <= 2) < 0.8   # the mutation: no parabola
+
+
+def test_sizes_off_every_model_leave_out_the_smallest_then_limit_the_value():
+    """A smallest size far off both models is left out and named; three sizes that still do not lie
+    on a line make the value limited, its error inflated by sqrt(chi^2/dof)."""
+    rng = np.random.default_rng(5)
+    sd = 1e-4 * np.ones(5)
+    noise = sd * rng.normal(size=(400, 5))
+    y = 0.446 - 0.6 / SIZES5
+    y[0] += 0.01                                # N 64 off everything
+    y[1] += 0.003 * (-1)                        # N 128 off too, the other way
+    r = fits.line_in_inverse_n(SIZES5, y, y + noise)
+    assert r.left_out == (64,) or r.left_out == (64, 128)
+    assert 64 not in r.sizes
+    zig = 0.446 - 0.6 / SIZES5[2:] + np.array([0.0, 0.002, 0.0])
+    r3 = fits.line_in_inverse_n(SIZES5[2:], zig, zig + noise[:, :3])
+    assert r3.limited and r3.inflation > 3 and r3.parabola_weight == 0
+    plain = fits.spread(r3.replicas)
+    assert r3.err == pytest.approx(plain * r3.inflation)
 
 
 def test_inverse_n_extrapolation_recovers_a_known_law():
@@ -211,30 +284,37 @@ def test_zero_abscissa_is_a_point_at_the_intercept():
         fits.fit_power_law(-x[::-1], y, np.full(x.size, 1e-4))
 
 
-def _ladder(rng, seeds, missing):
-    """Two cells of one size, every seed in the first, the second without the seeds ``missing``."""
-    a = rng.normal(0, 1, (seeds, 1))
-    keep = np.setdiff1d(np.arange(seeds), missing)
-    return [a, a[keep] + 1.0], [np.arange(seeds), keep]
+def _grid(cells, seeds):
+    """A ``Grid`` of ``cells`` ((variant, N, E) each) whose packings are the seeds ``seeds[i]``."""
+    from campaign.results.cells import Grid
+
+    seed_of = np.concatenate([np.asarray(s) for s in seeds])
+    bounds = np.concatenate([[0], np.cumsum([len(s) for s in seeds])])
+    C = len(cells)
+    z = np.zeros(C, np.int64)
+    g = Grid(cv=np.array([c[0] for c in cells]), cN=np.array([c[1] for c in cells]),
+             cE=np.array([c[2] for c in cells], float), cell=np.repeat(np.arange(C), np.diff(bounds)),
+             n_done=np.diff(bounds), n_excluded=z, n_failed=z, n_pending=z, order=np.arange(len(seed_of)),
+             bounds=bounds)
+    return g, seed_of
 
 
-def test_the_seed_bootstraps_differ_only_where_a_replica_misses_a_cells_seeds():
-    rng = np.random.default_rng(5)
-    for missing in ((), (0, 1, 2, 3, 4, 5, 6)):
-        groups, seeds = _ladder(rng, 8, list(missing))
-        means = bootstrap.seed_means(groups, seeds, 400, seed=3)
-        counts = np.zeros((8, 2))
-        sums = np.zeros((8, 2))
-        for c, (g, sd) in enumerate(zip(groups, seeds)):
-            np.add.at(counts[:, c], sd, 1.0)
-            np.add.at(sums[:, c], sd, g[:, 0])
-        nb, mb = bootstrap.seed_cell_means(counts, sums, 400, bootstrap.generator(3))
-        # the same seeds drawn in the same order: the replicas that hold every cell agree
-        full = bootstrap.seed_weights(bootstrap.generator(3), 8, 400) @ counts
-        held = np.all(full > 0, axis=1)
-        np.testing.assert_allclose(means[held, :, 0], mb, rtol=1e-12)
-        if not missing:
-            assert held.all()
-        else:  # a replica without seed 7 keeps the cell at its mean in one, and is dropped in the other
-            assert not held.all() and len(mb) == held.sum() < 400
-            np.testing.assert_array_equal(means[~held, 1, 0], groups[1].mean())
+def test_replica_weights_draw_seeds_jointly_across_variants_and_whole_seeds_along_a_ladder():
+    """The variants of one cell draw the same seeds (a paired bootstrap); a ladder's variant draws a
+    seed at every energy of its size together; a variant missing some seeds takes those it holds;
+    the same key, the same draws."""
+    cells = [("a", 64, 1e-3), ("b", 64, 1e-3), ("a", 64, 1e-5), ("b", 64, 1e-5), ("a", 128, 1e-3),
+             ("l", 64, 1e-3), ("l", 64, 1e-5)]
+    seeds = [np.arange(8), np.arange(8), np.arange(8), np.arange(2, 8), np.arange(8), np.arange(6), np.arange(6)]
+    g, seed_of = _grid(cells, seeds)
+    w = bootstrap.replica_weights(g, seed_of, range(len(cells)), {"l"}, 300, boot_seed=11)
+    assert [w[i].shape for i in range(len(cells))] == [(300, len(s)) for s in seeds]
+    np.testing.assert_array_equal(w[0], w[1])         # variants of one cell: the same seeds
+    np.testing.assert_array_equal(w[3], w[2][:, 2:])  # the variant without seeds 0 and 1 takes the rest
+    np.testing.assert_array_equal(w[5], w[6])         # a ladder: a seed at every energy
+    assert not np.array_equal(w[0], w[2]) and not np.array_equal(w[0], w[4])  # cells draw apart
+    assert np.all(w[0].sum(1) == 8)                   # a resample of the 8 seeds
+    again = bootstrap.replica_weights(g, seed_of, range(len(cells)), {"l"}, 300, boot_seed=11)
+    assert all(np.array_equal(w[i], again[i]) for i in w)
+    other = bootstrap.replica_weights(g, seed_of, range(len(cells)), {"l"}, 300, boot_seed=12)
+    assert not np.array_equal(w[0], other[0])

@@ -458,7 +458,10 @@ def test_fit_energy_range_selects_the_cells_of_the_fits(tmp_path, capsys):
     for row in red.rows:
         assert row["n_cells"] == len(inside)
         m = (c["N"] == row["N_G"]) & (c["E"] >= lo) & (c["E"] <= hi)
-        f = fit_power_law(c["mean_E_G"][m], c["mean_A_G"][m], c["sem_A_G"][m])
+        x, y, ye, *_ = red.fit_inputs[("default", "A_G", "E_G")][row["N_G"]]
+        np.testing.assert_array_equal(x, c["mean_E_G"][m])  # exactly the range's cells
+        np.testing.assert_array_equal(y, c["mean_A_G"][m])
+        f = fit_power_law(x, y, ye)
         assert row["beta_E"] == pytest.approx(f.exponent, rel=1e-9)
         assert row["A_G_star_E"] == pytest.approx(f.intercept, rel=1e-9)
     full = R.reduce_campaign(path, R.Settings(n_boot=0, fit_overlap=np.inf))

@@ -1,41 +1,19 @@
 """The stores shipped in data/ are complete and sound, and give the numbers the docs quote from them
 (the commands the docs print, run as a user runs them)."""
 
-import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
+from helpers import campaign_cli as _campaign, complete_and_sound as _complete_and_sound, sound as _sound
+
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def _campaign(*args, **kw):
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
-    return subprocess.run([sys.executable, "-m", "campaign", *map(str, args)], env=env, capture_output=True,
-                          text=True, timeout=600, **kw)
 
 
 def _row(text: str, n: int) -> list:
     """The cells of the table row of size ``n`` in a markdown ``text`` (the first such row)."""
     line = next(ln for ln in text.splitlines() if ln.startswith(f"| {n} |"))
     return [c.strip() for c in line.split("|")[2:-1]]
-
-
-def _sound(store: Path):
-    """`campaign verify`: no damage."""
-    verify = _campaign("verify", store)
-    assert verify.returncode == 0 and "no damage" in verify.stdout + verify.stderr, verify.stdout + verify.stderr
-
-
-def _complete_and_sound(store: Path, tasks: int):
-    """`campaign status`: every one of ``tasks`` done; `campaign verify`: no damage."""
-    status = json.loads(_campaign("status", store, "--json", check=True).stdout)
-    assert (status["done"], status["failed"], status["remaining"]) == (tasks, 0, 0)
-    _sound(store)
 
 
 @pytest.mark.slow
@@ -129,6 +107,37 @@ def test_the_row_to_infinity_with_8192(tmp_path):
         assert row == [p[0], d[0], p[1], f"{d[1]} [{a[1]}]", p[2], f"{d[3]} [{a[3]}]", p[3], d[4]], n
 
 
+def _variant_rows(table: str) -> dict:
+    """variant -> the rows (N_G or "N_G -> inf" -> cells) of a table.md holding several variants."""
+    out, name = {}, None
+    for line in table.splitlines():
+        if line.startswith("Variant `"):
+            name = line.split("`")[1]
+        elif name and line.startswith("| ") and not line.startswith("| N_G |"):
+            cells = [c.strip() for c in line.split("|")[1:-1]]
+            key = cells[0] if cells[0].startswith("N_G") else int(cells[0])
+            out.setdefault(name, {})[key] = [_bare(c) for c in cells[1:]]
+    return out
+
+
+@pytest.mark.slow
+def test_paper_protocol_store_gives_the_protocol_table(tmp_path):
+    """data/paper-protocol.h5 (campaigns/paper-protocol.yaml) is complete and sound, and docs/PAPER.md's
+    table of section (c) (per variant the exponents per size and A_G*(E_G=0) for N_G -> inf, over every
+    energy) is what `campaign reduce data/paper-protocol.h5 --fit-all` gives."""
+    store = ROOT / "data" / "paper-protocol.h5"
+    _complete_and_sound(store, 900)
+    _campaign("reduce", store, "--fit-all", "--out", tmp_path / "red", check=True)
+    got = _variant_rows((tmp_path / "red" / "table.md").read_text())
+    text = (ROOT / "docs" / "PAPER.md").read_text()
+    doc = text[text.index("### (c) The paper's protocol"):text.index("### The half-plane rattler rule")]
+    for variant in ("default", "cg", "paper-protocol"):
+        line = next(ln for ln in doc.splitlines() if ln.startswith(f"| {variant} |"))
+        cells = [c.strip() for c in line.split("|")[1:-1]]
+        g = got[variant]
+        assert cells[3] == ", ".join(g[n][1] for n in (64, 128, 256)), variant
+        assert cells[4] == ", ".join(g[n][3] for n in (64, 128, 256)), variant
+        assert cells[5] == g["N_G -> inf"][0], variant
 @pytest.mark.slow
 @pytest.mark.parametrize("store", sorted(p.name for p in (ROOT / "data").glob("*.h5")))
 def test_every_shipped_store_verifies_sound(store):

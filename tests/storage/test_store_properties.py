@@ -293,7 +293,7 @@ def fit_plan(cells, present):
             for c in usable:
                 x, _ = _mean_sem(c["values"].get(absc, []))
                 y, ye = _mean_sem(c["values"].get(quantity, []))
-                if math.isfinite(x) and x >= 0 and math.isfinite(y) and math.isfinite(ye) and ye > 0:
+                if math.isfinite(x) and x >= 0 and math.isfinite(y) and math.isfinite(ye):  # two packings or more
                     ok += 1
                     n_positive += x > 0
                     positive |= {x} if x > 0 else set()
