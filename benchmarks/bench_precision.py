@@ -9,7 +9,8 @@ reduction's errors of A_G_star_E, beta_E and psi_O_star become the targets of th
 workers (`--uniform-store` reuses a finished uniform store and times it from its record). Printed:
 packings, force evaluations, force evaluations times disks (what the rounds price a packing at),
 core-seconds (the workers' task times), wall seconds and the workers' idle share, the row of each run
-and whether they agree within their combined errors. Force evaluations are deterministic; seconds
+and whether they agree within their combined errors, and per decision and target the error the model
+projected after the round against the one the next decision measured (``planner.projections``). Force evaluations are deterministic; seconds
 depend on the machine and its load (run it on a quiet one).
 """
 
@@ -25,6 +26,8 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+
+from campaign.precision import planner
 
 ROOT = Path(__file__).resolve().parents[1]
 KEYS = ("A_G_star_E", "beta_E", "psi_O_star")
@@ -109,8 +112,11 @@ def main(argv=None):
         z = (y - x) / np.hypot(ex, ey)
         agree[k] = float(z)
         print(f"| {k} | {x:.6g} +- {ex:.2g} | {y:.6g} +- {ey:.2g} | {z:+.2f} | {'yes' if ey <= targets[k] else 'no'} |")
+    proj = planner.projections(recs)
+    print("\nEach decision's projection after its round against the error the next decision measured:\n")
+    print(planner.projections_markdown(proj))
     if a.json:
-        Path(a.json).write_text(json.dumps({"targets": targets, "uniform": mu, "precision": ma, "rows": {
+        Path(a.json).write_text(json.dumps({"targets": targets, "uniform": mu, "precision": ma, "projections": proj, "rows": {
             "uniform": {k: [u_row[k], u_row[f"{k}_err"]] for k in KEYS},
             "precision": {k: [a_row[k], a_row[f"{k}_err"]] for k in KEYS}}, "agreement": agree,
             "rounds": [{"round": x["round"], "action": x["action"], "message": x["message"]} for x in recs]}, indent=1))

@@ -105,7 +105,8 @@ def one(job):
     out = {"rep": rep, "rounds": len(recs) - 1, "action": recs[-1]["action"], "packings": int(counts.sum()),
            "cost": float(np.sum(d["force_evaluations"] * cells.N[rows // cells.seeds])),
            "seconds": time.perf_counter() - t0,
-           "adaptive": {k: [row[k], row[f"{k}_err"]] for k in ("A_G_star_E", "beta_E", "psi_O_star")}}
+           "adaptive": {k: [row[k], row[f"{k}_err"]] for k in ("A_G_star_E", "beta_E", "psi_O_star")},
+           "projections": [{k: r[k] for k in ("decision", "key", "ratio")} for r in planner.projections(recs)]}
     if uniform:
         u = np.full(cells.C, uniform)
         rows = np.flatnonzero(cells.tasks_of(u))
@@ -173,6 +174,12 @@ def main(argv=None):
         for s in summary[label]:
             print(f"| {label} | {s['key']} | {s['median_bias_in_errors']:+.2f} | {s['cover_1sigma']:.2f} | "
                   f"{s['cover_2sigma']:.2f} | {s['median_error']:.2g} | {s['spread']:.2g} | {s['missing']} |")
+    print("\nachieved / projected error, each decision's round (median and 10%-90% over the campaigns' decisions):\n")
+    print("| key | decisions | median | 10% | 90% |\n|---|---|---|---|---|")
+    for k in ("A_G_star_E", "beta_E", "psi_O_star"):
+        q = np.array([p["ratio"] for r in results for p in r["projections"] if p["key"] == k and np.isfinite(p["ratio"])])
+        if len(q):
+            print(f"| {k} | {len(q)} | {np.median(q):.2f} | {np.quantile(q, 0.1):.2f} | {np.quantile(q, 0.9):.2f} |")
     if a.json:
         Path(a.json).write_text(json.dumps({"summary": summary, "results": results}, indent=1))
 

@@ -124,6 +124,50 @@ class Planner:
         return _report(self.table(self.snapshot(store, given)), self.settings["target"])
 
 
+# --------------------------------------------------------------------------- where the error went
+
+def projections(records) -> list:
+    """What each decision projected and what the next one measured: per ``continue`` decision ``k``
+    followed by a decision, per target, ``{"decision": k, "variant", "key", "goal", "error"}`` (the
+    reducer's error at decision ``k``), ``"projected"`` (the model's error after round ``k``) and
+    ``"achieved"`` (the reducer's error at decision ``k + 1``, from the packings of rounds ``0 .. k``),
+    ``"ratio"`` achieved / projected, and ``"round_core_hours"`` (the round's priced cost). The gap
+    between the plan and the rounds, decision by decision. A target without a value at decision ``k``
+    is planned on its law's exponent: its ``projected`` is that exponent's error, and its ratio NaN."""
+    out = []
+    recs = sorted(records, key=lambda r: r["round"])
+    for rec, nxt in zip(recs, recs[1:]):
+        if rec["action"] != "continue":
+            continue
+        after = {(t["variant"], t["key"]): t for t in nxt.get("targets", [])}
+        for t in rec.get("targets", []):
+            got = after.get((t["variant"], t["key"]), {}).get("error")
+            proj = t.get("projected")
+            num = [x if x is not None else np.nan for x in (t.get("error"), proj, got)]
+            out.append({"decision": int(rec["round"]), "variant": t["variant"], "key": t["key"], "goal": t["goal"],
+                        "error": num[0], "projected": num[1], "achieved": num[2],
+                        "ratio": (num[2] / num[1] if np.isfinite(num[0]) and np.isfinite(num[1]) and num[1] > 0
+                                  else np.nan),
+                        "round_core_hours": rec.get("round_core_hours")})
+    return out
+
+
+def projections_markdown(rows) -> str:
+    """``projections`` as a markdown table (one line per decision and target)."""
+    def g(x):
+        return "-" if x is None or not np.isfinite(x) else f"{x:.3g}"
+
+    lines = ["| decision | target | goal | error | projected after the round | achieved | achieved / projected "
+             "| round core-hours |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        who = r["key"] if r["variant"] == "default" else f"{r['key']} ({r['variant']})"
+        proj = g(r["projected"]) + (" (its exponent's)" if not np.isfinite(r["error"]) and np.isfinite(r["projected"])
+                                    else "")
+        lines.append(f"| {r['decision']} | {who} | {r['goal']:g} | {g(r['error'])} | {proj} | "
+                     f"{g(r['achieved'])} | {g(r['ratio'])} | {g(r['round_core_hours'])} |")
+    return "\n".join(lines)
+
+
 # --------------------------------------------------------------------------- a campaign in memory
 
 def run_in_memory(cells: Cells, settings, draw, *, attrs=None, reducer=None, disk_seconds=None, log=None):

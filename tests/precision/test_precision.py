@@ -456,3 +456,34 @@ def test_a_target_limited_by_its_sizes_ends_the_run(tmp_path):
              env=_env())
     assert r.returncode == 0, r.stderr
     assert not any(t["limited"] for x in _records(tmp_path / "n.h5") for t in x.get("targets", []))
+
+
+def test_what_each_round_projected_and_what_the_next_decision_measured(reference):
+    """``planner.projections``: for every ``continue`` decision and target, the reducer's error then,
+    the model's error projected after the round, and the error the next decision measured on the
+    round's packings (a target without a value is planned on its exponent: no ratio), and the table
+    names every one of them."""
+    out, _ = reference
+    recs = _records(out)
+    rows = P.projections(recs)
+    cont = [r for r in recs[:-1] if r["action"] == "continue"]
+    assert len(rows) == 2 * len(cont) and cont
+    by = {(r["round"], t["key"]): t for r in recs for t in r["targets"]}
+
+    def same(a, b):  # a record keeps a missing number as None
+        return (np.isnan(a) and b is None) or a == b
+
+    for row in rows:
+        k = row["decision"]
+        assert same(row["error"], by[(k, row["key"])]["error"])
+        assert same(row["projected"], by[(k, row["key"])]["projected"])
+        assert same(row["achieved"], by[(k + 1, row["key"])]["error"])  # the next decision's, not this one's
+        if row["error"] is not None and np.isfinite(row["error"]) and np.isfinite(row["achieved"]):
+            assert row["ratio"] == row["achieved"] / row["projected"]
+        else:  # planned on its law's exponent, whose error is no measure of the target's
+            assert np.isnan(row["ratio"])
+    assert any(np.isfinite(r["ratio"]) for r in rows) and any(np.isnan(r["ratio"]) for r in rows)
+    table = P.projections_markdown(rows).splitlines()
+    assert len(table) == 2 + len(rows) and table[2].startswith(f"| {rows[0]['decision']} | A_G_star_E |")
+    # a decision that ends the campaign projects nothing, and the last one has no next
+    assert P.projections([{"round": 0, "action": "pilot", "targets": []}, recs[-1]]) == []
