@@ -132,16 +132,16 @@ def main(argv=None):
             xi = x["inf"]
             bzx = r["beta_Z"] * xi["beta"] if xi else math.nan
             bzx_err = (math.hypot(r["beta_Z_err"] * xi["beta"], r["beta_Z"] * xi["beta_err"]) if xi else math.nan)
+            bz, be = fmt_err(r["beta_Z"], r["beta_Z_err"]), fmt_err(r["beta_E"], r["beta_E_err"])
+            # x, beta_Z x and beta_Z/(2 alpha): the last three cells of both tables
+            tail = " | ".join([fmt_err(xi["beta"], xi["beta_err"]) if xi else "-", fmt_err(bzx, bzx_err),
+                               fmt_err(r["beta_Z_over_2alpha"], r["beta_Z_over_2alpha_err"])])
             print(f"| {v} | {r['alpha']:g} | {r['sizes']} | "
                   + " | ".join(fmt_err(rows[n]["beta_Z"], rows[n]["beta_Z_err"]) if n in rows else "-" for n in sizes)
-                  + f" | {fmt_err(r['beta_Z'], r['beta_Z_err'])} | {fmt_err(r['beta_E'], r['beta_E_err'])} | "
-                  + (fmt_err(xi["beta"], xi["beta_err"]) if xi else "-")
-                  + f" | {fmt_err(bzx, bzx_err)} | {fmt_err(r['beta_Z_over_2alpha'], r['beta_Z_over_2alpha_err'])} |")
+                  + f" | {bz} | {be} | {tail} |")
             win[v] = {"system": r, "x": x, "rows": rows}
             summary.append(f"| {label if v == order[0] else ''} | {v} | {fmt_err(r['A_G_star_E'], r['A_G_star_E_err'])} | "
-                           f"{fmt_err(r['beta_E'], r['beta_E_err'])} | {fmt_err(r['beta_Z'], r['beta_Z_err'])} | "
-                           + (fmt_err(xi["beta"], xi["beta_err"]) if xi else "-")
-                           + f" | {fmt_err(bzx, bzx_err)} | {fmt_err(r['beta_Z_over_2alpha'], r['beta_Z_over_2alpha_err'])} |")
+                           f"{be} | {bz} | {tail} |")
         val = np.array([systems[v]["beta_Z"] for v in order])
         err = np.array([systems[v]["beta_Z_err"] for v in order])
         ok = np.isfinite(val) & np.isfinite(err) & (err > 0)

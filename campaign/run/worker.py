@@ -450,9 +450,8 @@ SYNTHETIC_LAWS = {"A_inf": 0.446, "a_N": -0.6, "a_N2": 0.0, "c_A": 0.5, "beta_A"
 def synthetic_laws(N, E, entropy, laws=None) -> dict:
     """The scalars of a synthetic packing that follows known laws (``SYNTHETIC_LAWS``), a pure function
     of (N, E, the task's seed entropy): ``E_G`` in [E, 1.1 E]; ``delta_Z = c_Z E_G^(1/4) (1 + noise)``;
-    ``A_G = A_inf + a_N / N + a_N2 / N^2 + c_A E_G^beta_A + noise / sqrt(N)``, ``psi_O`` alike (without
-    the ``1/N^2`` term) (so ``beta_E`` and
-    ``psi_beta_E`` are known, and ``beta_Z = 4 beta_A``); ``force_evaluations`` growing with N and with
+    ``A_G = A_inf + a_N / N + a_N2 / N^2 + c_A E_G^beta_A + noise / sqrt(N)``, ``psi_O`` alike without
+    the ``1/N^2`` term (so ``beta_E`` and ``psi_beta_E`` are known, and ``beta_Z = 4 beta_A``); ``force_evaluations`` growing with N and with
     every decade closer to jamming, as the kernels' do."""
     t = dict(SYNTHETIC_LAWS, **(laws or {}))
     rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(list(entropy) + [7])))
