@@ -19,9 +19,14 @@ the row is a weighted least-squares fit of the cell means with parameters
 bootstrap carries it). A target's predicted variance is ``r^2 [I(n)^-1]_kk`` (k: ``a_inf`` or
 ``beta``), with ``r`` the ratio of the reducer's bootstrap error to the model's at the current
 ``n``, so that the prediction starts from the measured error and the model only says how it falls.
-An intercept whose sizes scatter about the 1/N_G line more than their errors allow (p < 0.01) has
-the reducer's error inflated by ``sqrt(chi^2/dof)``; that part does not fall with more seeds, and
-the model keeps it as a floor.
+Where the reducer averages the line in 1/N_G with the parabola (four sizes or more), an intercept's
+variance is the line's plus ``(v2 - v1) choice_variance(zeta)``: the parabola's excess variance times
+the scatter of the Akaike weight's pull, at the z-score ``zeta`` of the 1/N_G^2 term, which grows like
+the square root of the packings (``errormodel.LawModel.intercept_variance``; the choice is most of
+paper-small's intercept errors, and packings at the sizes that pin the curvature shrink it). An
+intercept the reducer finds limited by its sizes (the line through the last three fails) has its error
+inflated by ``sqrt(chi^2/dof)``; that part does not fall with more seeds, and the model keeps it as a
+floor.
 
 **The allocation** is greedy on the marginal reduction of ``sum_T V_T / tau_T^2`` over the targets
 not yet met, per core-second: the continuous optimum of a sum of variances at a given cost is
@@ -136,10 +141,11 @@ class Target:
         """Predicted variance of the reducer's error (of the parameter ``plan_k``) at the model state
         ``st`` (``LawModel.state``): the joint fit's, times the 1/N_G line's expected inflation for an
         intercept, times ``ratio^2``."""
-        inv, invf = st[0], st[1]
-        v = float(inv[self.plan_k, self.plan_k])
-        infl = self.law.inflation(invf) if self.plan_k == 0 else 1.0
-        return self.ratio ** 2 * v * infl
+        if self.plan_k == 0:  # the intercept: the line's, with the choice of the parabola where the reducer makes
+            # it (the parabola takes up what lies off the line: the reducer inflates nothing there)
+            infl = 1.0 if self.law.curved else self.law.inflation(st[1])
+            return self.ratio ** 2 * self.law.intercept_variance(st) * infl
+        return self.ratio ** 2 * float(st[0][self.plan_k, self.plan_k])
 
 
 def _targets(table, cells, settings) -> list:
@@ -257,8 +263,9 @@ def decide(k: int, table, cells: Cells, state: State, settings, previous=None) -
             continue
         if id(t.law) not in states:
             states[id(t.law)] = t.law.state(n_now)
-        t.v_now = float(states[id(t.law)][0][t.plan_k, t.plan_k])
+            t.law.anchor(states[id(t.law)])
         raw = t.variance(states[id(t.law)])  # ratio 1 here: the model's own error
+        t.v_now = raw
         model_met.append(bool(np.isfinite(raw) and raw <= t.goal ** 2))
         if t.determined and t.v_now > 0:
             t.ratio = t.error / math.sqrt(raw)

@@ -350,4 +350,14 @@ def _prior_law(cells, stats, names, variant, quantity, absc, pilot_n) -> LawMode
     law.beta = float(f.exponent)
     law.sys2 = np.zeros(len(sizes))
     law.J, law.s2 = law.at(law.beta, np.asarray(f.coeffs, float))
+    if len(sizes) >= 4:  # the reducer will average line and parabola: the prior's 1/N_G^2 coefficient
+        law.z2 = 0.0
+        st = law.state(np.full(cells.C, float(pilot_n)))
+        G = len(sizes)
+        cov = st[1][1:1 + G, 1:1 + G]
+        if np.all(np.isfinite(cov)):
+            Ninv = 1.0 / np.asarray(sizes, float)
+            X = np.column_stack([np.ones(G), Ninv, Ninv ** 2])
+            W = np.linalg.pinv(cov)
+            law.c2 = float((np.linalg.pinv(X.T @ W @ X) @ X.T @ W @ np.asarray(f.intercepts, float))[2] ** 2)
     return law
