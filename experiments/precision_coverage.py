@@ -91,7 +91,7 @@ def draw_factory(spec, tasks, rep, scenario, sizes="none"):
 
 
 def one(job):
-    rep, text, scenario, boot, uniform, sizes, model, knobs = job
+    rep, text, scenario, boot, uniform, sizes, model, knobs, first = job
     from campaign.precision import allocation
 
     for name, value in knobs:  # --set: the rounds' constants (allocation.ROUND_GROWTH, CELL_GROWTH, ...)
@@ -104,8 +104,10 @@ def one(job):
     draw = draw_factory(spec, tasks, rep, scenario, sizes)
     settings = Settings(n_boot=boot)
     t0 = time.perf_counter()
+    round0 = planner.first_round(spec, tasks) if first == "prior" else None
     recs, table = planner.run_in_memory(cells, spec.precision.settings(), draw, reducer=settings,
-                                  attrs={"schema": "jamming-campaign/1", "spec_yaml": text}, disk_seconds=DISK_SECONDS)
+                                  attrs={"schema": "jamming-campaign/1", "spec_yaml": text}, disk_seconds=DISK_SECONDS,
+                                  first=round0)
     row = table.extrapolated["default"]
     counts = np.array(recs[-1]["early"])
     rows = np.flatnonzero(cells.tasks_of(counts))
@@ -156,6 +158,8 @@ def main(argv=None):
     p.add_argument("--model", default="choice", choices=("choice", "line"),
                    help="the rounds' model of an intercept's error: the reducer's average of line and parabola "
                         "(default), or the line alone (before 0.4.1)")
+    p.add_argument("--first", default="prior", choices=("prior", "pilot"),
+                   help="round 0: designed from the prior as a run does (planner.first_round), or the uniform pilot")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="a constant of campaign.precision.allocation for the rounds (e.g. MIN_FIT_PACKINGS=4, ROUND_GROWTH=2)")
     p.add_argument("--json")
@@ -171,11 +175,11 @@ def main(argv=None):
     text = SPEC % {"a": a.targets[0], "b": a.targets[1], "p": a.targets[2], "pilot": a.pilot, "max": a.max_seeds}
     sc = fit_rules.SCENARIOS[a.scenario]
     truth = dict(TRUTH, beta_E=sc["beta_Z"] / 4.0)
-    jobs = [(rep, text, a.scenario, a.boot, a.uniform, a.sizes, a.model, knobs) for rep in range(a.reps)]
+    jobs = [(rep, text, a.scenario, a.boot, a.uniform, a.sizes, a.model, knobs, a.first) for rep in range(a.reps)]
     t0 = time.time()
     with ProcessPoolExecutor(a.workers) as ex:
         results = list(ex.map(one, jobs))
-    summary = {"scenario": a.scenario, "sizes": a.sizes, "model": a.model, "set": dict(knobs), "targets": dict(zip(("A_G_star_E", "beta_E", "psi_O_star"), a.targets)),
+    summary = {"scenario": a.scenario, "sizes": a.sizes, "model": a.model, "set": dict(knobs), "first": a.first, "targets": dict(zip(("A_G_star_E", "beta_E", "psi_O_star"), a.targets)),
                "truth": truth, "reps": a.reps, "boot": a.boot, "pilot": a.pilot, "max_seeds": a.max_seeds,
                "adaptive": summarise(results, truth, "adaptive"),
                "uniform": summarise(results, truth, "uniform") if a.uniform else [],
@@ -184,7 +188,7 @@ def main(argv=None):
                "cost_ratio_median": (float(np.median([r["cost"] / r["uniform_cost"] for r in results]))
                                      if a.uniform else None),
                "seconds": time.time() - t0}
-    print(f"scenario {a.scenario!r}, sizes {a.sizes!r}, model {a.model!r}, "
+    print(f"scenario {a.scenario!r}, sizes {a.sizes!r}, model {a.model!r}, first round {a.first!r}, "
           f"set {dict(knobs)}, {a.reps} campaigns (bootstrap {a.boot}); targets {summary['targets']}; "
           f"truth {truth}")
     print(f"ended: {summary['actions']}; rounds (median) {summary['rounds_median']:g}; cost against {a.uniform} "

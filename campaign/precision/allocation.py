@@ -199,15 +199,18 @@ class Decision:
                 "to_targets_core_hours": num(self.to_targets / 3600.0), "message": self.message}
 
 
-def pilot(cells: Cells, settings) -> Decision:
-    """Round 0: ``pilot`` seeds in every cell; its early part: one more in the cells that can move
-    a target (the fit range of the targets' laws)."""
+def pilot(cells: Cells, settings, first=None, how="") -> Decision:
+    """Round 0: ``first`` seeds per cell (``planner.first_round``: designed from the prior where it holds
+    the campaign), else ``pilot`` seeds in every cell; its early part: one more in the cells that can
+    move a target (the fit range of the targets' laws)."""
     p, m = int(settings["pilot"]), int(settings["max_seeds"])
-    allocated = np.full(cells.C, p, np.int64)
+    allocated = np.full(cells.C, p, np.int64) if first is None else np.minimum(np.asarray(first, np.int64), m)
     early = allocated.copy()
-    early[cells.relevant(settings["target"])] = min(p + 1, m)
+    relevant = cells.relevant(settings["target"])
+    early[relevant] = np.minimum(allocated[relevant] + 1, m)
     return Decision(0, "pilot", allocated, early, dict(settings),
-                    message=f"pilot: {p} seeds in each of {cells.C} cells")
+                    message=(f"round 0: {int(allocated.sum())} seeds in {cells.C} cells, {how}" if how
+                             else f"pilot: {p} seeds in each of {cells.C} cells"))
 
 
 @dataclass

@@ -88,6 +88,18 @@ def campaign_cells(spec, tasks) -> Cells:
                  first=first, seeds=S)
 
 
+def table_cells(table) -> Cells:
+    """The cells of a reduction's grid (``reduce.Table``), as ``Cells`` (one seed slot each: a store of a
+    fixed grid seen by the model, for the experiments that plan on a finished campaign's packings)."""
+    g = table.grid
+    order = sorted(range(g.C), key=lambda c: (str(g.cv[c]), int(g.cN[c]), float(g.cE[c])))
+    systems = table.systems
+    return Cells(variant=[str(g.cv[c]) for c in order], N=np.array([int(g.cN[c]) for c in order], np.int64),
+                 E=np.array([float(g.cE[c]) for c in order]),
+                 exponent=np.array([float(systems[str(g.cv[c])]["exponent"]) for c in order]),
+                 first=np.arange(len(order)), seeds=1)
+
+
 @dataclass
 class LawModel:
     """One variant's law ``y = a_N + c_N x^beta``, linearised about a fit (the module docstring):

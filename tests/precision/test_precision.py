@@ -181,8 +181,10 @@ def test_the_rounds_decide_what_the_in_memory_campaign_decides(reference):
     spec = parse_spec(SPEC)
     tasks = expand(spec)
     cells = M.campaign_cells(spec, tasks)
+    first, how = P.first_round(spec, tasks)
+    assert how.startswith("designed from the prior") and recs[0]["allocated"] == [int(x) for x in first]
     mem, table = P.run_in_memory(cells, spec.precision.settings(), _draw(tasks),
-                                 attrs={"schema": "jamming-campaign/1", "spec_yaml": SPEC})
+                                 attrs={"schema": "jamming-campaign/1", "spec_yaml": SPEC}, first=(first, how))
     assert [r["round"] for r in recs] == list(range(len(recs))) and len(recs) >= 3
     assert [r["action"] for r in recs] == [r["action"] for r in mem]
     for a, b in zip(recs, mem):
@@ -302,8 +304,8 @@ def test_sigkill_at_random_moments_through_the_rounds(reference, tmp_path):
 
 
 def test_targets_met_by_the_pilot(tmp_path):
-    """Packings that scatter little (a tenth of the usual spread): the pilot's three seeds per cell
-    meet loose goals, the first decision ends the campaign."""
+    """Packings that scatter little (a tenth of the usual spread): round 0 (designed from the prior)
+    meets loose goals, the first decision ends the campaign."""
     spec = SPEC.replace("A_G_star_E: 1.5e-3, psi_O_star: 3.0e-3", "A_G_star_E: 0.01, psi_O_star: 0.01")
     out = tmp_path / "p.h5"
     r = _run(tmp_path, out, "--launcher", "inline", spec=spec,
@@ -316,8 +318,9 @@ def test_targets_met_by_the_pilot(tmp_path):
     cells = M.campaign_cells(s, expand(s))
     with h5py.File(out, "r") as f:
         done = int((f["tasks/status"][:] == 1).sum())
-    # the pilot, and the one early seed it gave each cell of the fit range
-    assert done == 3 * cells.C + int(cells.relevant({"x": 1}).sum())
+    # round 0, and the one early seed it gave each cell of the fit range
+    first = P.first_round(s, expand(s))[0]
+    assert done == int(first.sum()) + int(cells.relevant({"x": 1}).sum())
     r = _run(tmp_path, out, "--launcher", "inline", spec=spec,  # nothing left: no decision, no task
              env=_env(CAMPAIGN_SYNTHETIC_LAWS=json.dumps({"sigma_A": 0.008, "sigma_P": 0.012})))
     assert r.returncode == 0 and len(_records(out)) == 2
@@ -380,12 +383,14 @@ def test_validate_prices_the_pilot_and_the_targets(tmp_path, capsys):
     path.write_text(SPEC + f"output: {tmp_path / 'none.h5'}\n")
     assert cli.main(["validate", str(path)]) == 0
     out = capsys.readouterr().out
-    assert "in the pilot (1 variant(s) x 3 N_G x 9 E_G x 3 seeds)" in out and "at most 1080" in out
+    assert "in round 0 (1 variant(s) x 3 N_G x 9 E_G; designed from the prior" in out and "at most 1080" in out
     assert "reaching the targets: about" in out and "by the prior" in out and "seeds in every cell:" in out
     hertz = SPEC.replace("seed: 5\n", "seed: 5\nsystem: {potential: {exponent: 2.5}}\n")
     path.write_text(hertz + f"output: {tmp_path / 'none.h5'}\n")
     assert cli.main(["validate", str(path)]) == 0
-    assert "reaching the targets: needs the pilot" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "reaching the targets: needs the pilot" in out
+    assert "in round 0 (1 variant(s) x 3 N_G x 9 E_G; a uniform pilot of 3 seeds per cell" in out
 
 
 def test_validate_and_slurm_read_the_last_decision(reference, tmp_path, capsys):
