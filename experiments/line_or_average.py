@@ -10,7 +10,7 @@ row and ``beta_E`` both ways. Where the average's error is much larger than the 
 the same sizes shrink the intercept's error slowly: its error is mostly the choice between the
 models. Beside them, the precision rounds' model of each intercept's error at the store's packings
 (``errormodel.LawModel.intercept_variance``: the line's Fisher variance and the choice's part) and the
-line's Fisher variance alone, the model before 0.4.1.
+line's Fisher variance alone, the model before 0.4.
 """
 
 from __future__ import annotations

@@ -9,8 +9,9 @@ store's errors of ``--keys`` (``--scale`` times them: looser or tighter). Printe
 disk-force evaluations (its force evaluations times N_G, per cell the mean of its packings):
 
 * the uniform grid the model says meets the targets (seeds per cell; at scale 1 near the store's own);
-* the rounds' plan from a uniform pilot of ``--pilot`` with every fit-range cell first brought to
-  ``--floor`` packings (``plan_greedy``, as a decision plans, all in one round): what the rounds
+* the rounds' plan from a uniform pilot of ``--pilot`` (with every fit-range cell first brought to
+  ``--floor`` packings, as the rounds did before 0.4) (``plan_greedy``, as a decision plans, all in
+  one round): what the rounds
   would spend if their first decision already knew what the store knows;
 * each as a share of the store's own work.
 
@@ -31,7 +32,7 @@ from campaign.results.finished import load_finished
 from campaign.results.reduce import Settings, reduce_table
 
 
-def plans(table, keys, scale=1.0, pilot=4, floors=(allocation.MIN_FIT_PACKINGS,), max_seeds=400):
+def plans(table, keys, scale=1.0, pilot=4, floors=(0,), max_seeds=400):
     """The rows of the table printed by ``main`` for a reduction ``table`` of a finished campaign:
     ``(rows, goals, packings)``, each row ``(plan, seeds, share of the campaign's disk-force
     evaluations)``."""
@@ -83,7 +84,8 @@ def plans(table, keys, scale=1.0, pilot=4, floors=(allocation.MIN_FIT_PACKINGS,)
                                       max_seeds, st)
         alloc = plan.prefix(plan.cost_to_met, base.astype(np.int64))
         total = float(np.sum(base * work)) + plan.cost_to_met
-        rows.append((f"pilot {pilot}, fit range to {floor} first, then the plan with the parameters known",
+        rows.append((f"pilot {pilot}, " + (f"fit range to {floor} first, " if floor > pilot else "")
+                     + "then the plan with the parameters known",
                      int(alloc.sum()), total / store_work))
     return rows, goals, int(n.sum())
 
@@ -94,7 +96,8 @@ def main(argv=None):
     ap.add_argument("--keys", nargs="+", default=["A_G_star_E", "beta_E", "psi_O_star"])
     ap.add_argument("--scale", type=float, default=1.0, help="targets: this times the store's errors")
     ap.add_argument("--pilot", type=int, default=4)
-    ap.add_argument("--floor", type=int, nargs="+", default=[allocation.MIN_FIT_PACKINGS])
+    ap.add_argument("--floor", type=int, nargs="+", default=[0],
+                    help="packings every fit-range cell holds before the plan (the rounds before 0.4: 8)")
     ap.add_argument("--max-seeds", type=int, default=400)
     a = ap.parse_args(argv)
 

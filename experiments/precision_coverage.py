@@ -96,7 +96,7 @@ def one(job):
 
     for name, value in knobs:  # --set: the rounds' constants (allocation.ROUND_GROWTH, CELL_GROWTH, ...)
         setattr(allocation, name, value)
-    if model == "line":  # the rounds' model before 0.4.1: an intercept's error is the line's alone
+    if model == "line":  # the rounds' model before 0.4: an intercept's error is the line's alone
         errormodel.LawModel.intercept_variance = lambda self, st: float(st[0][0, 0])
     spec = parse_spec(text)
     tasks = expand(spec)
@@ -157,7 +157,7 @@ def main(argv=None):
                    help="the intercepts' finite-size terms (SIZES): none, or paper-small's line and 1/N_G^2 term")
     p.add_argument("--model", default="choice", choices=("choice", "line"),
                    help="the rounds' model of an intercept's error: the reducer's average of line and parabola "
-                        "(default), or the line alone (before 0.4.1)")
+                        "(default), or the line alone (before 0.4)")
     p.add_argument("--first", default="prior", choices=("prior", "pilot"),
                    help="round 0: designed from the prior as a run does (planner.first_round), or the uniform pilot")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",

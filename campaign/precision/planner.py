@@ -19,7 +19,7 @@ from campaign.storage.layout import SCHEMA
 from campaign.results import fits
 from campaign.results.finished import finished_from_arrays
 from campaign.results.reduce import Settings, reduce_table
-from campaign.precision.allocation import (MIN_FIT_PACKINGS, State, Target, fill_costs, plan_greedy, smooth_costs, decide, pilot,
+from campaign.precision.allocation import (State, Target, fill_costs, plan_greedy, smooth_costs, decide, pilot,
                                          seconds_per_disk_force_evaluation)
 from campaign.precision.errormodel import Cells, LawModel, campaign_cells, param_index as _k
 from campaign.storage.layout import DONE, PENDING
@@ -299,14 +299,10 @@ def plan_from_prior(spec, tasks, prior=None, cal=None) -> dict:
     out = {"ok": True, "pilot_seconds": pilot_cost, "pilot_errors": {t.key: t.error for t in targets},
            "max_seeds_errors": at_max, "reachable": all(at_max[t.key] <= t.goal for t in targets)}
     if out["reachable"]:
-        # as the rounds do: the fit range at MIN_FIT_PACKINGS first, then the plan
-        base = np.where(relevant, np.maximum(n0, min(m, MIN_FIT_PACKINGS)), n0)
-        forced = float(np.sum((base - n0) * cost))
-        states = {id(law): law.state(base) for law in laws.values()}
-        plan = plan_greedy(targets, cells, base, base.astype(np.int64), np.ones(cells.C), cost, relevant, m, states)
-        out["plan_seconds"] = forced + float(plan.cost_to_met)
+        plan = plan_greedy(targets, cells, n0, n0.astype(np.int64), np.ones(cells.C), cost, relevant, m, states)
+        out["plan_seconds"] = float(plan.cost_to_met)
         out["total_seconds"] = pilot_cost + out["plan_seconds"]
-        alloc = plan.prefix(plan.cost_to_met, base.astype(np.int64))
+        alloc = plan.prefix(plan.cost_to_met, n0.astype(np.int64))
         out["packings"] = int(alloc.sum())
         out["allocation"] = [int(a) for a in alloc]
     # a uniform campaign (every cell the same seeds) that meets the same targets

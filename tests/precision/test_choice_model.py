@@ -10,9 +10,22 @@ import pytest
 from campaign.precision import errormodel as M
 from campaign.results import fits
 
-from test_precision import _uniform  # noqa: E402 - the uniform campaign of known laws, reduced
+from helpers import uniform_reduced
 
 SIZES = np.array([64, 128, 256, 512, 1024], float)
+#: three sizes, seven energies in the fit range (tests/precision/test_precision.py's campaign)
+SPEC = """\
+name: prec
+seed: 5
+grid:
+  N_G: [64, 128, 256]
+  E_G: {log_range: [1.0e-12, 1.0e-4], per_decade: 1}
+precision:
+  target: {A_G_star_E: 1.5e-3, psi_O_star: 3.0e-3}
+  pilot: 3
+  max_seeds: 40
+observables: [scalars]
+"""
 
 
 def _akaike_weight(z):
@@ -80,7 +93,7 @@ precision:
   max_seeds: 30
 observables: [scalars]
 """
-    cells, table = _uniform(spec, 30, {"a_N2": 20.0})
+    cells, table = uniform_reduced(spec, 30, {"a_N2": 20.0})
     n = np.zeros(cells.C)
     index = cells.index()
     g = table.grid
@@ -103,3 +116,40 @@ observables: [scalars]
     v1, v2 = st4[0][0, 0], st4[5][0, 0]
     assert law.intercept_variance(st4) == pytest.approx(v1 + (v2 - v1) * M.choice_variance(zeta2), rel=1e-9)
     assert v1 == pytest.approx(st[0][0, 0] / 4, rel=1e-9)
+
+
+def test_round_zero_from_the_prior(tmp_path, monkeypatch):
+    """Round 0 where the prior holds the campaign: at least the pilot everywhere, the pilot alone outside
+    the targets' fit range, never above max_seeds, more than the pilot where the prior's plan puts
+    seeds; the same whatever calibration is in force (priced by the packaged one); the uniform pilot for
+    a system the prior does not hold."""
+    import json
+
+    from campaign.plan import calibration
+    from campaign.plan.parse import parse_spec
+    from campaign.plan.tasks import expand
+    from campaign.precision import planner as P
+
+    spec = parse_spec(SPEC)
+    tasks = expand(spec)
+    cells = M.campaign_cells(spec, tasks)
+    first, how = P.first_round(spec, tasks)
+    p, m = spec.precision.pilot, spec.precision.max_seeds
+    relevant = cells.relevant(spec.precision.settings()["target"])
+    assert how.startswith("designed from the prior")
+    assert first.min() >= p and first.max() <= m and np.all(first[~relevant] == p)
+    assert first.sum() > p * cells.C
+    plan = P.plan_from_prior(spec, tasks, cal=calibration.packaged())
+    np.testing.assert_array_equal(first, np.maximum(p, np.floor(p + P.PRIOR_SHARE * (np.array(plan["allocation"]) - p)
+                                                                + 1e-9)))
+    # another calibration (the cost growing faster with N_G): the plan in force moves, round 0 does not
+    d = json.loads(calibration.packaged_text())
+    d["fire"]["values"][1] *= 1.3
+    path = tmp_path / "cal.json"
+    path.write_text(json.dumps(d))
+    with calibration.using(path):
+        assert P.plan_from_prior(spec, tasks)["allocation"] != plan["allocation"]  # the plan in force moves
+        np.testing.assert_array_equal(P.first_round(spec, tasks)[0], first)
+    hertz = parse_spec(SPEC.replace("seed: 5\n", "seed: 5\nsystem: {potential: {exponent: 2.5}}\n"))
+    counts, how = P.first_round(hertz, expand(hertz))
+    assert np.all(counts == p) and how.startswith("a uniform pilot")
