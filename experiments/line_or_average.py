@@ -8,7 +8,9 @@ Akaike average of line and parabola, ``fits.line_in_inverse_n``) and with the li
 average's parabola weight held at zero, everything else the same), and prints each intercept of the
 row and ``beta_E`` both ways. Where the average's error is much larger than the line's, more seeds at
 the same sizes shrink the intercept's error slowly: its error is mostly the choice between the
-models, which the precision rounds' model of the errors (a line in 1/N_G) does not hold.
+models. Beside them, the precision rounds' model of each intercept's error at the store's packings
+(``errormodel.LawModel.intercept_variance``: the line's Fisher variance and the choice's part) and the
+line's Fisher variance alone, the model before 0.4.
 """
 
 from __future__ import annotations
@@ -17,15 +19,42 @@ import argparse
 import sys
 from unittest import mock
 
+import numpy as np
+
+from campaign.plan.targets import law_of
+from campaign.precision import errormodel
 from campaign.results import fits
-from campaign.results.reduce import Settings, reduce_campaign
+from campaign.results.finished import load_finished
+from campaign.results.reduce import Settings, reduce_table
 
 KEYS = ("A_G_star_E", "A_G_star_Z", "psi_O_star", "psi_O_star_Z", "beta_E")
 
 
-def rows(stores, boot):
-    red = reduce_campaign(stores, Settings(n_boot=boot), distributions=False)
-    return red.extrapolated
+def tables(stores, boot):
+    return reduce_table(load_finished(stores), Settings(n_boot=boot), per_size=False)
+
+
+def model_errors(table) -> dict:
+    """(variant, key) -> the rounds' model of the intercept's error at the table's packings, and the
+    line's alone."""
+    cells = errormodel.table_cells(table)
+    index = cells.index()
+    g = table.grid
+    n = np.zeros(cells.C)
+    for gc in range(g.C):
+        n[index[(str(g.cv[gc]), int(g.cN[gc]), float(g.cE[gc]))]] = g.n_done[gc]
+    out = {}
+    for v in table.extrapolated:
+        for key in KEYS:
+            q, x, kind = law_of(key)
+            if kind != "intercept":
+                continue
+            law = errormodel.build_law(table, cells, v, q, x)
+            if law.ok:
+                st = law.state(n)
+                law.anchor(st)
+                out[(v, key)] = (np.sqrt(law.intercept_variance(st)), np.sqrt(st[0][0, 0]))
+    return out
 
 
 def main(argv=None):
@@ -33,17 +62,21 @@ def main(argv=None):
     ap.add_argument("store", nargs="+")
     ap.add_argument("--boot", type=int, default=1000)
     a = ap.parse_args(argv)
-    average = rows(a.store, a.boot)
+    table = tables(a.store, a.boot)
+    average, models = table.extrapolated, model_errors(table)
     averaged = fits._averaged
     with mock.patch.object(fits, "_averaged", lambda models: averaged(models[:1])):
-        line = rows(a.store, a.boot)
-    print("| variant | entry | the reducer (average) | the line alone | error ratio |\n|---|---|---|---|---|")
+        line = tables(a.store, a.boot).extrapolated
+    print("| variant | entry | the reducer (average) | the line alone | error ratio | the rounds' model of the "
+          "average's error | of the line's |\n|---|---|---|---|---|---|---|")
     for v, row in average.items():
         for k in KEYS:
             x, e, y, f = row.get(k), row.get(f"{k}_err"), line[v].get(k), line[v].get(f"{k}_err")
             if x is None or e is None:
                 continue
-            print(f"| {v} | {k} | {x:.6f} +- {e:.2g} | {y:.6f} +- {f:.2g} | {e / f:.2f} |")
+            m = models.get((v, k))
+            mtxt = f"{m[0]:.2g} | {m[1]:.2g}" if m else "- | -"
+            print(f"| {v} | {k} | {x:.6f} +- {e:.2g} | {y:.6f} +- {f:.2g} | {e / f:.2f} | {mtxt} |")
     return 0
 
 

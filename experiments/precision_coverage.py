@@ -55,10 +55,16 @@ TRUTH = {"A_G_star_E": fit_rules.A_STAR, "psi_O_star": 0.369}
 SD_P0 = 0.17          # psi_O's spread between packings times sqrt(N_G) (paper-small: 0.15-0.19)
 B_P = 0.30            # Delta Psi_O = B_P Delta Z_true^beta_Z (paper-small at N_G 1024, 1e-5: 0.07 at Delta Z 0.28)
 DISK_SECONDS = 1e-7
+#: ``--sizes``: the intercepts' finite-size terms ``b / N_G + c / N_G^2`` (A_G, psi_O): none (the
+#: intercepts the same at every size), or paper-small's, the parabola in 1/N_G through its sizes'
+#: intercepts against E_G (generalised least squares with their bootstrap covariance, data/paper-small.h5:
+#: A_G b = -0.82, c = 25, the 1/N_G^2 term at 2.0 of its error; psi_O b = -0.48, c = -33, at 0.8)
+SIZES = {"none": ((0.0, 0.0), (0.0, 0.0)), "paper-small": ((-0.817, 24.96), (-0.479, -33.2))}
 
 
-def draw_factory(spec, tasks, rep, scenario):
+def draw_factory(spec, tasks, rep, scenario, sizes="none"):
     sc = fit_rules.SCENARIOS[scenario]
+    (ba, ca), (bp, cp) = SIZES[sizes]
     alpha = 2.0
 
     def draw(rows):
@@ -74,9 +80,9 @@ def draw_factory(spec, tasks, rep, scenario):
             dz = 2.0 / t.N * rng.binomial(trials, m / trials)
             corr = 1 + sc["k"] * zt ** sc["omega"]
             out["E_G"][j], out["delta_Z"][j] = E_G, dz
-            out["A_G"][j] = (fit_rules.A_STAR + fit_rules.B_COEFF * zt ** sc["beta_Z"] * corr
+            out["A_G"][j] = (fit_rules.A_STAR + ba / t.N + ca / t.N ** 2 + fit_rules.B_COEFF * zt ** sc["beta_Z"] * corr
                              + fit_rules.SD_A0 / math.sqrt(t.N) * rng.normal())
-            out["psi_O"][j] = TRUTH["psi_O_star"] + B_P * zt ** sc["beta_Z"] * corr + SD_P0 / math.sqrt(t.N) * rng.normal()
+            out["psi_O"][j] = TRUTH["psi_O_star"] + bp / t.N + cp / t.N ** 2 + B_P * zt ** sc["beta_Z"] * corr + SD_P0 / math.sqrt(t.N) * rng.normal()
             sec = task_cost(t.N, t.E) * math.exp(0.3 * rng.normal())
             out["force_evaluations"][j] = max(1.0, sec / (DISK_SECONDS * t.N))
         out["jam_status"], out["identities_ok"] = np.zeros(len(rows)), np.ones(len(rows))
@@ -85,19 +91,23 @@ def draw_factory(spec, tasks, rep, scenario):
 
 
 def one(job):
-    rep, text, scenario, boot, uniform, floor = job
-    if floor:
-        from campaign.precision import allocation
+    rep, text, scenario, boot, uniform, sizes, model, knobs, first = job
+    from campaign.precision import allocation
 
-        allocation.MIN_FIT_PACKINGS = floor
+    for name, value in knobs:  # --set: the rounds' constants (allocation.ROUND_GROWTH, CELL_GROWTH, ...)
+        setattr(allocation, name, value)
+    if model == "line":  # the rounds' model before 0.4: an intercept's error is the line's alone
+        errormodel.LawModel.intercept_variance = lambda self, st: float(st[0][0, 0])
     spec = parse_spec(text)
     tasks = expand(spec)
     cells = errormodel.campaign_cells(spec, tasks)
-    draw = draw_factory(spec, tasks, rep, scenario)
+    draw = draw_factory(spec, tasks, rep, scenario, sizes)
     settings = Settings(n_boot=boot)
     t0 = time.perf_counter()
+    round0 = planner.first_round(spec, tasks) if first == "prior" else None
     recs, table = planner.run_in_memory(cells, spec.precision.settings(), draw, reducer=settings,
-                                  attrs={"schema": "jamming-campaign/1", "spec_yaml": text}, disk_seconds=DISK_SECONDS)
+                                  attrs={"schema": "jamming-campaign/1", "spec_yaml": text}, disk_seconds=DISK_SECONDS,
+                                  first=round0)
     row = table.extrapolated["default"]
     counts = np.array(recs[-1]["early"])
     rows = np.flatnonzero(cells.tasks_of(counts))
@@ -143,19 +153,33 @@ def main(argv=None):
     p.add_argument("--max-seeds", type=int, default=200)
     p.add_argument("--uniform", type=int, default=20, help="seeds per cell of the uniform control (0: none)")
     p.add_argument("--workers", type=int, default=2)
-    p.add_argument("--floor", type=int, default=0,
-                   help="packings every cell of the fit range holds before the rounds concentrate (default: "
-                        "campaign.precision.allocation.MIN_FIT_PACKINGS)")
+    p.add_argument("--sizes", default="none", choices=sorted(SIZES),
+                   help="the intercepts' finite-size terms (SIZES): none, or paper-small's line and 1/N_G^2 term")
+    p.add_argument("--model", default="choice", choices=("choice", "line"),
+                   help="the rounds' model of an intercept's error: the reducer's average of line and parabola "
+                        "(default), or the line alone (before 0.4)")
+    p.add_argument("--first", default="prior", choices=("prior", "pilot"),
+                   help="round 0: designed from the prior as a run does (planner.first_round), or the uniform pilot")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="a constant of campaign.precision.allocation for the rounds (e.g. MIN_FIT_PACKINGS=4, ROUND_GROWTH=2)")
     p.add_argument("--json")
     a = p.parse_args(argv)
+    knobs = []
+    for item in a.set:
+        name, _, value = item.partition("=")
+        from campaign.precision import allocation
+
+        if not name.isupper() or not hasattr(allocation, name):
+            p.error(f"--set {item}: no constant {name} in campaign.precision.allocation")
+        knobs.append((name, type(getattr(allocation, name))(float(value))))
     text = SPEC % {"a": a.targets[0], "b": a.targets[1], "p": a.targets[2], "pilot": a.pilot, "max": a.max_seeds}
     sc = fit_rules.SCENARIOS[a.scenario]
     truth = dict(TRUTH, beta_E=sc["beta_Z"] / 4.0)
-    jobs = [(rep, text, a.scenario, a.boot, a.uniform, a.floor) for rep in range(a.reps)]
+    jobs = [(rep, text, a.scenario, a.boot, a.uniform, a.sizes, a.model, knobs, a.first) for rep in range(a.reps)]
     t0 = time.time()
     with ProcessPoolExecutor(a.workers) as ex:
         results = list(ex.map(one, jobs))
-    summary = {"scenario": a.scenario, "floor": a.floor or None, "targets": dict(zip(("A_G_star_E", "beta_E", "psi_O_star"), a.targets)),
+    summary = {"scenario": a.scenario, "sizes": a.sizes, "model": a.model, "set": dict(knobs), "first": a.first, "targets": dict(zip(("A_G_star_E", "beta_E", "psi_O_star"), a.targets)),
                "truth": truth, "reps": a.reps, "boot": a.boot, "pilot": a.pilot, "max_seeds": a.max_seeds,
                "adaptive": summarise(results, truth, "adaptive"),
                "uniform": summarise(results, truth, "uniform") if a.uniform else [],
@@ -164,7 +188,8 @@ def main(argv=None):
                "cost_ratio_median": (float(np.median([r["cost"] / r["uniform_cost"] for r in results]))
                                      if a.uniform else None),
                "seconds": time.time() - t0}
-    print(f"scenario {a.scenario!r}, {a.reps} campaigns (bootstrap {a.boot}); targets {summary['targets']}; "
+    print(f"scenario {a.scenario!r}, sizes {a.sizes!r}, model {a.model!r}, first round {a.first!r}, "
+          f"set {dict(knobs)}, {a.reps} campaigns (bootstrap {a.boot}); targets {summary['targets']}; "
           f"truth {truth}")
     print(f"ended: {summary['actions']}; rounds (median) {summary['rounds_median']:g}; cost against {a.uniform} "
           f"uniform seeds (median ratio, fe x N): {summary['cost_ratio_median']}")

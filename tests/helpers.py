@@ -18,7 +18,7 @@ import pytest
 
 from campaign.plan.parse import parse_spec
 from campaign.plan.tasks import expand
-from campaign.run.worker import SyntheticTask, run_task
+from campaign.run.worker import SyntheticTask, run_task, synthetic_laws
 from campaign.storage.store import Store, read_journal
 
 
@@ -464,3 +464,31 @@ def complete_and_sound(store, tasks: int):
     status = json.loads(campaign_cli("status", store, "--json", check=True).stdout)
     assert (status["done"], status["failed"], status["remaining"]) == (tasks, 0, 0)
     sound(store)
+
+
+def synthetic_draw(tasks, laws=None):
+    """``draw(rows) -> {scalar: values}`` of the synthetic packings that follow known laws
+    (``campaign.run.worker.synthetic_laws``) for a precision campaign run in memory
+    (``campaign.precision.planner.run_in_memory``)."""
+    names = ("E_G", "delta_Z", "A_G", "psi_O", "force_evaluations")
+
+    def draw(rows):
+        got = [synthetic_laws(tasks[r].N, tasks[r].E, tasks[r].entropy, laws) for r in rows]
+        out = {k: np.array([g[k] for g in got]) for k in names}
+        out["jam_status"], out["identities_ok"] = np.zeros(len(rows)), np.ones(len(rows))
+        return out
+    return draw
+
+
+def uniform_reduced(spec_text, seeds, laws=None):
+    """A uniform campaign of ``seeds`` per cell of a precision spec on the known laws, reduced as a
+    decision reduces: ``(cells, table)``."""
+    from campaign.precision import errormodel, planner
+
+    spec = parse_spec(spec_text)
+    tasks = expand(spec)
+    cells = errormodel.campaign_cells(spec, tasks)
+    rows = np.flatnonzero(cells.tasks_of(np.full(cells.C, seeds)))
+    table = planner.reduce_rows(cells, {"schema": "jamming-campaign/1"}, rows, np.ones(len(rows), np.int8),
+                                synthetic_draw(tasks, laws)(rows))
+    return cells, table

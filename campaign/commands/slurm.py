@@ -92,7 +92,7 @@ def _precision_estimate(spec, tasks, results, cal, options):
     # imported here: the precision planner (the reducer's fits, the error model) is only for a spec with
     # precision targets, and the store's reader brings h5py, which `campaign --help` need not load
     from campaign.precision.errormodel import campaign_cells
-    from campaign.precision.planner import plan_from_prior
+    from campaign.precision.planner import first_round, plan_from_prior
     from campaign.storage.reader import open_store
 
     cells = campaign_cells(spec, tasks)
@@ -110,7 +110,8 @@ def _precision_estimate(spec, tasks, results, cal, options):
         given = cells.tasks_of(last["early"])
         left = [t for t in tasks if given[t.index] and status[t.index] == PENDING]
     else:
-        left = [t for t in tasks if t.seed < spec.precision.pilot]
+        first, _ = first_round(spec, tasks)  # round 0: designed from the prior, or the uniform pilot
+        left = [t for t in tasks if t.seed < first[t.index // spec.precision.max_seeds]]
     if last is None or last["action"] == "pilot":  # before the first decision: the prior's plan
         got = plan_from_prior(spec, tasks)  # priced by the calibration in force: cal
         extra = got.get("plan_seconds", 0.0) if got.get("ok") and got.get("reachable") else 0.0

@@ -52,8 +52,10 @@ def _main(args, cal) -> int:
     if spec.precision is None:
         print(f"  tasks       {len(tasks)} = {grid} x {len(spec.seeds)} seed(s)")
     else:
-        n_cells = len(tasks) // spec.precision.max_seeds
-        print(f"  tasks       {n_cells * spec.precision.pilot} in the pilot ({grid} x {spec.precision.pilot} seeds), at most "
+        from campaign.precision.planner import first_round  # the planner only for a spec with targets
+
+        first, how = first_round(spec, tasks)
+        print(f"  tasks       {int(first.sum())} in round 0 ({grid}; {how}), at most "
               f"{len(tasks)} ({spec.precision.max_seeds} seeds in every cell)")
         print(f"  precision   {targets.describe(spec.precision)}")
     print(f"  variants    {', '.join(v.name for v in spec.variants)}")
@@ -76,7 +78,7 @@ def _main(args, cal) -> int:
         print(f"  estimated cost {est.hours()}: {fmt_duration(est.seconds)} on one core; longest task "
               f"~{fmt_duration(longest)}; model calibrated by {cal.source} (campaign/plan/calibration.py)")
     else:
-        for line in _precision_cost(spec, tasks, cal, est, longest):
+        for line in _precision_cost(spec, tasks, cal, est, longest, first):
             print(line)
     here, made_on = machine(), calibrated_on(cal)
     if made_on is not None and made_on != here:
@@ -108,17 +110,17 @@ def _main(args, cal) -> int:
     return 0
 
 
-def _precision_cost(spec, tasks, cal, est, longest):
-    """A precision campaign's price: its pilot and its ceiling by the cost model; what reaching its
+def _precision_cost(spec, tasks, cal, est, longest, first):
+    """A precision campaign's price: its round 0 (``first``, seeds per cell) and its ceiling by the cost model; what reaching its
     targets would cost, from its store's last decision when its pilot has run, else from the prior
     (campaign.precision.planner.plan_from_prior), or why that needs the pilot."""
     # imported here: only a spec with precision targets needs the planner (and the reducer's fits it brings)
     from campaign.precision.planner import plan_from_prior
 
     p = spec.precision
-    pilot = [t for t in tasks if t.seed < p.pilot]
+    pilot = [t for t in tasks if t.seed < first[t.index // p.max_seeds]]
     pe = estimate(pilot, cal)
-    out = [f"  estimated cost of the pilot {pe.hours()}; at most {est.hours()} (max_seeds in every cell); longest "
+    out = [f"  estimated cost of round 0 {pe.hours()}; at most {est.hours()} (max_seeds in every cell); longest "
            f"task ~{longest / 60:.3g} min; model calibrated by {cal.source}"]
     done = _last_decision(spec)
     if done is not None:

@@ -19,9 +19,14 @@ the row is a weighted least-squares fit of the cell means with parameters
 bootstrap carries it). A target's predicted variance is ``r^2 [I(n)^-1]_kk`` (k: ``a_inf`` or
 ``beta``), with ``r`` the ratio of the reducer's bootstrap error to the model's at the current
 ``n``, so that the prediction starts from the measured error and the model only says how it falls.
-An intercept whose sizes scatter about the 1/N_G line more than their errors allow (p < 0.01) has
-the reducer's error inflated by ``sqrt(chi^2/dof)``; that part does not fall with more seeds, and
-the model keeps it as a floor.
+Where the reducer averages the line in 1/N_G with the parabola (four sizes or more), an intercept's
+variance is the line's plus ``(v2 - v1) choice_variance(zeta)``: the parabola's excess variance times
+the scatter of the Akaike weight's pull, at the z-score ``zeta`` of the 1/N_G^2 term, which grows like
+the square root of the packings (``errormodel.LawModel.intercept_variance``; the choice is most of
+paper-small's intercept errors, and packings at the sizes that pin the curvature shrink it). An
+intercept the reducer finds limited by its sizes (the line through the last three fails) has its error
+inflated by ``sqrt(chi^2/dof)``; that part does not fall with more seeds, and the model keeps it as a
+floor.
 
 **The allocation** is greedy on the marginal reduction of ``sum_T V_T / tau_T^2`` over the targets
 not yet met, per core-second: the continuous optimum of a sum of variances at a given cost is
@@ -57,11 +62,6 @@ from campaign.precision.errormodel import (NO_DEPENDENCE_P, Cells, LawModel, inv
 ROUND_GROWTH = 1.0
 #: the next round's early seeds: this share of the round's cost (the plan's continuation)
 EARLY_SHARE = 0.1
-#: every cell of the fit range holds at least this many packings (or the pilot's) before the rounds give
-#: some cells many more: the reducer weights a cell by the standard error of its own packings, and from
-#: fewer than about eight that weight scatters so much (1/s^2 of three degrees of freedom has no finite
-#: variance) that a few cells of a pilot's size would steer the fit, its bootstrap not seeing it
-MIN_FIT_PACKINGS = 8
 #: a cell's seeds grow at most this many times in one round: the first rounds' model comes from a
 #: few packings per cell, and a design it finds optimal (often a few cells) is taken a step at a
 #: time, re-estimated before it is trusted with more
@@ -136,10 +136,11 @@ class Target:
         """Predicted variance of the reducer's error (of the parameter ``plan_k``) at the model state
         ``st`` (``LawModel.state``): the joint fit's, times the 1/N_G line's expected inflation for an
         intercept, times ``ratio^2``."""
-        inv, invf = st[0], st[1]
-        v = float(inv[self.plan_k, self.plan_k])
-        infl = self.law.inflation(invf) if self.plan_k == 0 else 1.0
-        return self.ratio ** 2 * v * infl
+        if self.plan_k == 0:  # the intercept: the line's, with the choice of the parabola where the reducer makes
+            # it (the parabola takes up what lies off the line: the reducer inflates nothing there)
+            infl = 1.0 if self.law.curved else self.law.inflation(st[1])
+            return self.ratio ** 2 * self.law.intercept_variance(st) * infl
+        return self.ratio ** 2 * float(st[0][self.plan_k, self.plan_k])
 
 
 def _targets(table, cells, settings) -> list:
@@ -193,15 +194,18 @@ class Decision:
                 "to_targets_core_hours": num(self.to_targets / 3600.0), "message": self.message}
 
 
-def pilot(cells: Cells, settings) -> Decision:
-    """Round 0: ``pilot`` seeds in every cell; its early part: one more in the cells that can move
-    a target (the fit range of the targets' laws)."""
+def pilot(cells: Cells, settings, first=None, how="") -> Decision:
+    """Round 0: ``first`` seeds per cell (``planner.first_round``: designed from the prior where it holds
+    the campaign), else ``pilot`` seeds in every cell; its early part: one more in the cells that can
+    move a target (the fit range of the targets' laws)."""
     p, m = int(settings["pilot"]), int(settings["max_seeds"])
-    allocated = np.full(cells.C, p, np.int64)
+    allocated = np.full(cells.C, p, np.int64) if first is None else np.minimum(np.asarray(first, np.int64), m)
     early = allocated.copy()
-    early[cells.relevant(settings["target"])] = min(p + 1, m)
+    relevant = cells.relevant(settings["target"])
+    early[relevant] = np.minimum(allocated[relevant] + 1, m)
     return Decision(0, "pilot", allocated, early, dict(settings),
-                    message=f"pilot: {p} seeds in each of {cells.C} cells")
+                    message=(f"round 0: {int(allocated.sum())} seeds in {cells.C} cells, {how}" if how
+                             else f"pilot: {p} seeds in each of {cells.C} cells"))
 
 
 @dataclass
@@ -257,8 +261,9 @@ def decide(k: int, table, cells: Cells, state: State, settings, previous=None) -
             continue
         if id(t.law) not in states:
             states[id(t.law)] = t.law.state(n_now)
-        t.v_now = float(states[id(t.law)][0][t.plan_k, t.plan_k])
+            t.law.anchor(states[id(t.law)])
         raw = t.variance(states[id(t.law)])  # ratio 1 here: the model's own error
+        t.v_now = raw
         model_met.append(bool(np.isfinite(raw) and raw <= t.goal ** 2))
         if t.determined and t.v_now > 0:
             t.ratio = t.error / math.sqrt(raw)
@@ -304,22 +309,13 @@ def decide(k: int, table, cells: Cells, state: State, settings, previous=None) -
                             f"for the next round ({round_cost / 3600:.3g}); {missing}")
         return decision("continue", f"round {k}: no model yet ({missing}): the fit range's seeds doubled",
                         grow, grow.copy(), round_cost=round_cost)
-    # every cell of the fit range holds MIN_FIT_PACKINGS before the rounds concentrate: the reducer weights
-    # a cell by its own standard error, which from fewer packings is too uncertain a weight
-    floor = min(m, max(int(settings["pilot"]), MIN_FIT_PACKINGS))
-    base = np.where(relevant, np.maximum(given, floor), given)
-    forced = float(np.sum((base - given) * cost))
-    if forced > 0:
-        n_now = n_now + (base - given) * frac
-        states = {lid: law_of_state.state(n_now) for lid, law_of_state in
-                  {id(t.law): t.law for t in targets if t.law.ok}.items()}
-    full = plan_greedy(targets, cells, n_now, base, frac, cost, relevant, m, states)  # the whole way
+    full = plan_greedy(targets, cells, n_now, given, frac, cost, relevant, m, states)  # the whole way
     projected = dict(enumerate(full.final_variance))
-    to_targets = forced + full.cost_to_met
+    to_targets = full.cost_to_met
     # this round's part of it: the plan again with each cell's growth capped (CELL_GROWTH)
-    plan = plan_greedy(targets, cells, n_now, base, frac, cost, relevant, m, states,
-                   cap=np.maximum(given * CELL_GROWTH, base + 1))
-    if plan.n_met == 0 and forced == 0:
+    plan = plan_greedy(targets, cells, n_now, given, frac, cost, relevant, m, states,
+                   cap=np.maximum(given * CELL_GROWTH, given + 1))
+    if plan.n_met == 0:
         # the model has every target where it should be, the reducer not (a bootstrap at a bound, an
         # error the model underrates): half as many seeds again in the fit range of the targets short
         short = np.zeros(cells.C, bool)
@@ -336,30 +332,26 @@ def decide(k: int, table, cells: Cells, state: State, settings, previous=None) -
         return decision("continue", f"round {k}: the model has every target met where the reducer has not; the fit "
                         f"range of the targets short grows by half: " + _errors_text(targets),
                         grow, grow.copy(), round_cost=round_cost)
-    if plan.steps_total == 0 and forced == 0:
+    if plan.steps_total == 0:
         return decision("max_seeds", f"max_seeds ({m}) in every cell of the fit range; " + _errors_text(targets),
                         projected=projected)
-    if room <= forced:
-        return decision("budget", f"budget spent ({spent_all / 3600:.3g} of {budget:g} core-hours, "
-                        f"{forced / 3600:.3g} more needed to bring the fit range to {floor} packings per cell); "
-                        + _errors_text(targets) + _cost_text(to_targets), projected=projected, to_targets=to_targets)
     met_cost = plan.cost_to_met if np.isfinite(plan.cost_to_met) else math.inf
-    left = room - forced
-    main = plan.prefix(min(max(ROUND_GROWTH * spent_all - forced, 0.0), left / (1.0 + EARLY_SHARE),
-                           max(met_cost, MIN_ROUND * spent_all)), base)
+    left = room
+    main = plan.prefix(min(ROUND_GROWTH * spent_all, left / (1.0 + EARLY_SHARE),
+                           max(met_cost, MIN_ROUND * spent_all)), given)
     if np.array_equal(main, given) and plan.steps_total:  # at least the plan's first step
         if plan.costs[0] > left:
             return decision("budget", f"the budget left ({room / 3600:.3g} core-hours) does not pay for the next "
                             "step; " + _errors_text(targets) + _cost_text(to_targets), projected=projected,
                             to_targets=to_targets)
-        main = plan.prefix(plan.costs[0], base)
-    main_spend = float(np.sum((main - base) * cost))
-    early = np.maximum(plan.prefix(main_spend + min(EARLY_SHARE * (main_spend + forced), left - main_spend), base),
+        main = plan.prefix(plan.costs[0], given)
+    main_spend = float(np.sum((main - given) * cost))
+    early = np.maximum(plan.prefix(main_spend + min(EARLY_SHARE * main_spend, left - main_spend), given),
                        main)
     if np.array_equal(early, main):  # at least the plan's next step, where the budget allows
         after = plan.costs[plan.costs > main_spend * (1 + 1e-12)]
         if len(after) and after[0] <= left:
-            early = np.maximum(plan.prefix(after[0], base), main)
+            early = np.maximum(plan.prefix(after[0], given), main)
     round_cost = float(np.sum((early - given) * cost))
     msg = (f"round {k}: {int(np.sum(main - given))} seeds in {int(np.count_nonzero(main > given))} cells "
            f"(and {int(np.sum(early - main))} early seeds of round {k + 1}); " + _errors_text(targets)

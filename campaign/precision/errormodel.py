@@ -88,6 +88,18 @@ def campaign_cells(spec, tasks) -> Cells:
                  first=first, seeds=S)
 
 
+def table_cells(table) -> Cells:
+    """The cells of a reduction's grid (``reduce.Table``), as ``Cells`` (one seed slot each: a store of a
+    fixed grid seen by the model, for the experiments that plan on a finished campaign's packings)."""
+    g = table.grid
+    order = sorted(range(g.C), key=lambda c: (str(g.cv[c]), int(g.cN[c]), float(g.cE[c])))
+    systems = table.systems
+    return Cells(variant=[str(g.cv[c]) for c in order], N=np.array([int(g.cN[c]) for c in order], np.int64),
+                 E=np.array([float(g.cE[c]) for c in order]),
+                 exponent=np.array([float(systems[str(g.cv[c])]["exponent"]) for c in order]),
+                 first=np.arange(len(order)), seeds=1)
+
+
 @dataclass
 class LawModel:
     """One variant's law ``y = a_N + c_N x^beta``, linearised about a fit (the module docstring):
@@ -115,6 +127,15 @@ class LawModel:
     why: str = ""
     J: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))         # at the point fit
     s2: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    z2: float = np.nan      # the squared z-score of the 1/N_G^2 term the reducer's Akaike weight of its
+    #                         parabola implies (NaN: the reducer extrapolates with the line alone)
+    c2: float = np.nan      # that term's squared coefficient, in the model's units (``anchor``)
+
+    @property
+    def curved(self) -> bool:
+        """Whether the reducer averages line and parabola here, so that an intercept's error holds the
+        choice between them (``intercept_variance``)."""
+        return bool(np.isfinite(self.z2))
 
     def free(self, J) -> np.ndarray:
         """The design vectors with a free intercept per size (``theta = (beta, a_N1 .. a_NG, c_N1 ..
@@ -127,24 +148,53 @@ class LawModel:
         return F
 
     def state(self, n, J=None, s2=None):
-        """The inverses of the Fisher information at ``n`` (joint, and with free intercepts)."""
+        """The inverses of the Fisher information at ``n``: joint (the line in 1/N_G), with free
+        intercepts, and, where the law is ``curved``, joint with a 1/N_G^2 term (its parameter last)."""
         J = self.J if J is None else J
         s2 = self.s2 if s2 is None else s2
         w = np.asarray(n, float)[self.cells] / s2
         F = self.free(J)
-        return [inverse((J * w[:, None]).T @ J), inverse((F * w[:, None]).T @ F), J, F, s2]
+        P = np.column_stack([J, J[:, 1] ** 2]) if self.curved else None
+        return [inverse((J * w[:, None]).T @ J), inverse((F * w[:, None]).T @ F), J, F, s2,
+                None if P is None else inverse((P * w[:, None]).T @ P), P]
 
     def add(self, st, i, dn):
         """``st`` with ``dn`` more usable packings in the law's cell ``i`` (rank-one updates)."""
-        inv, invf, J, F, s2 = st
+        inv, invf, J, F, s2, inv2, P = st
         w = dn / s2[i]
-        out = [inv, invf]
-        for k, (A_, v) in enumerate(((inv, J[i]), (invf, F[i]))):
+        out = [inv, invf, inv2]
+        for k, (A_, v) in enumerate(((inv, J[i]), (invf, F[i]), (inv2, None if P is None else P[i]))):
+            if A_ is None:
+                continue
             Av = A_ @ v
             q = float(v @ Av)
             if np.all(np.isfinite(Av)) and np.isfinite(q):
                 out[k] = A_ - np.outer(Av, Av) * (w / (1.0 + w * q))
-        return [out[0], out[1], J, F, s2]
+        return [out[0], out[1], J, F, s2, out[2], P]
+
+    def anchor(self, st):
+        """Fix the 1/N_G^2 coefficient's square from the reducer's z-score at the state ``st`` of the
+        present packings: later states see that coefficient against their own error, so its z-score
+        grows like the square root of the packings."""
+        if self.curved and st[5] is not None and np.isfinite(st[5][-1, -1]):
+            self.c2 = self.z2 * float(st[5][-1, -1])
+
+    def intercept_variance(self, st) -> float:
+        """The model's variance of the ``N_G -> inf`` intercept at the state ``st``. For the line alone,
+        ``v1 = [I^-1]_00``. Where the reducer averages the line with the parabola (Akaike weight
+        ``w(z) = 1 / (1 + exp((2 - z^2) / 2))`` of the parabola, z the z-score of its 1/N_G^2
+        coefficient), the average is ``a1 - w(z) z sqrt(v2 - v1)`` (in a linear Gaussian model the
+        line's intercept ``a1`` is independent of z, and ``a2 - a1 = z sqrt(v2 - v1)``), so its variance
+        is ``v1 + (v2 - v1) choice_variance(zeta)``, v2 the parabola's, ``zeta`` the z-score at this
+        state (``anchor``). On paper-small this gives the reducer's A_G_star_E error to 0.3%."""
+        v1 = float(st[0][0, 0])
+        inv2 = st[5] if len(st) > 5 else None
+        if inv2 is None or not np.isfinite(self.c2):
+            return v1
+        v2, vc = float(inv2[0, 0]), float(inv2[-1, -1])
+        if not (np.isfinite(v2) and np.isfinite(vc) and vc > 0 and np.isfinite(v1)):
+            return v1
+        return v1 + max(v2 - v1, 0.0) * choice_variance(self.c2 / vc)
 
     def inflation(self, invf) -> float:
         """The reducer's sqrt(chi^2/dof) of the 1/N_G line, squared, expected at the sizes' intercept
@@ -223,6 +273,31 @@ class LawModel:
         fitted = self._profile(points)
         best = min(ch for _, _, ch in fitted)
         return [(b, c) for b, c, ch in fitted if ch <= best + spread]
+
+
+def _choice_table(zmax=12.0, points=241, nodes=80):
+    zeta = np.linspace(0.0, zmax, points)
+    x, wq = np.polynomial.hermite_e.hermegauss(nodes)
+    wq = wq / wq.sum()
+    z = zeta[:, None] + x[None, :]
+    f = z / (1.0 + np.exp((2.0 - z * z) / 2.0))
+    m = f @ wq
+    return zeta, ((f - m[:, None]) ** 2) @ wq
+
+
+_CHOICE = _choice_table()
+
+
+def choice_variance(zeta2) -> float:
+    """``Var[w(z) z]`` for ``z ~ N(zeta, 1)`` (``zeta2 = zeta^2``), ``w`` the parabola's Akaike weight:
+    the share of ``v2 - v1`` the choice between line and parabola adds to an intercept's variance.
+    0.38 at zeta = 0 (no curvature: the replicas' weights scatter about 0.27), a peak of 1.46 near
+    zeta = 2.7 (the weight swings between the models from replica to replica), 1 for large zeta (the
+    parabola alone)."""
+    zeta = math.sqrt(max(float(zeta2), 0.0))
+    if not np.isfinite(zeta) or zeta >= _CHOICE[0][-1]:
+        return 1.0
+    return float(np.interp(zeta, *_CHOICE))
 
 
 def inverse(I) -> np.ndarray:
@@ -319,6 +394,9 @@ def build_law(table, cells: Cells, variant, quantity, absc) -> LawModel:
     law.sys2 = np.zeros(len(sizes))
     if got is not None and law.dof > 0:
         fsizes, sf, line = got
+        if list(fsizes) == list(sizes) and list(line.sizes) == list(sizes) and len(sizes) >= 4:
+            w2 = min(max(float(line.parabola_weight), 1e-300), 1.0 - 1e-15)
+            law.z2 = max(0.0, 2.0 + 2.0 * math.log(w2 / (1.0 - w2)))
         if list(fsizes) == list(sizes) and np.isfinite(line.value) and np.isfinite(line.slope):
             resid = np.asarray(sf.intercepts) - (line.value + line.slope / np.asarray(sizes, float))
             err = np.asarray(sf.intercept_errs, float)

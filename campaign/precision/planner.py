@@ -12,17 +12,21 @@ from importlib import resources
 
 import numpy as np
 
+from campaign.plan import calibration
 from campaign.plan import tasks as plan_tasks
 from campaign.plan.targets import SHARED_FIT_CELLS, law_of
 from campaign.storage.layout import SCHEMA
 from campaign.results import fits
 from campaign.results.finished import finished_from_arrays
 from campaign.results.reduce import Settings, reduce_table
-from campaign.precision.allocation import (MIN_FIT_PACKINGS, State, Target, fill_costs, plan_greedy, smooth_costs, decide, pilot,
+from campaign.precision.allocation import (State, Target, fill_costs, plan_greedy, smooth_costs, decide, pilot,
                                          seconds_per_disk_force_evaluation)
 from campaign.precision.errormodel import Cells, LawModel, campaign_cells, param_index as _k
 from campaign.storage.layout import DONE, PENDING
 
+#: round 0 of a campaign the prior holds (``first_round``): the pilot and this share of the prior's plan
+#: above it; the rest waits for the first decision, made on the campaign's own packings
+PRIOR_SHARE = 0.65
 #: the scalars a decision reads (the laws' quantities and abscissae, the cost, which packings are usable)
 DECISION_SCALARS = ("E_G", "delta_Z", "A_G", "psi_O", "force_evaluations", "jam_status", "identities_ok")
 
@@ -89,7 +93,8 @@ class Planner:
         self.disk_seconds = seconds_per_disk_force_evaluation()
 
     def pilot(self) -> dict:
-        return pilot(self.cells, self.settings).to_record(self.cells)
+        counts, how = first_round(self.spec, self.tasks)
+        return pilot(self.cells, self.settings, counts, how).to_record(self.cells)
 
     def snapshot(self, store, through, names=DECISION_SCALARS) -> dict:
         """The rows of the tasks ``through`` (per-cell counts) of ``store``: their status and the
@@ -170,11 +175,14 @@ def projections_markdown(rows) -> str:
 
 # --------------------------------------------------------------------------- a campaign in memory
 
-def run_in_memory(cells: Cells, settings, draw, *, attrs=None, reducer=None, disk_seconds=None, log=None):
+def run_in_memory(cells: Cells, settings, draw, *, attrs=None, reducer=None, disk_seconds=None, log=None,
+                  first=None):
     """A precision campaign's rounds without a store or workers: ``draw(rows) -> {scalar: values}``
     makes the packings of task rows (``cells.first[c] + seed``; a pure function of the row, as a
     packing is of its task). For the checks of docs/PRECISION.md (synthetic truths, many repeats).
-    Returns ``(records, table)``: every decision's record and the reduction of every packing run."""
+    ``first``: round 0 as ``first_round`` gives it (its seeds per cell and how they were chosen; default
+    the uniform pilot). Returns ``(records,
+    table)``: every decision's record and the reduction of every packing run."""
     disk_seconds = seconds_per_disk_force_evaluation() if disk_seconds is None else disk_seconds
     T = cells.C * cells.seeds
     status = np.zeros(T, np.int8)
@@ -195,7 +203,7 @@ def run_in_memory(cells: Cells, settings, draw, *, attrs=None, reducer=None, dis
                             settings=reducer)
         return table, rows
 
-    rec = pilot(cells, settings).to_record(cells)
+    rec = pilot(cells, settings, *(first or (None, ""))).to_record(cells)
     records = [rec]
     while True:
         run(cells.tasks_of(rec["early"]))
@@ -241,13 +249,14 @@ def _prior_cell(prior, N, E):
     return mean, np.array(near["cov"]) * near["N"] / N
 
 
-def plan_from_prior(spec, tasks, prior=None) -> dict:
+def plan_from_prior(spec, tasks, prior=None, cal=None) -> dict:
     """What reaching a precision spec's targets would cost, planned before its pilot from the prior
     (``load_prior``): the model of the errors built on the prior's cells as if the pilot had run with
     their means and spreads, and the greedy plan from the pilot to the targets, priced per packing by
     the calibrated cost model in force (``campaign.plan.tasks.cost``). ``{"ok": False, "why": ...}``
     where the prior does not hold the campaign's system or energies; else the pilot's cost, the
-    plan's, the errors projected, and what a uniform campaign would need for the same errors."""
+    plan's (and its seeds per cell, ``allocation``), the errors projected, and what a uniform campaign would
+    need for the same errors. ``cal``: the calibration that prices the packings (default: the one in force)."""
     prior = load_prior() if prior is None else prior
     settings = spec.precision.settings()
     cells = campaign_cells(spec, tasks)
@@ -266,8 +275,9 @@ def plan_from_prior(spec, tasks, prior=None) -> dict:
     pilot_n = int(settings["pilot"])
     m = int(settings["max_seeds"])
     relevant = cells.relevant(settings["target"])
-    cost = np.array([plan_tasks.cost(int(cells.N[c]), float(cells.E[c]), dict(tasks[cells.first[c]].protocol),
-                                     float(cells.exponent[c])) for c in range(cells.C)])
+    price = plan_tasks.cost if cal is None else cal.seconds
+    cost = np.array([price(int(cells.N[c]), float(cells.E[c]), dict(tasks[cells.first[c]].protocol),
+                           float(cells.exponent[c])) for c in range(cells.C)])
     n0 = np.full(cells.C, float(pilot_n))
     targets, laws = [], {}
     for v in sorted(set(cells.variant), key=cells.variant.index):
@@ -289,15 +299,12 @@ def plan_from_prior(spec, tasks, prior=None) -> dict:
     out = {"ok": True, "pilot_seconds": pilot_cost, "pilot_errors": {t.key: t.error for t in targets},
            "max_seeds_errors": at_max, "reachable": all(at_max[t.key] <= t.goal for t in targets)}
     if out["reachable"]:
-        # as the rounds do: the fit range at MIN_FIT_PACKINGS first, then the plan
-        base = np.where(relevant, np.maximum(n0, min(m, MIN_FIT_PACKINGS)), n0)
-        forced = float(np.sum((base - n0) * cost))
-        states = {id(law): law.state(base) for law in laws.values()}
-        plan = plan_greedy(targets, cells, base, base.astype(np.int64), np.ones(cells.C), cost, relevant, m, states)
-        out["plan_seconds"] = forced + float(plan.cost_to_met)
+        plan = plan_greedy(targets, cells, n0, n0.astype(np.int64), np.ones(cells.C), cost, relevant, m, states)
+        out["plan_seconds"] = float(plan.cost_to_met)
         out["total_seconds"] = pilot_cost + out["plan_seconds"]
-        alloc = plan.prefix(plan.cost_to_met, base.astype(np.int64))
+        alloc = plan.prefix(plan.cost_to_met, n0.astype(np.int64))
         out["packings"] = int(alloc.sum())
+        out["allocation"] = [int(a) for a in alloc]
     # a uniform campaign (every cell the same seeds) that meets the same targets
     lo, hi = pilot_n, m
     if all(math.sqrt(t.variance(t.law.state(np.full(cells.C, float(hi))))) <= t.goal for t in targets):
@@ -311,6 +318,27 @@ def plan_from_prior(spec, tasks, prior=None) -> dict:
         out["uniform_seeds"] = hi
         out["uniform_seconds"] = float(hi * np.sum(cost))
     return out
+
+
+def first_round(spec, tasks, prior=None):
+    """Round 0's seeds per cell and how they were chosen (a sentence): where the prior
+    (``plan_from_prior``) holds the campaign's system and energies and its plan reaches the targets,
+    the pilot plus ``PRIOR_SHARE`` of that plan above it, so that the first decision is made on packings
+    already where the model wants them (one pooled spread per quantity and size is what the model
+    needs, not a measurement of every cell); else the uniform pilot. Priced by the packaged calibration
+    whatever calibration is in force, so that round 0 is the same on every machine."""
+    cells = campaign_cells(spec, tasks)
+    p = int(spec.precision.pilot)
+    counts = np.full(cells.C, p, np.int64)
+    got = plan_from_prior(spec, tasks, prior, cal=calibration.packaged())
+    if not got["ok"]:
+        return counts, f"a uniform pilot of {p} seeds per cell ({got['why']})"
+    if not got["reachable"] or "allocation" not in got:
+        return counts, (f"a uniform pilot of {p} seeds per cell (by the prior the targets are not reached within "
+                        "max_seeds: the pilot decides)")
+    alloc = np.asarray(got["allocation"], float)
+    counts = np.maximum(counts, np.floor(p + PRIOR_SHARE * (alloc - p) + 1e-9)).astype(np.int64)
+    return counts, f"designed from the prior, paper-small's packings: {PRIOR_SHARE:.0%} of its plan above a pilot of {p}"
 
 
 def _prior_law(cells, stats, names, variant, quantity, absc, pilot_n) -> LawModel:
@@ -350,4 +378,14 @@ def _prior_law(cells, stats, names, variant, quantity, absc, pilot_n) -> LawMode
     law.beta = float(f.exponent)
     law.sys2 = np.zeros(len(sizes))
     law.J, law.s2 = law.at(law.beta, np.asarray(f.coeffs, float))
+    if len(sizes) >= 4:  # the reducer will average line and parabola: the prior's 1/N_G^2 coefficient
+        law.z2 = 0.0
+        st = law.state(np.full(cells.C, float(pilot_n)))
+        G = len(sizes)
+        cov = st[1][1:1 + G, 1:1 + G]
+        if np.all(np.isfinite(cov)):
+            Ninv = 1.0 / np.asarray(sizes, float)
+            X = np.column_stack([np.ones(G), Ninv, Ninv ** 2])
+            W = np.linalg.pinv(cov)
+            law.c2 = float((np.linalg.pinv(X.T @ W @ X) @ X.T @ W @ np.asarray(f.intercepts, float))[2] ** 2)
     return law

@@ -31,6 +31,8 @@ from campaign.results.fits import chi2_p_value
 #: Fisher-scoring steps from the pooled start (converged to 1e-6 in log sigma^2 by 4 on every
 #: synthetic and real campaign tried)
 SCORING_STEPS = 6
+#: a scoring step that does not lower a replica's negative log-likelihood is halved at most this often
+HALVINGS = 30
 
 
 def pooled_model(v, n, size, u, G):
@@ -52,9 +54,31 @@ def pooled_model(v, n, size, u, G):
     theta = np.zeros((v.shape[0], X.shape[1]))
     theta[:, :G] = np.log(np.maximum(pooled, 1e-300))
     inv = np.linalg.pinv((X.T * m) @ X)
+
+    def nll(th, rows=slice(None)):  # the rows' negative log-likelihood, up to constants
+        eta = th @ X.T
+        with np.errstate(over="ignore", invalid="ignore"):
+            return ((v[rows] * np.exp(-eta) + eta) * m).sum(1)
+
+    cur = nll(theta)
     for _ in range(SCORING_STEPS):
         s2 = np.exp(theta @ X.T)
-        theta = theta + (((v / s2) - 1.0) * m) @ X @ inv.T
+        step = (((v / s2) - 1.0) * m) @ X @ inv.T
+        new = theta + step
+        got = nll(new)
+        # a full step that raises a row's likelihood's negative (a replica of few packings per cell far
+        # from the pooled start) is halved until it does not: undamped, such a row's trend ran to
+        # weights 1e-87 .. 1e76 and the fits' sums to 0/0
+        bad = ~(got <= cur + 1e-9 * np.abs(cur))
+        for _ in range(HALVINGS):
+            if not bad.any():
+                break
+            step[bad] *= 0.5
+            new[bad] = theta[bad] + step[bad]
+            got[bad] = nll(new[bad], bad)
+            bad &= ~(got <= cur + 1e-9 * np.abs(cur))
+        new[bad], got[bad] = theta[bad], cur[bad]
+        theta, cur = new, got
     return np.exp(theta @ X.T)
 
 

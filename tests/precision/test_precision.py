@@ -20,7 +20,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from helpers import assert_same_contents, store_contents
+from helpers import assert_same_contents, store_contents, synthetic_draw, uniform_reduced
 
 from campaign.plan.parse import parse_spec
 from campaign.plan.targets import FITS
@@ -28,7 +28,6 @@ from campaign.plan.tasks import expand
 from campaign.precision import allocation as A
 from campaign.precision import errormodel as M
 from campaign.precision import planner as P
-from campaign.run.worker import synthetic_laws
 from campaign.storage.checksums import sums_name, write_sums
 from campaign.storage.journal import read_journal
 from campaign.storage.layout import BLOCK_ROWS
@@ -73,17 +72,6 @@ def _records(path):
         return [json.loads(g[k][()].tobytes().decode()) for k in sorted(g)]
 
 
-def _draw(tasks, laws=None):
-    names = ("E_G", "delta_Z", "A_G", "psi_O", "force_evaluations")
-
-    def draw(rows):
-        got = [synthetic_laws(tasks[r].N, tasks[r].E, tasks[r].entropy, laws) for r in rows]
-        out = {k: np.array([g[k] for g in got]) for k in names}
-        out["jam_status"], out["identities_ok"] = np.zeros(len(rows)), np.ones(len(rows))
-        return out
-    return draw
-
-
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory):
     """The campaign run inline (one process), its store and its run's output."""
@@ -119,22 +107,11 @@ def test_fixed_grid_specs_keep_their_hash():
 
 # --------------------------------------------------------------------------- the model
 
-def _uniform(spec_text, seeds, laws=None):
-    """A uniform campaign of ``seeds`` per cell on the known laws, reduced: (cells, table)."""
-    spec = parse_spec(spec_text)
-    tasks = expand(spec)
-    cells = M.campaign_cells(spec, tasks)
-    rows = np.flatnonzero(cells.tasks_of(np.full(cells.C, seeds)))
-    table = P.reduce_rows(cells, {"schema": "jamming-campaign/1"}, rows, np.ones(len(rows), np.int8),
-                          _draw(tasks, laws)(rows))
-    return cells, table
-
-
 def test_the_model_of_the_errors_matches_the_bootstrap():
     """On a uniform campaign of known laws, the Fisher model's error of every entry of the N_G -> inf
     row is the reducer's bootstrap error within 20% (the bootstrap's own scatter is ~5%); an intercept's
     with the reducer's sqrt(chi^2/dof) of its 1/N_G line, when above 1."""
-    cells, table = _uniform(SPEC.replace("max_seeds: 40", "max_seeds: 60"), 60)
+    cells, table = uniform_reduced(SPEC.replace("max_seeds: 40", "max_seeds: 60"), 60)
     n = np.zeros(cells.C)
     index = cells.index()
     g = table.grid
@@ -159,14 +136,14 @@ def test_an_absent_law_is_out_of_reach_for_every_exponent():
     """No dependence of A_G on E_G (c_A = 0): the exponent has no amplitude to be measured by,
     whatever exponent the data allow, so the best case at any seed count misses a goal."""
     text = SPEC.replace("A_G_star_E: 1.5e-3, psi_O_star: 3.0e-3", "beta_E: 0.02")
-    cells, table = _uniform(text, 30, {"c_A": 0.0})
+    cells, table = uniform_reduced(text, 30, {"c_A": 0.0})
     law = M.build_law(table, cells, "default", "A_G", "E_G")
     t = A.Target("default", "beta_E", 0.02, np.nan, np.nan, law)
     now = np.full(cells.C, 30.0)
     huge = np.where(cells.relevant({"beta_E": 1}), 1e4, 30.0)
     assert not A.best_case(t, huge, now) <= 0.02 ** 2  # undetermined (inf) or above the goal
     # the laws as they are: the same seeds measure the exponent to better than the goal
-    cells, table = _uniform(text, 30)
+    cells, table = uniform_reduced(text, 30)
     t = A.Target("default", "beta_E", 0.02, np.nan, np.nan, M.build_law(table, cells, "default", "A_G", "E_G"))
     assert A.best_case(t, huge, now) < 0.02 ** 2
 
@@ -181,8 +158,10 @@ def test_the_rounds_decide_what_the_in_memory_campaign_decides(reference):
     spec = parse_spec(SPEC)
     tasks = expand(spec)
     cells = M.campaign_cells(spec, tasks)
-    mem, table = P.run_in_memory(cells, spec.precision.settings(), _draw(tasks),
-                                 attrs={"schema": "jamming-campaign/1", "spec_yaml": SPEC})
+    first, how = P.first_round(spec, tasks)
+    assert how.startswith("designed from the prior") and recs[0]["allocated"] == [int(x) for x in first]
+    mem, table = P.run_in_memory(cells, spec.precision.settings(), synthetic_draw(tasks),
+                                 attrs={"schema": "jamming-campaign/1", "spec_yaml": SPEC}, first=(first, how))
     assert [r["round"] for r in recs] == list(range(len(recs))) and len(recs) >= 3
     assert [r["action"] for r in recs] == [r["action"] for r in mem]
     for a, b in zip(recs, mem):
@@ -302,8 +281,8 @@ def test_sigkill_at_random_moments_through_the_rounds(reference, tmp_path):
 
 
 def test_targets_met_by_the_pilot(tmp_path):
-    """Packings that scatter little (a tenth of the usual spread): the pilot's three seeds per cell
-    meet loose goals, the first decision ends the campaign."""
+    """Packings that scatter little (a tenth of the usual spread): round 0 (designed from the prior)
+    meets loose goals, the first decision ends the campaign."""
     spec = SPEC.replace("A_G_star_E: 1.5e-3, psi_O_star: 3.0e-3", "A_G_star_E: 0.01, psi_O_star: 0.01")
     out = tmp_path / "p.h5"
     r = _run(tmp_path, out, "--launcher", "inline", spec=spec,
@@ -316,8 +295,9 @@ def test_targets_met_by_the_pilot(tmp_path):
     cells = M.campaign_cells(s, expand(s))
     with h5py.File(out, "r") as f:
         done = int((f["tasks/status"][:] == 1).sum())
-    # the pilot, and the one early seed it gave each cell of the fit range
-    assert done == 3 * cells.C + int(cells.relevant({"x": 1}).sum())
+    # round 0, and the one early seed it gave each cell of the fit range
+    first = P.first_round(s, expand(s))[0]
+    assert done == int(first.sum()) + int(cells.relevant({"x": 1}).sum())
     r = _run(tmp_path, out, "--launcher", "inline", spec=spec,  # nothing left: no decision, no task
              env=_env(CAMPAIGN_SYNTHETIC_LAWS=json.dumps({"sigma_A": 0.008, "sigma_P": 0.012})))
     assert r.returncode == 0 and len(_records(out)) == 2
@@ -380,12 +360,14 @@ def test_validate_prices_the_pilot_and_the_targets(tmp_path, capsys):
     path.write_text(SPEC + f"output: {tmp_path / 'none.h5'}\n")
     assert cli.main(["validate", str(path)]) == 0
     out = capsys.readouterr().out
-    assert "in the pilot (1 variant(s) x 3 N_G x 9 E_G x 3 seeds)" in out and "at most 1080" in out
+    assert "in round 0 (1 variant(s) x 3 N_G x 9 E_G; designed from the prior" in out and "at most 1080" in out
     assert "reaching the targets: about" in out and "by the prior" in out and "seeds in every cell:" in out
     hertz = SPEC.replace("seed: 5\n", "seed: 5\nsystem: {potential: {exponent: 2.5}}\n")
     path.write_text(hertz + f"output: {tmp_path / 'none.h5'}\n")
     assert cli.main(["validate", str(path)]) == 0
-    assert "reaching the targets: needs the pilot" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "reaching the targets: needs the pilot" in out
+    assert "in round 0 (1 variant(s) x 3 N_G x 9 E_G; a uniform pilot of 3 seeds per cell" in out
 
 
 def test_validate_and_slurm_read_the_last_decision(reference, tmp_path, capsys):
@@ -462,27 +444,36 @@ def test_what_each_round_projected_and_what_the_next_decision_measured(reference
     """``planner.projections``: for every ``continue`` decision and target, the reducer's error then,
     the model's error projected after the round, and the error the next decision measured on the
     round's packings (a target without a value is planned on its exponent: no ratio), and the table
-    names every one of them."""
+    names every one of them. On the reference run (round 0 from the prior: its first decision finds no
+    value yet) and on the same campaign in memory from a uniform pilot (values from the first on)."""
     out, _ = reference
-    recs = _records(out)
-    rows = P.projections(recs)
-    cont = [r for r in recs[:-1] if r["action"] == "continue"]
-    assert len(rows) == 2 * len(cont) and cont
-    by = {(r["round"], t["key"]): t for r in recs for t in r["targets"]}
+    spec = parse_spec(SPEC)
+    tasks = expand(spec)
+    cells = M.campaign_cells(spec, tasks)
+    uniform, _ = P.run_in_memory(cells, spec.precision.settings(), synthetic_draw(tasks),
+                                 attrs={"schema": "jamming-campaign/1", "spec_yaml": SPEC})
 
     def same(a, b):  # a record keeps a missing number as None
         return (np.isnan(a) and b is None) or a == b
 
-    for row in rows:
-        k = row["decision"]
-        assert same(row["error"], by[(k, row["key"])]["error"])
-        assert same(row["projected"], by[(k, row["key"])]["projected"])
-        assert same(row["achieved"], by[(k + 1, row["key"])]["error"])  # the next decision's, not this one's
-        if row["error"] is not None and np.isfinite(row["error"]) and np.isfinite(row["achieved"]):
-            assert row["ratio"] == row["achieved"] / row["projected"]
-        else:  # planned on its law's exponent, whose error is no measure of the target's
-            assert np.isnan(row["ratio"])
+    rows = []
+    for recs in (_records(out), uniform):
+        got = P.projections(recs)
+        cont = [r for r in recs[:-1] if r["action"] == "continue"]
+        assert len(got) == 2 * len(cont) and cont
+        by = {(r["round"], t["key"]): t for r in recs for t in r["targets"]}
+        for row in got:
+            k = row["decision"]
+            assert same(row["error"], by[(k, row["key"])]["error"])
+            assert same(row["projected"], by[(k, row["key"])]["projected"])
+            assert same(row["achieved"], by[(k + 1, row["key"])]["error"])  # the next decision's, not this one's
+            if row["error"] is not None and np.isfinite(row["error"]) and np.isfinite(row["achieved"]):
+                assert row["ratio"] == row["achieved"] / row["projected"]
+            else:  # planned on its law's exponent, whose error is no measure of the target's
+                assert np.isnan(row["ratio"])
+        rows += got
     assert any(np.isfinite(r["ratio"]) for r in rows) and any(np.isnan(r["ratio"]) for r in rows)
+    recs = uniform
     table = P.projections_markdown(rows).splitlines()
     assert len(table) == 2 + len(rows) and table[2].startswith(f"| {rows[0]['decision']} | A_G_star_E |")
     # a decision that ends the campaign projects nothing, and the last one has no next

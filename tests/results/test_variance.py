@@ -96,3 +96,41 @@ def test_packings_alike_to_the_last_bit_still_fit_their_law():
     assert np.allclose(law.shared.intercepts, 0.369, atol=1e-9)
     for N in (16, 32):
         assert law.per_size[N].exponent == pytest.approx(0.27, abs=1e-6)
+
+
+def _nll(v, n, size, u, s2):
+    m = (np.asarray(n, float) - 1.0) / 2.0
+    return float(np.sum(m * (v / s2 + np.log(s2))))
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), outlier=st.floats(1.0, 1e4), small=st.integers(2, 4))
+def test_a_replica_far_from_the_pooled_start_still_fits(seed, outlier, small):
+    """A bootstrap replica of cells of a few packings can put one cell's variance far above the others'
+    (an outlying packing drawn twice) and another's at the last bit (one packing drawn thrice); the
+    scoring from the pooled start then overshoots. The fit stays finite, within the data's range, and
+    no worse in likelihood than the start; where the data are tame it is the likelihood's maximum
+    (against scipy's minimiser, a slow reference)."""
+    from scipy.optimize import minimize
+
+    rng = np.random.default_rng(seed)
+    v, n, size, u, _ = _cells(rng, G=3, K=7, n_of=lambda r, K: np.where(r.random(K) < 0.5, small, 20))
+    tame = v[0].copy()
+    v = tame.copy()
+    v[rng.integers(len(v))] *= outlier
+    v[rng.integers(len(v))] = 1e-33
+    s2 = variance.pooled_model(v[None], n, size, u, 3)[0]
+    assert np.all(np.isfinite(s2)) and np.all(s2 > 0)
+    # the model's range: no cell's variance beyond what a trend through the data can reach
+    assert s2.max() / s2.min() < 1e8
+    X = np.column_stack([np.eye(3)[size], u])
+    m = (n - 1) / 2
+    pooled = np.array([np.sum((v * m)[size == g]) / np.sum(m[size == g]) for g in range(3)])
+    start = np.exp(np.log(pooled)[size])
+    assert _nll(v, n, size, u, s2) <= _nll(v, n, size, u, start) + 1e-9 * abs(_nll(v, n, size, u, start))
+    # the same cells untouched (chi^2 variances of one truth): the maximum of the likelihood
+    s2 = variance.pooled_model(tame[None], n, size, u, 3)[0]
+    pooled = np.array([np.sum((tame * m)[size == g]) / np.sum(m[size == g]) for g in range(3)])
+    best = minimize(lambda th: _nll(tame, n, size, u, np.exp(X @ th)),
+                    np.append(np.log(pooled), 0.0), method="BFGS", options={"gtol": 1e-10})
+    assert _nll(tame, n, size, u, s2) == pytest.approx(best.fun, rel=1e-7, abs=1e-7)
