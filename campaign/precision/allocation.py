@@ -379,9 +379,9 @@ def best_case(t, n, n_now) -> float:
     G = len(t.law.sizes)
     for beta, coeffs in t.law.plausible():
         J, s2 = t.law.at(beta, coeffs)
-        keep = np.r_[0, 1, 3:3 + G]  # each amplitude's error with the exponent held at beta
+        keep = np.r_[0, 1, 3:J.shape[1]]  # each amplitude's error with the exponent held at beta
         now = inverse(t.law.info(n_now, J, s2)[np.ix_(keep, keep)])
-        err = np.sqrt(np.maximum(np.diag(now)[2:], 0.0))
+        err = np.sqrt(np.maximum(np.diag(now)[2:2 + G], 0.0))
         sure = np.sign(coeffs) * np.maximum(np.abs(coeffs) - 2.0 * err, 0.0)
         J, s2 = t.law.at(beta, sure)
         v = float(t.law.state(n, J, s2)[0][t.plan_k, t.plan_k])

@@ -127,6 +127,9 @@ class LawModel:
     why: str = ""
     J: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))         # at the point fit
     s2: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    left_out: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # per size: left out of the
+    #                         reducer's 1/N_G extrapolation (its rule for sizes off the line): its intercept
+    #                         is then a parameter of its own, which informs the exponent and not a_inf
     z2: float = np.nan      # the squared z-score of the 1/N_G^2 term the reducer's Akaike weight of its
     #                         parabola implies (NaN: the reducer extrapolates with the line alone)
     c2: float = np.nan      # that term's squared coefficient, in the model's units (``anchor``)
@@ -144,7 +147,7 @@ class LawModel:
         F = np.zeros((len(J), 1 + 2 * G))
         F[:, 0] = J[:, 2]
         F[np.arange(len(J)), 1 + self.size_of] = 1.0
-        F[:, 1 + G:] = J[:, 3:]
+        F[:, 1 + G:] = J[:, 3:3 + G]
         return F
 
     def state(self, n, J=None, s2=None):
@@ -219,11 +222,14 @@ class LawModel:
         return coeffs, chi2
 
     def at(self, beta, coeffs):
-        """Design vectors (K, 3 + G) and per-packing residual variances (K,) at an exponent and its
-        amplitudes; cells whose packings show no spread are left out (weight 0)."""
+        """Design vectors (K, 3 + G + D) and per-packing residual variances (K,) at an exponent and its
+        amplitudes; cells whose packings show no spread are left out (weight 0). The D sizes
+        ``left_out`` have an intercept of their own (the last D columns) in place of ``a_inf + b / N``."""
         G = len(self.sizes)
         K = len(self.cells)
-        J, s2 = np.zeros((K, 3 + G)), np.full(K, np.inf)
+        out = np.zeros(G, bool) if len(self.left_out) != G else np.asarray(self.left_out, bool)
+        own = np.cumsum(out) - 1  # a left-out size's column among the last D
+        J, s2 = np.zeros((K, 3 + G + int(out.sum()))), np.full(K, np.inf)
         for i in range(K):
             gi, xc = int(self.size_of[i]), float(self.xbar[i])
             vx, vy, cxy = self.moments[i]
@@ -238,7 +244,11 @@ class LawModel:
                 var = vy
             if np.isfinite(var) and var > 0:
                 s2[i] = var
-            J[i, 0], J[i, 1], J[i, 2], J[i, 3 + gi] = 1.0, 1.0 / self.sizes[gi], dbeta, xb
+            J[i, 2], J[i, 3 + gi] = dbeta, xb
+            if out[gi]:
+                J[i, 3 + G + own[gi]] = 1.0
+            else:
+                J[i, 0], J[i, 1] = 1.0, 1.0 / self.sizes[gi]
         return J, s2
 
     def info(self, n, J=None, s2=None) -> np.ndarray:
@@ -389,14 +399,18 @@ def build_law(table, cells: Cells, variant, quantity, absc) -> LawModel:
     moments = _shrunk(np.array(packs).reshape(-1, 3), np.array(held), cells.N[cell_ids], cells.E[cell_ids])
     law = LawModel(variant, quantity, absc, sizes, np.array(cell_ids, int), np.array(size_of, int), np.array(xbar),
                    np.array(ybar), np.array(yerr), moments, beta, dof=max(0, len(sizes) - 2))
-    law.J, law.s2 = law.at(beta, np.asarray(f.coeffs, float))
     got = table.shared_fits.get((variant, quantity, absc))
+    if got is not None and list(got[0]) == list(sizes):
+        line = got[2]
+        law.left_out = np.isin(np.asarray(sizes), np.asarray(line.left_out, dtype=np.int64))
+        law.dof = max(0, int(np.count_nonzero(~law.left_out)) - 2)  # of the line through the sizes kept
+        if len(line.sizes) >= 4:  # the reducer averages line and parabola through the sizes it keeps
+            w2 = min(max(float(line.parabola_weight), 1e-300), 1.0 - 1e-15)
+            law.z2 = max(0.0, 2.0 + 2.0 * math.log(w2 / (1.0 - w2)))
+    law.J, law.s2 = law.at(beta, np.asarray(f.coeffs, float))
     law.sys2 = np.zeros(len(sizes))
     if got is not None and law.dof > 0:
         fsizes, sf, line = got
-        if list(fsizes) == list(sizes) and list(line.sizes) == list(sizes) and len(sizes) >= 4:
-            w2 = min(max(float(line.parabola_weight), 1e-300), 1.0 - 1e-15)
-            law.z2 = max(0.0, 2.0 + 2.0 * math.log(w2 / (1.0 - w2)))
         if list(fsizes) == list(sizes) and np.isfinite(line.value) and np.isfinite(line.slope):
             resid = np.asarray(sf.intercepts) - (line.value + line.slope / np.asarray(sizes, float))
             err = np.asarray(sf.intercept_errs, float)
@@ -405,6 +419,6 @@ def build_law(table, cells: Cells, variant, quantity, absc) -> LawModel:
             chi2 = float(line.chi2_dof) * law.dof if np.isfinite(line.chi2_dof) else 0.0
             held = np.array([np.mean([g.n_done[gc] for gc in per_n[n][5]]) for n in sizes])
             if fits.chi2_p_value(chi2, law.dof) < SYSTEMATIC_P:
-                law.sys2 = np.where((np.abs(resid) > SYSTEMATIC_SIGMA * err) & (held >= SYSTEMATIC_PACKINGS),
-                                    resid ** 2 - err ** 2, 0.0)
+                law.sys2 = np.where((np.abs(resid) > SYSTEMATIC_SIGMA * err) & (held >= SYSTEMATIC_PACKINGS)
+                                    & ~law.left_out, resid ** 2 - err ** 2, 0.0)
     return law

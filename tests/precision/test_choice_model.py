@@ -153,3 +153,41 @@ def test_round_zero_from_the_prior(tmp_path, monkeypatch):
     hertz = parse_spec(SPEC.replace("seed: 5\n", "seed: 5\nsystem: {potential: {exponent: 2.5}}\n"))
     counts, how = P.first_round(hertz, expand(hertz))
     assert np.all(counts == p) and how.startswith("a uniform pilot")
+
+
+@pytest.mark.parametrize("dropped", [(), (0,), (0, 1)])
+def test_a_size_the_reducer_leaves_out_has_an_intercept_of_its_own(dropped):
+    """Where the reducer's rule for sizes off the line leaves the smallest out of the 1/N_G
+    extrapolation, the model gives that size an intercept of its own (it still informs the exponent):
+    the joint Fisher variance of a_inf is then exactly that of the two-stage estimate, the generalised
+    least-squares line (and parabola) through the kept sizes' intercepts with their covariance from
+    the fit with a free intercept per size (a slow reference)."""
+    spec = """\
+name: five
+seed: 3
+grid:
+  N_G: [64, 128, 256, 512, 1024]
+  E_G: {log_range: [1.0e-12, 1.0e-4], per_decade: 1}
+precision:
+  target: {A_G_star_E: 1.0e-3}
+  pilot: 3
+  max_seeds: 12
+observables: [scalars]
+"""
+    cells, table = uniform_reduced(spec, 12)
+    law = M.build_law(table, cells, "default", "A_G", "E_G")
+    G = len(law.sizes)
+    law.left_out = np.isin(np.arange(G), dropped)
+    law.J, law.s2 = law.at(law.beta, law.refit(law.beta)[0])  # the design with those sizes' own intercepts
+    kept = ~law.left_out
+    law.z2 = 1.0  # curved: the parabola's state too
+    n = np.array([12.0 + (c % 5) for c in range(cells.C)])  # unequal counts
+    st = law.state(n)
+    C = st[1][1:1 + G, 1:1 + G][np.ix_(kept, kept)]  # the kept sizes' intercepts, from the free fit
+    Ninv = 1.0 / np.asarray(law.sizes, float)[kept]
+    W = np.linalg.inv(C)
+    for X, inv in ((np.column_stack([np.ones(kept.sum()), Ninv]), st[0]),
+                   (np.column_stack([np.ones(kept.sum()), Ninv, Ninv ** 2]), st[5])):
+        ref = np.linalg.inv(X.T @ W @ X)[0, 0]
+        assert inv[0, 0] == pytest.approx(ref, rel=1e-8)
+
