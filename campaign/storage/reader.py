@@ -70,15 +70,21 @@ def open_store(path, *, accept="store"):
     return f
 
 
-def read_retrying(path, read, patterns=("tasks", "failures")):
-    """``read(f)`` on the store opened read-only (``open_store``), retried a few times while a run
-    writes it (the read may catch the file in the middle of a flush); a failure that is the file's
-    becomes the readers' error (``read_failure``: damaged, naming ``patterns``' datasets)."""
+def read_retrying(path, read, patterns=("tasks", "failures"), tries=10, wait=0.3):
+    """``read(f)`` on the store opened read-only (``open_store``), retried while a run writes it: the
+    read may catch the file in the middle of a flush, between a block of rows and its checksum, so
+    that even damage found then (StoreDamaged) is read again, ``tries`` times ``wait`` seconds apart,
+    before it is believed. A failure that is the file's becomes the readers' error (``read_failure``:
+    damaged, naming ``patterns``' datasets); with no run writing, the first one is final."""
     last = None
-    for _ in range(5):
+    for k in range(tries):
+        if k:
+            time.sleep(wait)
         try:
             with open_store(path) as f:
                 return read(f)
+        except StoreDamaged as exc:
+            last = exc
         except UserError:
             raise
         except Exception as exc:  # noqa: BLE001 - read_failure says which failures are the file's
@@ -86,9 +92,8 @@ def read_retrying(path, read, patterns=("tasks", "failures")):
             if err is None:
                 raise
             last = err
-            if not run_is_writing(path) or isinstance(err, StoreDamaged):
-                break
-            time.sleep(0.2)
+        if not run_is_writing(path):
+            break
     raise last
 
 

@@ -350,3 +350,63 @@ def test_upgraded_store_chunk_index_damaged(old_store, tmp_path):
             assert verify == 1, off
     print(f"upgraded 0.2.7 store, chunk-index damage: {len(keys)} nodes, {refused} refused by a reader, 0 silent")
     assert refused >= len(keys) // 2
+
+
+def test_damage_seen_while_a_run_writes_is_read_again(tmp_path, monkeypatch):
+    """A reader that meets a block of rows and its checksum mid-flush (a run writes the store) reads
+    again before it believes the damage: `status` reads a store whose tasks/wall checksum is wrong for
+    the first second, then right again (as a writer's flush leaves it), while the progress file says a
+    run (this process) writes it; with the checksum left wrong it says damaged after its retries; with
+    no run writing, the first read is final (no retry)."""
+    import json
+    import os
+    import threading
+
+    import campaign.storage.reader
+    import campaign.storage.store
+    from campaign.storage.progress import Progress
+
+    monkeypatch.setattr(campaign.storage.store, "BLOCK_ROWS", BLOCK)
+    monkeypatch.setenv("CAMPAIGN_SYNTHETIC_FAIL", "none")
+    (tmp_path / "s.yaml").write_text(SPECS["plain"])
+    ref = tmp_path / "ref.h5"
+    code, _, err = _cli("run", tmp_path / "s.yaml", "--out", ref, "--launcher", "inline", "--task-function",
+                        "synthetic", "--quiet")
+    assert code == 0, err
+    clean = _cli("status", ref, "--json")
+    with h5py.File(ref, "r") as f:
+        ds = f["checksums/tasks.wall"]
+        assert ds.compression is None and not ds.fletcher32
+        at = ds.id.get_offset() if ds.chunks is None else ds.id.get_chunk_info(0).byte_offset
+    sleeps = []
+    real_sleep = campaign.storage.reader.time.sleep
+    monkeypatch.setattr(campaign.storage.reader.time, "sleep", lambda s: (sleeps.append(s), real_sleep(s)))
+
+    def damage(path):  # one bit of the first block's checksum, flipped (twice: restored)
+        fd = os.open(path, os.O_RDWR)
+        try:
+            b = os.pread(fd, 1, at)
+            os.pwrite(fd, bytes([b[0] ^ 0x10]), at)
+        finally:
+            os.close(fd)
+
+    store = tmp_path / "live.h5"
+    shutil.copy(ref, store)
+    damage(store)
+    assert _cli("status", store, "--json")[0] == 2 and not sleeps  # no run writes it: believed at once
+    Progress(36, sidecar=Path(str(store) + ".progress.json"), stream=io.StringIO(), enabled=False).write_sidecar()
+    fix = threading.Timer(1.0, damage, (store,))
+    fix.start()
+    try:
+        code, text, err = _cli("status", store, "--json")
+    finally:
+        fix.join()
+    assert code == 0, err
+    live, before = json.loads(text), json.loads(clean[1])
+    assert live["live"] and not before["live"]
+    assert sleeps and _status_figures(text).replace('"per_hour": null', "") == \
+        _status_figures(clean[1]).replace(f'"per_hour": {before["per_hour"]}', "").replace('"live": false', '"live": true')
+    damage(store)  # left damaged: believed after the retries
+    sleeps.clear()
+    code, _, err = _cli("status", store, "--json")
+    assert code == 2 and "tasks/wall" in err and len(sleeps) == 9, (code, err, sleeps)
