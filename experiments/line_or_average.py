@@ -38,11 +38,7 @@ def model_errors(table) -> dict:
     """(variant, key) -> the rounds' model of the intercept's error at the table's packings, and the
     line's alone."""
     cells = errormodel.table_cells(table)
-    index = cells.index()
-    g = table.grid
-    n = np.zeros(cells.C)
-    for gc in range(g.C):
-        n[index[(str(g.cv[gc]), int(g.cN[gc]), float(g.cE[gc]))]] = g.n_done[gc]
+    n = errormodel.cell_counts(table, cells)
     out = {}
     for v in table.extrapolated:
         for key in KEYS:

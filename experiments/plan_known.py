@@ -39,11 +39,10 @@ def plans(table, keys, scale=1.0, pilot=4, floors=(0,), max_seeds=400):
     cells = errormodel.table_cells(table)
     index = cells.index()
     g, fin = table.grid, table.fin
-    n = np.zeros(cells.C)
+    n = errormodel.cell_counts(table, cells)
     work = np.full(cells.C, np.nan)  # disk-force evaluations per packing
     for gc in range(g.C):
         c = index[(str(g.cv[gc]), int(g.cN[gc]), float(g.cE[gc]))]
-        n[c] = g.n_done[gc]
         p = g.packings(gc)
         if len(p):
             work[c] = float(np.mean(fin.scalars["force_evaluations"][p])) * cells.N[c]

@@ -46,7 +46,7 @@ grid:
   N_G: [64, 128, 256, 512, 1024]
   E_G: {log_range: [1.0e-15, 1.0e-3], per_decade: 1}
 precision:
-  target: {A_G_star_E: %(a)g, beta_E: %(b)g, psi_O_star: %(p)g}
+  target: {%(target)s}
   pilot: %(pilot)d
   max_seeds: %(max)d
 observables: [scalars]
@@ -148,7 +148,8 @@ def main(argv=None):
     p.add_argument("--reps", type=int, default=200)
     p.add_argument("--boot", type=int, default=200)
     p.add_argument("--scenario", default="none", choices=sorted(fit_rules.SCENARIOS))
-    p.add_argument("--targets", type=float, nargs=3, default=(5e-4, 0.02, 1e-3), metavar=("A", "BETA", "PSI"))
+    p.add_argument("--targets", type=float, nargs=3, default=(5e-4, 0.02, 1e-3), metavar=("A", "BETA", "PSI"),
+                   help="the targets of A_G_star_E, beta_E, psi_O_star (0: not asked for)")
     p.add_argument("--pilot", type=int, default=4)
     p.add_argument("--max-seeds", type=int, default=200)
     p.add_argument("--uniform", type=int, default=20, help="seeds per cell of the uniform control (0: none)")
@@ -172,7 +173,10 @@ def main(argv=None):
         if not name.isupper() or not hasattr(allocation, name):
             p.error(f"--set {item}: no constant {name} in campaign.precision.allocation")
         knobs.append((name, type(getattr(allocation, name))(float(value))))
-    text = SPEC % {"a": a.targets[0], "b": a.targets[1], "p": a.targets[2], "pilot": a.pilot, "max": a.max_seeds}
+    if not any(a.targets):
+        p.error("--targets: at least one target above 0 (0: not asked for)")
+    target = ", ".join(f"{k}: {v:g}" for k, v in zip(("A_G_star_E", "beta_E", "psi_O_star"), a.targets) if v > 0)
+    text = SPEC % {"target": target, "pilot": a.pilot, "max": a.max_seeds}
     sc = fit_rules.SCENARIOS[a.scenario]
     truth = dict(TRUTH, beta_E=sc["beta_Z"] / 4.0)
     jobs = [(rep, text, a.scenario, a.boot, a.uniform, a.sizes, a.model, knobs, a.first) for rep in range(a.reps)]

@@ -492,3 +492,32 @@ def uniform_reduced(spec_text, seeds, laws=None):
     table = planner.reduce_rows(cells, {"schema": "jamming-campaign/1"}, rows, np.ones(len(rows), np.int8),
                                 synthetic_draw(tasks, laws)(rows))
     return cells, table
+
+
+#: a precision campaign of three sizes, seven energies in the fit range (tests/precision)
+PRECISION_SPEC = """\
+name: prec
+seed: 5
+grid:
+  N_G: [64, 128, 256]
+  E_G: {log_range: [1.0e-12, 1.0e-4], per_decade: 1}
+precision:
+  target: {A_G_star_E: 1.5e-3, psi_O_star: 3.0e-3}
+  pilot: 3
+  max_seeds: 40
+observables: [scalars]
+"""
+
+#: the same grid with five sizes and one target: ``FIVE_SIZES.format(name=..., seed=..., max_seeds=...)``
+FIVE_SIZES = """\
+name: {name}
+seed: {seed}
+grid:
+  N_G: [64, 128, 256, 512, 1024]
+  E_G: {{log_range: [1.0e-12, 1.0e-4], per_decade: 1}}
+precision:
+  target: {{A_G_star_E: 1.0e-3}}
+  pilot: 3
+  max_seeds: {max_seeds}
+observables: [scalars]
+"""

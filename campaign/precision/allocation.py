@@ -336,21 +336,20 @@ def decide(k: int, table, cells: Cells, state: State, settings, previous=None) -
         return decision("max_seeds", f"max_seeds ({m}) in every cell of the fit range; " + _errors_text(targets),
                         projected=projected)
     met_cost = plan.cost_to_met if np.isfinite(plan.cost_to_met) else math.inf
-    left = room
-    main = plan.prefix(min(ROUND_GROWTH * spent_all, left / (1.0 + EARLY_SHARE),
+    main = plan.prefix(min(ROUND_GROWTH * spent_all, room / (1.0 + EARLY_SHARE),
                            max(met_cost, MIN_ROUND * spent_all)), given)
     if np.array_equal(main, given) and plan.steps_total:  # at least the plan's first step
-        if plan.costs[0] > left:
+        if plan.costs[0] > room:
             return decision("budget", f"the budget left ({room / 3600:.3g} core-hours) does not pay for the next "
                             "step; " + _errors_text(targets) + _cost_text(to_targets), projected=projected,
                             to_targets=to_targets)
         main = plan.prefix(plan.costs[0], given)
     main_spend = float(np.sum((main - given) * cost))
-    early = np.maximum(plan.prefix(main_spend + min(EARLY_SHARE * main_spend, left - main_spend), given),
+    early = np.maximum(plan.prefix(main_spend + min(EARLY_SHARE * main_spend, room - main_spend), given),
                        main)
     if np.array_equal(early, main):  # at least the plan's next step, where the budget allows
         after = plan.costs[plan.costs > main_spend * (1 + 1e-12)]
-        if len(after) and after[0] <= left:
+        if len(after) and after[0] <= room:
             early = np.maximum(plan.prefix(after[0], given), main)
     round_cost = float(np.sum((early - given) * cost))
     msg = (f"round {k}: {int(np.sum(main - given))} seeds in {int(np.count_nonzero(main > given))} cells "

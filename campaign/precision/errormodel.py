@@ -100,6 +100,19 @@ def table_cells(table) -> Cells:
                  first=np.arange(len(order)), seeds=1)
 
 
+def cell_counts(table, cells: Cells) -> np.ndarray:
+    """The packings each of ``cells`` holds in a reduction ``table`` (its grid's ``n_done``; 0 for a
+    cell the reduction does not have)."""
+    n = np.zeros(cells.C)
+    index = cells.index()
+    g = table.grid
+    for gc in range(g.C):
+        c = index.get((str(g.cv[gc]), int(g.cN[gc]), float(g.cE[gc])))
+        if c is not None:
+            n[c] = g.n_done[gc]
+    return n
+
+
 @dataclass
 class LawModel:
     """One variant's law ``y = a_N + c_N x^beta``, linearised about a fit (the module docstring):

@@ -21,7 +21,7 @@ from campaign.results.finished import finished_from_arrays
 from campaign.results.reduce import Settings, reduce_table
 from campaign.precision.allocation import (State, Target, fill_costs, plan_greedy, smooth_costs, decide, pilot,
                                          seconds_per_disk_force_evaluation)
-from campaign.precision.errormodel import Cells, LawModel, campaign_cells, param_index as _k
+from campaign.precision.errormodel import Cells, LawModel, campaign_cells, cell_counts, param_index as _k
 from campaign.storage.layout import DONE, PENDING
 
 #: round 0 of a campaign the prior holds (``first_round``): the pilot and this share of the prior's plan
@@ -48,13 +48,7 @@ def cell_state(cells: Cells, table, rows, status, fe, given, disk_seconds) -> St
     C = cells.C
     cell_of = (np.asarray(rows) // cells.seeds).astype(np.int64)
     final = np.bincount(cell_of[status != PENDING], minlength=C)
-    index = cells.index()
-    usable = np.zeros(C)
-    g = table.grid
-    for gc in range(g.C):
-        c = index.get((str(g.cv[gc]), int(g.cN[gc]), float(g.cE[gc])))
-        if c is not None:
-            usable[c] = g.n_done[gc]
+    usable = cell_counts(table, cells)
     unit = np.asarray(fe, float) * cells.N[cell_of] * disk_seconds
     ok = (status == DONE) & np.isfinite(unit) & (unit > 0)
     n_ok = np.bincount(cell_of[ok], minlength=C)

@@ -10,22 +10,10 @@ import pytest
 from campaign.precision import errormodel as M
 from campaign.results import fits
 
-from helpers import uniform_reduced
+from helpers import FIVE_SIZES, PRECISION_SPEC, uniform_reduced
 
 SIZES = np.array([64, 128, 256, 512, 1024], float)
-#: three sizes, seven energies in the fit range (tests/precision/test_precision.py's campaign)
-SPEC = """\
-name: prec
-seed: 5
-grid:
-  N_G: [64, 128, 256]
-  E_G: {log_range: [1.0e-12, 1.0e-4], per_decade: 1}
-precision:
-  target: {A_G_star_E: 1.5e-3, psi_O_star: 3.0e-3}
-  pilot: 3
-  max_seeds: 40
-observables: [scalars]
-"""
+SPEC = PRECISION_SPEC
 
 
 def _akaike_weight(z):
@@ -81,24 +69,9 @@ def test_the_model_holds_the_choice_on_a_campaign_of_known_laws():
     model's error of A_G_star_E (the line's and the parabola's Fisher variances, mixed at the
     reducer's weight) is the reducer's bootstrap error within 20%; the line's alone falls short of it,
     as the rounds' model did before it held the choice."""
-    spec = """\
-name: curved
-seed: 9
-grid:
-  N_G: [64, 128, 256, 512, 1024]
-  E_G: {log_range: [1.0e-12, 1.0e-4], per_decade: 1}
-precision:
-  target: {A_G_star_E: 1.0e-3}
-  pilot: 3
-  max_seeds: 30
-observables: [scalars]
-"""
+    spec = FIVE_SIZES.format(name="curved", seed=9, max_seeds=30)
     cells, table = uniform_reduced(spec, 30, {"a_N2": 20.0})
-    n = np.zeros(cells.C)
-    index = cells.index()
-    g = table.grid
-    for gc in range(g.C):
-        n[index[(str(g.cv[gc]), int(g.cN[gc]), float(g.cE[gc]))]] = g.n_done[gc]
+    n = M.cell_counts(table, cells)
     law = M.build_law(table, cells, "default", "A_G", "E_G")
     assert law.ok and law.curved, law.why
     st = law.state(n)
@@ -162,18 +135,7 @@ def test_a_size_the_reducer_leaves_out_has_an_intercept_of_its_own(dropped):
     the joint Fisher variance of a_inf is then exactly that of the two-stage estimate, the generalised
     least-squares line (and parabola) through the kept sizes' intercepts with their covariance from
     the fit with a free intercept per size (a slow reference)."""
-    spec = """\
-name: five
-seed: 3
-grid:
-  N_G: [64, 128, 256, 512, 1024]
-  E_G: {log_range: [1.0e-12, 1.0e-4], per_decade: 1}
-precision:
-  target: {A_G_star_E: 1.0e-3}
-  pilot: 3
-  max_seeds: 12
-observables: [scalars]
-"""
+    spec = FIVE_SIZES.format(name="five", seed=3, max_seeds=12)
     cells, table = uniform_reduced(spec, 12)
     law = M.build_law(table, cells, "default", "A_G", "E_G")
     G = len(law.sizes)

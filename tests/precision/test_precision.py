@@ -20,7 +20,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from helpers import assert_same_contents, store_contents, synthetic_draw, uniform_reduced
+from helpers import PRECISION_SPEC, assert_same_contents, store_contents, synthetic_draw, uniform_reduced
 
 from campaign.plan.parse import parse_spec
 from campaign.plan.targets import FITS
@@ -36,18 +36,7 @@ ROOT = Path(__file__).resolve().parents[2]
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
 
 #: three sizes, seven energies in the fit range (1e-12 .. 1e-6) and two above it; four rounds or so
-SPEC = """\
-name: prec
-seed: 5
-grid:
-  N_G: [64, 128, 256]
-  E_G: {log_range: [1.0e-12, 1.0e-4], per_decade: 1}
-precision:
-  target: {A_G_star_E: 1.5e-3, psi_O_star: 3.0e-3}
-  pilot: 3
-  max_seeds: 40
-observables: [scalars]
-"""
+SPEC = PRECISION_SPEC
 
 
 def _env(**extra):
@@ -112,11 +101,7 @@ def test_the_model_of_the_errors_matches_the_bootstrap():
     row is the reducer's bootstrap error within 20% (the bootstrap's own scatter is ~5%); an intercept's
     with the reducer's sqrt(chi^2/dof) of its 1/N_G line, when above 1."""
     cells, table = uniform_reduced(SPEC.replace("max_seeds: 40", "max_seeds: 60"), 60)
-    n = np.zeros(cells.C)
-    index = cells.index()
-    g = table.grid
-    for gc in range(g.C):
-        n[index[(str(g.cv[gc]), int(g.cN[gc]), float(g.cE[gc]))]] = g.n_done[gc]
+    n = M.cell_counts(table, cells)
     row = table.extrapolated["default"]
     checked = 0
     for quantity, absc, ikey, bkey in FITS:
