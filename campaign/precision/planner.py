@@ -42,6 +42,27 @@ def reduce_rows(cells: Cells, attrs, rows, status, scalars, ids=None, settings=N
     return reduce_table(fin, settings or Settings(), per_size=False)
 
 
+def reduce_store_rows(path, pick, settings=None):
+    """The reducer's table (``reduce_table``, the default settings unless ``settings``) of some task rows
+    of a finished store: ``pick(columns)`` gives a bool mask over its rows from the task table's columns
+    (``status``, ``seed``, ``N``, ``E``: the first seeds of a uniform store, the rows a decision of the
+    rounds reduced). Only the scalars a decision reads (``DECISION_SCALARS``), no histograms: for the
+    experiments that reduce a store's packings again (benchmarks/bench_precision.py,
+    experiments/reduce_again.py)."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        cols = {k: f[f"tasks/{k}"][:] for k in ("status", "seed", "N", "E")}
+        variant, ids = [x.decode() for x in f["tasks/variant"][:]], [x.decode() for x in f["tasks/id"][:]]
+        scalars = {k: f[f"scalars/{k}"][:] for k in DECISION_SCALARS if k in f["scalars"]}
+        attrs = {k: f.attrs[k] for k in ("schema", "spec_yaml", "name", "spec_hash") if k in f.attrs}
+    r = np.flatnonzero(np.asarray(pick(cols), bool))
+    fin = finished_from_arrays(attrs=attrs, variant=[variant[i] for i in r], N=cols["N"][r], E=cols["E"][r],
+                               ids=[ids[i] for i in r], seed=cols["seed"][r], status=cols["status"][r],
+                               scalars={k: x[r] for k, x in scalars.items()})
+    return reduce_table(fin, settings or Settings(), per_size=False)
+
+
 def cell_state(cells: Cells, table, rows, status, fe, given, disk_seconds) -> State:
     """The per-cell counts and costs of a decision (``State``): the task rows reduced (``rows``,
     their ``status`` and force evaluations ``fe``) and the seeds given out per cell."""

@@ -186,6 +186,31 @@ def test_a_decision_is_the_reduction_of_its_rounds(reference, tmp_path):
         assert row[t["key"]] == t["value"], t["key"]
 
 
+def test_a_store_reduced_again_in_parts(reference):
+    """``planner.reduce_store_rows`` (the experiments' and bench_precision's reductions of a store's parts):
+    each decision's rows give that decision's values and errors bit for bit, and the first n seeds of
+    every cell are n packings a cell where the rounds gave out that many."""
+    out, _ = reference
+    recs = _records(out)
+    spec = parse_spec(SPEC)
+    cells = M.campaign_cells(spec, expand(spec))
+    for k in range(1, len(recs)):
+        given = cells.tasks_of(recs[k - 1]["allocated"])
+        table = P.reduce_store_rows(out, lambda t: given[:len(t["status"])] & (t["status"] == 1))
+        row = table.extrapolated["default"]
+        for t in recs[k]["targets"]:
+            got = (row[f"{t['key']}_err"], row[t["key"]])
+            if t["error"] is None:  # the decision had no value
+                assert not np.isfinite(got[0]), (k, t["key"], got)
+            else:
+                assert got == (t["error"], t["value"]), (k, t["key"])
+    assert any(t["error"] is not None for t in recs[-1]["targets"])
+    n = 3
+    table = P.reduce_store_rows(out, lambda t: t["seed"] < n)
+    held = np.minimum(np.asarray(recs[-1]["early"]), n)
+    assert np.array_equal(M.cell_counts(table, cells), held)
+
+
 @pytest.mark.slow
 def test_the_same_store_from_two_local_workers(reference, tmp_path):
     out, _ = reference
