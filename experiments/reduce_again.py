@@ -51,21 +51,15 @@ def decisions(path):
     cells = errormodel.campaign_cells(spec, expand(spec))
     print(header())
     for r in recs[:-1]:
-        given = cells.tasks_of(np.asarray(r["allocated"]))
-
-        def pick(t, given=given):
-            m = np.zeros(len(t["status"]), bool)
-            m[:min(len(m), len(given))] = given[:len(m)]
-            return m & (t["status"] == 1)
-
-        table = planner.reduce_store_rows(path, pick)
+        given = cells.tasks_of(np.asarray(r["allocated"]))  # a store's rows are its spec's tasks
+        table = planner.reduce_store_rows(path, lambda t, given=given: given)
         print(line(f"decision {r['round'] + 1}", table, int(table.grid.n_done.sum())))
 
 
 def seeds(path, counts):
     print(header())
     for n in counts:
-        table = planner.reduce_store_rows(path, lambda t: (t["seed"] < n) & (t["status"] == 1))
+        table = planner.reduce_store_rows(path, lambda t: t["seed"] < n)
         print(line(f"the first {n} seeds a cell", table, int(table.grid.n_done.sum())))
 
 

@@ -43,8 +43,9 @@ def reduce_rows(cells: Cells, attrs, rows, status, scalars, ids=None, settings=N
 
 
 def reduce_store_rows(path, pick, settings=None):
-    """The reducer's table (``reduce_table``, the default settings unless ``settings``) of some task rows
-    of a finished store: ``pick(columns)`` gives a bool mask over its rows from the task table's columns
+    """The reducer's table (``reduce_table``, the default settings unless ``settings``) of the finished
+    packings among some task rows of a store: ``pick(columns)`` gives a bool mask over its rows from the
+    task table's columns
     (``status``, ``seed``, ``N``, ``E``: the first seeds of a uniform store, the rows a decision of the
     rounds reduced). Only the scalars a decision reads (``DECISION_SCALARS``), no histograms: for the
     experiments that reduce a store's packings again (benchmarks/bench_precision.py,

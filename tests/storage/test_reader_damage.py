@@ -184,11 +184,8 @@ def chunk_index_node(data, chunks):
     raise AssertionError("no chunk-index node lists those chunks")
 
 
-def test_a_chunk_listed_a_block_off_its_place_is_refused(tmp_path, monkeypatch):
-    """The quick suite's damage: a small store (blocks of 4 rows) whose chunk index lists one chunk of
-    scalars/A_G a block off its place (rows 16-19 where 20-23 are). The readers of that column,
-    `reduce` and `export`, refuse the store: exit 2, the paragraph naming scalars/A_G and `campaign
-    verify`; `status` reads what it read before; `verify` names the column (exit 1)."""
+def _plain_store(tmp_path, monkeypatch):
+    """The "plain" spec's store (blocks of ``BLOCK`` rows, no failed task), run inline into tmp_path."""
     import campaign.storage.store
 
     monkeypatch.setattr(campaign.storage.store, "BLOCK_ROWS", BLOCK)
@@ -198,6 +195,15 @@ def test_a_chunk_listed_a_block_off_its_place_is_refused(tmp_path, monkeypatch):
     code, _, err = _cli("run", tmp_path / "s.yaml", "--out", ref, "--launcher", "inline", "--task-function",
                         "synthetic", "--quiet")
     assert code == 0, err
+    return ref
+
+
+def test_a_chunk_listed_a_block_off_its_place_is_refused(tmp_path, monkeypatch):
+    """The quick suite's damage: a small store (blocks of 4 rows) whose chunk index lists one chunk of
+    scalars/A_G a block off its place (rows 16-19 where 20-23 are). The readers of that column,
+    `reduce` and `export`, refuse the store: exit 2, the paragraph naming scalars/A_G and `campaign
+    verify`; `status` reads what it read before; `verify` names the column (exit 1)."""
+    ref = _plain_store(tmp_path, monkeypatch)
     clean = _readers(ref, tmp_path / "clean", None)
     assert all(code == 0 for code, _, _ in clean.values()), clean
     with h5py.File(ref, "r") as f:
@@ -363,16 +369,9 @@ def test_damage_seen_while_a_run_writes_is_read_again(tmp_path, monkeypatch):
     import threading
 
     import campaign.storage.reader
-    import campaign.storage.store
     from campaign.storage.progress import Progress
 
-    monkeypatch.setattr(campaign.storage.store, "BLOCK_ROWS", BLOCK)
-    monkeypatch.setenv("CAMPAIGN_SYNTHETIC_FAIL", "none")
-    (tmp_path / "s.yaml").write_text(SPECS["plain"])
-    ref = tmp_path / "ref.h5"
-    code, _, err = _cli("run", tmp_path / "s.yaml", "--out", ref, "--launcher", "inline", "--task-function",
-                        "synthetic", "--quiet")
-    assert code == 0, err
+    ref = _plain_store(tmp_path, monkeypatch)
     clean = _cli("status", ref, "--json")
     with h5py.File(ref, "r") as f:
         ds = f["checksums/tasks.wall"]
